@@ -1,0 +1,8 @@
+# AniDress pipeline. Stages live in workflow/rules/*.smk; see README.md and DESIGN.md.
+include: "workflow/rules/common.smk"
+include: "workflow/rules/synth.smk"
+
+
+rule all:
+    input:
+        get_final_outputs(),

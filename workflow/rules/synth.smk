@@ -1,0 +1,20 @@
+# Synthetic scenes with full ground truth (DESIGN.md §5).
+
+
+rule synth:
+    output:
+        directory("data/{scene}"),
+    log:
+        "logs/{scene}/synth.log",
+    benchmark:
+        "benchmarks/runs/{scene}/synth.tsv"
+    params:
+        scene=scene_cfg,
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    wildcard_constraints:
+        scene="|".join(SYNTHETIC_SCENES) or "^$",
+    script:
+        "../scripts/synth.py"
