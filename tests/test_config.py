@@ -1,0 +1,53 @@
+from pathlib import Path
+
+import pytest
+import yaml
+
+from anidress_core.config import ConfigError, default_schema_path, load_config, validate_config
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = yaml.safe_load(default_schema_path().read_text())
+
+
+def test_repo_config_is_valid_and_complete():
+    cfg = load_config(REPO / "config" / "config.yaml")
+    tight = cfg["scenes"]["tight"]
+    assert tight["cameras"]["count"] >= 12 and tight["cameras"]["train"] == 8
+    assert len(tight["sequences"]) >= 2
+
+
+def test_nested_defaults_are_filled():
+    cfg = validate_config({"run_scenes": ["s"], "scenes": {"s": {}}}, SCHEMA)
+    s = cfg["scenes"]["s"]
+    assert s["cameras"]["count"] == 12 and s["cameras"]["vfov_deg"] == 38.0
+    assert s["render"]["texture_size"] == 1024 and s["body"]["model"] == "mannequin"
+    assert s["sequences"][0]["role"] == "train"
+    # defaults inside list items are filled too
+    cfg = validate_config({"run_scenes": ["s"], "scenes": {"s": {"sequences": [{"name": "a", "motion": "walk", "frames": 3}]}}}, SCHEMA)
+    assert cfg["scenes"]["s"]["sequences"][0]["role"] == "train"
+
+
+@pytest.mark.parametrize(
+    "patch, message",
+    [
+        ({"cameras": {"count": 1}}, "cameras/count"),
+        ({"image_size": [10, 256]}, "image_size/0"),
+        ({"sequences": [{"name": "a", "motion": "moonwalk", "frames": 5}]}, "sequences/0/motion"),
+        ({"cameras": {"count": 8, "train": 8}}, "train (8) must be smaller"),
+        ({"unknown_key": 1}, "unknown_key"),
+    ],
+)
+def test_errors_name_the_key(patch, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        validate_config({"run_scenes": ["s"], "scenes": {"s": patch}}, SCHEMA)
+
+
+def test_unknown_run_scene_and_bad_file(tmp_path):
+    with pytest.raises(ConfigError, match="not a key of scenes"):
+        validate_config({"run_scenes": ["nope"], "scenes": {"s": {}}}, SCHEMA)
+    bad = tmp_path / "c.yaml"
+    bad.write_text("run_scenes: [s\n")
+    with pytest.raises(ConfigError, match="c.yaml"):
+        load_config(bad)
+    with pytest.raises(FileNotFoundError, match="missing.yaml"):
+        load_config(tmp_path / "missing.yaml")
