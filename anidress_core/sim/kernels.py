@@ -1,0 +1,281 @@
+"""Warp kernels of the XPBD cloth solver (see :mod:`anidress_core.sim.solver`).
+
+XPBD: Macklin, Müller, Chentanez, "XPBD: Position-Based Simulation of Compliant
+Constrained Dynamics", MIG 2016 (eq. 18: dlambda = (-C - alpha~ lambda) /
+(sum_i w_i |grad_i C|^2 + alpha~), alpha~ = alpha / dt^2).
+Long-range attachments: Kim, Chentanez, Müller, "Long Range Attachments", SCA 2012.
+
+Every kernel is one thread per particle, per constraint or per body vertex; the
+distance-constraint kernel is launched once per colour group (constraints of one
+colour share no particle, so the Gauss–Seidel update within a group is race free).
+"""
+from __future__ import annotations
+
+import warp as wp
+
+wp.config.quiet = True
+
+
+@wp.kernel
+def skin_points(
+    rest: wp.array(dtype=wp.vec3),  # (N,) rest positions
+    bone: wp.array2d(dtype=wp.int32),  # (N, K) bone index per influence
+    weight: wp.array2d(dtype=wp.float32),  # (N, K) weights (0 for padding)
+    transforms: wp.array(dtype=wp.mat44),  # (S * 24,) rest -> world per substep
+    offset: int,  # s * 24: first transform of this substep
+    index: wp.array(dtype=wp.int32),  # (N,) where each result goes in ``out``
+    out: wp.array(dtype=wp.vec3),  # (V,) skinned positions, scattered
+):
+    """out[index[n]] = sum_k w[n, k] (M[bone[n, k]] rest[n]) (linear blend skinning)."""
+    n = wp.tid()
+    p = rest[n]
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(bone.shape[1]):
+        wk = weight[n, k]
+        if wk != 0.0:
+            acc += wk * wp.transform_point(transforms[offset + bone[n, k]], p)
+    out[index[n]] = acc
+
+
+@wp.kernel
+def skin_body(
+    rest: wp.array(dtype=wp.vec3),
+    bone: wp.array2d(dtype=wp.int32),
+    weight: wp.array2d(dtype=wp.float32),
+    transforms: wp.array(dtype=wp.mat44),
+    offset: int,
+    inv_dt: float,
+    points: wp.array(dtype=wp.vec3),  # (Vb,) in: previous substep, out: this substep
+    velocities: wp.array(dtype=wp.vec3),  # (Vb,) out: (x_new - x_old) / dt
+):
+    """Skin the body mesh for one substep and write its per-vertex velocity."""
+    n = wp.tid()
+    p = rest[n]
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(bone.shape[1]):
+        wk = weight[n, k]
+        if wk != 0.0:
+            acc += wk * wp.transform_point(transforms[offset + bone[n, k]], p)
+    velocities[n] = (acc - points[n]) * inv_dt
+    points[n] = acc
+
+
+@wp.kernel
+def integrate(
+    x: wp.array(dtype=wp.vec3),  # (V,) in: positions at substep start; out: predicted
+    v: wp.array(dtype=wp.vec3),  # (V,) velocities
+    x_prev: wp.array(dtype=wp.vec3),  # (V,) out: positions at substep start
+    inv_mass: wp.array(dtype=wp.float32),  # (V,) 0 for band (kinematic) particles
+    band_target: wp.array(dtype=wp.vec3),  # (V,) skinned target (used where inv_mass == 0)
+    gravity: wp.vec3,
+    damping: float,  # velocity kept per substep: exp(-damping * dt)
+    dt: float,
+):
+    """Symplectic Euler prediction; kinematic particles jump to their skinned target."""
+    i = wp.tid()
+    x0 = x[i]
+    x_prev[i] = x0
+    if inv_mass[i] == 0.0:
+        x[i] = band_target[i]
+        v[i] = (band_target[i] - x0) / dt
+    else:
+        vi = (v[i] + gravity * dt) * damping
+        v[i] = vi
+        x[i] = x0 + vi * dt
+
+
+@wp.kernel
+def collide_query(
+    mesh: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    radius: float,
+    contact_point: wp.array(dtype=wp.vec3),  # (V,) out: closest body point
+    contact_normal: wp.array(dtype=wp.vec3),  # (V,) out: outward normal
+    contact_vel: wp.array(dtype=wp.vec3),  # (V,) out: skin velocity at the closest point
+    contact_flag: wp.array(dtype=wp.int32),  # (V,) out: 1 if a contact is active
+):
+    """Closest point on the (already skinned, refit) body within ``radius`` of x.
+
+    A particle found inside the body (a fast limb swept over it during the substep)
+    gets the face normal at its closest point, so the contact projection moves it back
+    out through the nearest surface and friction carries it with the skin velocity
+    (continuous handling at substep resolution: the body moves at most
+    |v_skin| * dt per substep, far less than ``radius`` at the default substep).
+    """
+    i = wp.tid()
+    contact_flag[i] = 0
+    if inv_mass[i] == 0.0:
+        return
+    p = x[i]
+    q = wp.mesh_query_point_sign_normal(mesh, p, radius)
+    if not q.result:
+        return
+    cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    d = p - cp
+    dist = wp.length(d)
+    # Outward normal: from the surface to the particle when outside, the face normal
+    # when inside or touching.
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    if q.sign > 0.0 and dist > 1.0e-7:
+        n = d / dist
+    contact_point[i] = cp
+    contact_normal[i] = n
+    contact_vel[i] = wp.mesh_eval_velocity(mesh, q.face, q.u, q.v)
+    contact_flag[i] = 1
+
+
+@wp.kernel
+def solve_distance(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    ci: wp.array(dtype=wp.int32),  # (C,) first particle, constraints sorted by colour
+    cj: wp.array(dtype=wp.int32),  # (C,) second particle
+    rest: wp.array(dtype=wp.float32),  # (C,) rest length
+    compliance: wp.array(dtype=wp.float32),  # (C,) XPBD compliance alpha
+    lam: wp.array(dtype=wp.float32),  # (C,) Lagrange multipliers, reset each substep
+    start: int,  # first constraint of this colour group
+    inv_dt2: float,
+):
+    """XPBD distance constraint C = |x_i - x_j| - rest (stretch edges and bending cross-edges)."""
+    c = start + wp.tid()
+    i = ci[c]
+    j = cj[c]
+    wi = inv_mass[i]
+    wj = inv_mass[j]
+    w = wi + wj
+    if w == 0.0:
+        return
+    d = x[i] - x[j]
+    L = wp.length(d)
+    if L < 1.0e-9:
+        return
+    n = d / L
+    C = L - rest[c]
+    at = compliance[c] * inv_dt2
+    dl = (-C - at * lam[c]) / (w + at)
+    lam[c] = lam[c] + dl
+    x[i] = x[i] + wi * dl * n
+    x[j] = x[j] - wj * dl * n
+
+
+@wp.kernel
+def solve_attachments(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    anchor: wp.array(dtype=wp.int32),  # (V,) nearest band particle (graph distance)
+    max_dist: wp.array(dtype=wp.float32),  # (V,) rest graph distance to it
+):
+    """Long-range attachment: |x_i - x_anchor| <= max_dist (unilateral, band is kinematic)."""
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return
+    a = anchor[i]
+    if a < 0:
+        return
+    d = x[i] - x[a]
+    L = wp.length(d)
+    m = max_dist[i]
+    if L > m:
+        x[i] = x[a] + d * (m / L)
+
+
+@wp.kernel
+def solve_contacts(
+    x: wp.array(dtype=wp.vec3),
+    contact_point: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_flag: wp.array(dtype=wp.int32),
+    thickness: float,
+):
+    """Push a particle out to ``thickness`` above the tangent plane of its contact."""
+    i = wp.tid()
+    if contact_flag[i] == 0:
+        return
+    n = contact_normal[i]
+    s = wp.dot(x[i] - contact_point[i], n) - thickness
+    if s < 0.0:
+        x[i] = x[i] - s * n
+
+
+@wp.kernel
+def finalize(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    contact_point: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_vel: wp.array(dtype=wp.vec3),
+    contact_flag: wp.array(dtype=wp.int32),
+    thickness: float,
+    friction: float,
+    dt: float,
+):
+    """Final contact push-out, Coulomb friction relative to the skin, new velocities.
+
+    Friction (positional, Macklin et al. 2014 "Unified particle physics", §6.1): the
+    tangential displacement relative to the skin's, dx_t, is removed entirely when
+    |dx_t| < mu * depth (static) and shortened by mu * depth otherwise (kinetic), where
+    depth is this push-out's normal correction.
+    """
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return
+    p = x[i]
+    if contact_flag[i] != 0:
+        n = contact_normal[i]
+        s = wp.dot(p - contact_point[i], n) - thickness
+        if s < 0.0:
+            p = p - s * n
+            depth = -s
+        else:
+            depth = 0.0
+        # Contacts within a small band above the shell also feel friction (resting cloth).
+        if s < 0.25 * thickness:
+            rel = (p - x_prev[i]) - contact_vel[i] * dt
+            rel_t = rel - wp.dot(rel, n) * n
+            lt = wp.length(rel_t)
+            lim = friction * wp.max(depth, 0.05 * thickness)
+            if lt > 0.0:
+                if lt <= lim:
+                    p = p - rel_t
+                else:
+                    p = p - rel_t * (lim / lt)
+        x[i] = p
+    v[i] = (p - x_prev[i]) / dt
+
+
+@wp.kernel
+def signed_distance(
+    mesh: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    out: wp.array(dtype=wp.float32),  # (N,) signed distance, < 0 inside; max_dist if farther
+):
+    """Signed distance of points to a closed mesh (sign by the winding number)."""
+    i = wp.tid()
+    q = wp.mesh_query_point_sign_winding_number(mesh, x[i], max_dist)
+    if not q.result:
+        out[i] = max_dist
+        return
+    cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    out[i] = q.sign * wp.length(x[i] - cp)
+
+
+@wp.kernel
+def signed_distance_fast(
+    mesh: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    out: wp.array(dtype=wp.float32),
+):
+    """As :func:`signed_distance` with the cheaper normal-based sign (solver monitoring)."""
+    i = wp.tid()
+    q = wp.mesh_query_point_sign_normal(mesh, x[i], max_dist)
+    if not q.result:
+        out[i] = max_dist
+        return
+    cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    out[i] = q.sign * wp.length(x[i] - cp)
