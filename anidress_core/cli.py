@@ -27,6 +27,38 @@ def _cmd_synth(args: argparse.Namespace) -> None:
     print(out)
 
 
+def _cmd_template(args: argparse.Namespace) -> None:
+    from .stages.scene import load_body, read_scene
+    from .stages.template import run_template
+
+    scene_dir = Path(args.scene_dir)
+    info = read_scene(scene_dir)
+    src = args.template or (scene_dir / info["garment_template"] if info.get("garment_template") else None)
+    kind = args.kind or info.get("garment_kind")
+    if kind is None:
+        raise ValueError(f"{scene_dir / 'scene.yaml'}: no garment_kind; pass --kind skirt|dress")
+    out = Path(args.out)
+    run_template(src, kind, load_body(scene_dir, info), args.vertices, out / "template.ply", out / "template.npz")
+    print(out / "template.npz")
+
+
+def _cmd_motion(args: argparse.Namespace) -> None:
+    from .config import load_config
+    from .stages.simulate import run_motion
+
+    run_motion(args.name, args.scene_dir, load_config(args.config)["simulate"], args.out)
+    print(args.out)
+
+
+def _cmd_simulate(args: argparse.Namespace) -> None:
+    from .config import load_config
+    from .stages.simulate import run_simulate
+
+    cloth = load_config(args.config)["simulate"]["cloth"]
+    run_simulate(args.template, args.motion, args.scene_dir, cloth, args.out, progress=not args.quiet)
+    print(args.out)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="anidress",
@@ -43,6 +75,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--threads", type=int, default=2, help="writer threads (default: %(default)s)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_synth)
+
+    s = sub.add_parser("template", help="clean, remesh and attach a garment template (template.ply/.npz)")
+    s.add_argument("scene_dir", help="data/<scene> (scene.yaml, body model, garment/template.obj)")
+    s.add_argument("--template", help="garment mesh (default: the scene's garment/template.obj; "
+                                      "none: the procedural garment of --kind)")
+    s.add_argument("--kind", choices=["skirt", "dress"], help="garment kind (default: from scene.yaml)")
+    s.add_argument("--vertices", type=int, default=3000, help="target vertex count (default: %(default)s)")
+    s.add_argument("-o", "--out", required=True, help="output folder")
+    s.set_defaults(func=_cmd_template)
+
+    s = sub.add_parser("motion", help="write a body motion to simulate (seq-<sequence>, lib-<name>, amass-<stem>)")
+    s.add_argument("name")
+    s.add_argument("scene_dir")
+    s.add_argument("--config", default="config/config.yaml")
+    s.add_argument("-o", "--out", required=True, help="output .npz")
+    s.set_defaults(func=_cmd_motion)
+
+    s = sub.add_parser("simulate", help="simulate the garment template on a body motion (sim/<motion>.npz)")
+    s.add_argument("template", help="template.npz from `anidress template`")
+    s.add_argument("motion", help="motion .npz from `anidress motion`")
+    s.add_argument("scene_dir", help="data/<scene> (for its body model)")
+    s.add_argument("--config", default="config/config.yaml", help="cloth parameters: simulate/cloth")
+    s.add_argument("-o", "--out", required=True, help="output .npz")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_simulate)
     return p
 
 

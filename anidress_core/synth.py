@@ -383,3 +383,36 @@ def forward_flow(prev: raster.Fragments, verts_next: Tensor, faces: Tensor, cams
     flow = torch.where(hit[..., None], flow, torch.zeros_like(flow))
     valid = torch.where(hit, visible, ~torch.isfinite(depth_next))
     return FlowGT(flow, valid)
+
+
+# --------------------------------------------------------------------------- "predicted" normals
+
+
+def _gaussian_blur(x: Tensor, sigma: float) -> Tensor:
+    """Separable Gaussian blur of (N, Ch, H, W) with reflect padding."""
+    r = max(1, int(round(3 * sigma)))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=x.dtype) / sigma) ** 2)
+    k = k / k.sum()
+    ch = x.shape[1]
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="reflect"), k.view(1, 1, 1, -1).expand(ch, 1, 1, -1), groups=ch)
+    return F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), k.view(1, 1, -1, 1).expand(ch, 1, -1, 1), groups=ch)
+
+
+def degrade_normals(normals: Tensor, mask: Tensor, blur_px: float, noise_std: float,
+                    generator: torch.Generator | None = None) -> Tensor:
+    """Turn true normal maps into what a normal-prediction network gives (DESIGN.md §5).
+
+    normals: (C, H, W, 3) unit camera-space normals, 0 off the subject; mask:
+    (C, H, W) bool subject pixels. Fine wrinkles are lost (Gaussian blur of
+    ``blur_px`` pixels, normalised inside the mask so the background does not
+    bleed in), then per-pixel Gaussian noise of ``noise_std`` is added and the
+    result renormalised. Returns (C, H, W, 3), 0 outside the mask.
+    """
+    n = normals.permute(0, 3, 1, 2)
+    m = mask[:, None].to(n.dtype)
+    if blur_px > 0:
+        n = _gaussian_blur(n * m, blur_px) / _gaussian_blur(m, blur_px).clamp_min(1e-6)
+    if noise_std > 0:
+        n = n + noise_std * torch.randn(n.shape, generator=generator, dtype=n.dtype)
+    n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-8)
+    return (n * m).permute(0, 2, 3, 1)

@@ -127,3 +127,20 @@ def test_occlusion_is_detected():
     assert gt.valid[0][back].float().mean() > 0.5
     occl = (f0.face_id[0] >= 2)
     assert gt.flow[0][occl].abs().max() < 1e-3  # static occluder: zero flow
+
+
+def test_degraded_normals_lose_detail_but_keep_orientation():
+    gen = torch.Generator().manual_seed(0)
+    H = W = 32
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    # a wrinkled surface: normals tilting with a 4-pixel period, facing the camera (-z)
+    tilt = 0.5 * torch.sin(2 * np.pi * xs / 4.0)
+    n = torch.stack([tilt, torch.zeros_like(tilt), -torch.ones_like(tilt)], -1)
+    n = (n / n.norm(dim=-1, keepdim=True))[None].float()
+    mask = torch.zeros(1, H, W, dtype=torch.bool)
+    mask[:, 4:28, 4:28] = True
+    out = synth.degrade_normals(n * mask[..., None], mask, blur_px=2.0, noise_std=0.05, generator=gen)
+    assert torch.isfinite(out).all() and (out[~mask] == 0).all()
+    assert torch.allclose(out[mask].norm(dim=-1), torch.ones(int(mask.sum())), atol=1e-5)
+    assert out[mask][:, 0].std() < 0.5 * n[mask][:, 0].std()  # wrinkles blurred away
+    assert (out[mask][:, 2] < -0.8).all()  # still facing the camera

@@ -11,7 +11,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[2]
 
 TINY = {
-    "run_scenes": ["tiny"],
+    "run_scenes": ["tiny", "tinyskirt"],
     "scenes": {
         "tiny": {
             "synthetic": True,
@@ -23,8 +23,18 @@ TINY = {
                 {"name": "jump", "motion": "jump", "frames": 3, "role": "novel_pose"},
             ],
             "render": {"texture_size": 128, "noise_std": 0.003},
-        }
+        },
+        "tinyskirt": {
+            "synthetic": True,
+            "kind": "skirt",
+            "image_size": [48, 48],
+            "sequences": [{"name": "walk", "motion": "walk", "frames": 4, "role": "train"}],
+            "garment": {"vertices": 600, "cloth": {"settle_frames": 5}},
+            "render": {"texture_size": 128},
+        },
     },
+    "template": {"vertices": 600},
+    "simulate": {"library": ["sway"], "library_frames": 5, "cloth": {"settle_frames": 5}},
 }
 
 
@@ -61,8 +71,34 @@ def test_tiny_scene_layout(tiny_run):
         meshes = np.load(s / "gt" / "meshes.npz")
         assert meshes["body_vertices"].shape[0] == 3
     assert (tiny_run / "logs" / "tiny" / "synth.log").is_file()
-    # nothing half-written is left beside the scene
-    assert [p.name for p in (tiny_run / "data").iterdir()] == ["tiny"]
+    # nothing half-written is left beside the scenes
+    assert sorted(p.name for p in (tiny_run / "data").iterdir()) == ["tiny", "tinyskirt"]
+    # a tight-clothed scene skips the garment stages (DESIGN.md §6)
+    assert not (tiny_run / "results" / "tiny").exists()
+
+
+def test_garment_scene_template_and_simulations(tiny_run):
+    root = tiny_run / "data" / "tinyskirt"
+    scene = yaml.safe_load((root / "scene.yaml").read_text())
+    assert scene["garment_template"] == "garment/template.obj" and (root / "garment" / "template.obj").is_file()
+    labels = set()
+    from anidress_core.io.files import read_exr, read_mask
+
+    for cam in scene["cameras"]["train"]:
+        labels |= set(np.unique(read_mask(root / "walk" / "gt" / "masks" / cam / "000003.png")).tolist())
+        n = read_exr(root / "walk" / "normals" / cam / "000003.exr")  # degraded "predicted" normals
+        assert np.isfinite(n).all()
+    assert labels == {0, 1, 2}
+    meshes = np.load(root / "walk" / "gt" / "meshes.npz")
+    assert meshes["garment_vertices"].shape[:2] == (4, 600)
+    res = tiny_run / "results" / "tinyskirt"
+    tpl = np.load(res / "template.npz")
+    assert tpl["verts"].shape == (600, 3) and tpl["band"].any()
+    for motion, frames in (("seq-walk", 4), ("lib-sway", 5)):
+        sim = np.load(res / "sim" / f"{motion}.npz")
+        assert sim["frames"].shape == (frames, 600, 3) and np.isfinite(sim["frames"]).all()
+        assert sim["nan_count"].sum() == 0
+        assert (tiny_run / "logs" / "tinyskirt" / "simulate" / f"{motion}.log").is_file()
 
 
 def test_second_run_has_nothing_to_do(tiny_run):
@@ -71,15 +107,28 @@ def test_second_run_has_nothing_to_do(tiny_run):
     assert "Nothing to be done" in res.stdout + res.stderr
 
 
-def test_param_change_reruns_synth(tiny_run):
-    cfg = yaml.safe_load((tiny_run / "tiny.yaml").read_text())
-    cfg["scenes"]["tiny"]["render"]["noise_std"] = 0.01
-    alt = tiny_run / "alt"
-    alt.mkdir(exist_ok=True)
+def _planned_jobs(tiny_run, cfg) -> dict:
+    """Job counts of a dry run with a modified config: {rule: count}."""
     (tiny_run / "tiny.yaml").write_text(yaml.safe_dump(cfg))
     try:
-        res = _snakemake(tiny_run, "-n")
-        out = res.stdout + res.stderr
-        assert "synth" in out and "Nothing to be done" not in out
+        res = _snakemake(tiny_run, "-n", "--quiet", "rules")
     finally:
         (tiny_run / "tiny.yaml").write_text(yaml.safe_dump(TINY))
+    assert res.returncode == 0, res.stderr[-2000:]
+    jobs = {}
+    for line in (res.stdout + res.stderr).splitlines():
+        parts = line.split()
+        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
+            jobs[parts[0]] = int(parts[1])
+    return jobs
+
+
+def test_param_change_reruns_exactly_that_stage(tiny_run):
+    import copy
+
+    cfg = copy.deepcopy(TINY)
+    cfg["scenes"]["tiny"]["render"]["noise_std"] = 0.01
+    assert _planned_jobs(tiny_run, cfg) == {"synth": 1, "all": 1}
+    cfg = copy.deepcopy(TINY)
+    cfg["simulate"]["cloth"]["damping"] = 0.6  # reruns every simulation, nothing upstream
+    assert _planned_jobs(tiny_run, cfg) == {"simulate": 2, "all": 1}

@@ -29,6 +29,35 @@ def scene_cfg(wildcards):
     return config["scenes"][wildcards.scene]
 
 
+def has_garment(scene):
+    """Scenes with a loose garment run template/simulate; tight ones skip them (DESIGN.md §6)."""
+    return config["scenes"][scene]["kind"] != "tight"
+
+
+def sim_motion_names(scene):
+    """seq-<sequence> for each captured sequence, lib-<name> for the library, amass-<stem>."""
+    sim = config["simulate"]
+    names = ["seq-" + s["name"] for s in config["scenes"][scene]["sequences"]]
+    names += ["lib-" + m for m in sim["library"]]
+    names += ["amass-" + os.path.splitext(os.path.basename(p))[0] for p in sim["amass"]]
+    return names
+
+
+def motion_params(wildcards):
+    """Only the settings that shape this motion (a library change reruns only what it touches)."""
+    sim = config["simulate"]
+    if wildcards.motion.startswith("seq-"):
+        return {}
+    if wildcards.motion.startswith("amass-"):
+        return {"library_fps": sim["library_fps"], "amass": sim["amass"]}
+    return {"library_frames": sim["library_frames"], "library_fps": sim["library_fps"],
+            "amass": []}
+
+
 def get_final_outputs():
-    """Everything `rule all` builds: for now the scene datasets."""
-    return [f"data/{s}" for s in SCENES]
+    """Everything `rule all` builds: scene datasets, and garment simulations where there is a garment."""
+    out = [f"data/{s}" for s in SCENES]
+    for s in SCENES:
+        if has_garment(s):
+            out += expand("results/{scene}/sim/{motion}.npz", scene=s, motion=sim_motion_names(s))
+    return out

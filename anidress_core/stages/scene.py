@@ -1,0 +1,67 @@
+"""Reading a scene folder (DESIGN.md §3): scene.yaml, its body model, its sequences' motions."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from ..body.model import BodyModel, smpl_model
+from ..body.motions import Motion
+from ..io import files
+from ..io.motion import read_easymocap_smpl_dir, read_smpl_model_file
+
+__all__ = ["read_scene", "load_body", "load_sequence_motion"]
+
+
+def read_scene(scene_dir: str | os.PathLike) -> dict:
+    """Parse ``<scene_dir>/scene.yaml`` with a clear error naming the file and the key."""
+    path = Path(scene_dir) / "scene.yaml"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: scene description not found")
+    try:
+        info = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise files.ArtifactError(f"{path}: not valid YAML ({e})") from e
+    for key in ("fps", "sequences", "body_model"):
+        if key not in info:
+            raise files.ArtifactError(f"{path}: missing key {key!r}")
+    return info
+
+
+def load_body(scene_dir: str | os.PathLike, info: dict | None = None) -> BodyModel:
+    """The scene's body model: the bundled mannequin file or a SMPL model file the user owns."""
+    scene_dir = Path(scene_dir)
+    info = info or read_scene(scene_dir)
+    spec = info["body_model"]
+    path = scene_dir / spec["file"]
+    if spec.get("type") == "mannequin":
+        a, _ = files.load_npz(path, required=("v_template", "faces", "weights", "joints_rest", "parents"))
+        t = torch.from_numpy
+        return BodyModel(
+            v_template=t(a["v_template"]).float(), faces=t(a["faces"]).long(), weights=t(a["weights"]).float(),
+            joints_rest=t(a["joints_rest"]).float(), parents=t(a["parents"]).long(),
+            face_uv=t(a["face_uv"]).float() if "face_uv" in a else None,
+            vertex_part=t(a["vertex_part"]).long() if "vertex_part" in a else None,
+            part_names=tuple(str(n) for n in a.get("part_names", ())), name="mannequin",
+        )
+    if spec.get("type") == "smpl":
+        try:
+            return smpl_model(read_smpl_model_file(path))
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from e
+    raise files.ArtifactError(f"{scene_dir / 'scene.yaml'}: body_model/type must be mannequin or smpl, "
+                              f"got {spec.get('type')!r}")
+
+
+def load_sequence_motion(scene_dir: str | os.PathLike, seq: str, fps: float) -> Motion:
+    """The body motion of a captured sequence from its EasyMocap ``smpl/`` folder."""
+    d = read_easymocap_smpl_dir(Path(scene_dir) / seq / "smpl")
+    shapes = np.asarray(d["shapes"], np.float32)
+    return Motion(
+        name=seq, fps=float(fps), poses=torch.as_tensor(np.asarray(d["poses"], np.float32)),
+        Rh=torch.as_tensor(np.asarray(d["Rh"], np.float32)), Th=torch.as_tensor(np.asarray(d["Th"], np.float32)),
+        shapes=torch.as_tensor(shapes[0] if shapes.ndim == 2 else shapes),
+    )

@@ -1,0 +1,102 @@
+"""Stages `motions` and `simulate` (DESIGN.md §4).
+
+``motions``: every captured sequence of a scene (its EasyMocap ``smpl/`` folder), the
+procedural library and any configured AMASS files, each written as
+``motions/<name>.npz`` (poses (T, 72), Rh, Th (T, 3), shapes, fps).
+``simulate``: one garment simulation per motion, ``sim/<name>.npz`` holding
+``frames`` (T, V, 3) float32 and per-frame stability statistics, with the cloth
+parameters in the header.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import sim
+from ..body.motions import Motion, make_motion, resample
+from ..io import files
+from ..io.motion import read_amass_npz
+from .scene import load_body, load_sequence_motion, read_scene
+from .template import load_template
+
+__all__ = ["motion_names", "run_motion", "run_simulate", "load_motion"]
+
+log = logging.getLogger("anidress.simulate")
+
+CAPTURED, LIBRARY, AMASS = "seq-", "lib-", "amass-"
+
+
+def motion_names(scene_info: dict, sim_cfg: dict) -> list[str]:
+    """Names of the motions a scene simulates: seq-<sequence>, lib-<motion>, amass-<file stem>."""
+    names = [CAPTURED + s["name"] for s in scene_info["sequences"]]
+    names += [LIBRARY + m for m in sim_cfg["library"]]
+    names += [AMASS + Path(p).stem for p in sim_cfg["amass"]]
+    return names
+
+
+def run_motion(name: str, scene_dir: str | os.PathLike, sim_cfg: dict, out_npz: str | os.PathLike) -> Motion:
+    """Write one body motion to simulate (see :func:`motion_names` for the naming)."""
+    info = read_scene(scene_dir)
+    if name.startswith(CAPTURED):
+        m = load_sequence_motion(scene_dir, name[len(CAPTURED):], info["fps"])
+    elif name.startswith(LIBRARY):
+        m = make_motion(name[len(LIBRARY):], sim_cfg["library_frames"], sim_cfg["library_fps"], seed=0,
+                        body=load_body(scene_dir, info))
+    elif name.startswith(AMASS):
+        stem = name[len(AMASS):]
+        paths = [p for p in sim_cfg["amass"] if Path(p).stem == stem]
+        if not paths:
+            raise ValueError(f"motion {name!r}: no AMASS file with stem {stem!r} in the config")
+        d = read_amass_npz(paths[0])
+        from ..body.model import global_orient_to_rh_th
+
+        body = load_body(scene_dir, info)
+        poses = torch.as_tensor(d["poses"], dtype=torch.float32)
+        Rh, Th = global_orient_to_rh_th(poses[:, :3], torch.as_tensor(d["trans"], dtype=torch.float32),
+                                        body.joints_rest[0])
+        poses = poses.clone()
+        poses[:, :3] = 0
+        m = Motion(name=stem, fps=float(d["fps"]), poses=poses, Rh=Rh, Th=Th, shapes=torch.zeros(10))
+        m = resample(m, sim_cfg["library_fps"])
+    else:
+        raise ValueError(f"motion {name!r}: expected a name starting with {CAPTURED}, {LIBRARY} or {AMASS}")
+    files.save_npz(out_npz, {"poses": m.poses.numpy(), "Rh": m.Rh.numpy(), "Th": m.Th.numpy(),
+                             "shapes": m.shapes.numpy(), "fps": np.float64(m.fps)},
+                   config=sim_cfg, meta={"name": name, "frames": int(m.poses.shape[0])})
+    return m
+
+
+def load_motion(path: str | os.PathLike) -> Motion:
+    a, h = files.load_npz(path, required=("poses", "Rh", "Th", "shapes", "fps"))
+    t = lambda k: torch.from_numpy(a[k]).float()  # noqa: E731
+    return Motion(name=h.get("meta", {}).get("name", Path(path).stem), fps=float(a["fps"]), poses=t("poses"),
+                  Rh=t("Rh"), Th=t("Th"), shapes=t("shapes"))
+
+
+def run_simulate(template_npz: str | os.PathLike, motion_npz: str | os.PathLike, scene_dir: str | os.PathLike,
+                 cloth_cfg: dict, out_npz: str | os.PathLike, progress: bool = True) -> sim.SimResult:
+    """Simulate the scene's garment template on one body motion and write ``sim/<motion>.npz``."""
+    tpl = load_template(template_npz)
+    motion = load_motion(motion_npz)
+    body = load_body(scene_dir)
+    posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
+    params = sim.ClothParams(**cloth_cfg)
+    res = sim.simulate(tpl.verts, tpl.faces, tpl.band, tpl.body_weights, body.v_template, body.faces, body.weights,
+                       posed.transforms, motion.fps, params, progress=progress)
+    st = res.stats
+    log.info("%s: %d frames, %d vertices, max stretch %.3f (p99 %.3f), max penetration %.1f mm, NaN %d, "
+             "%d recoveries, %.1f s", motion.name, res.frames.shape[0], res.frames.shape[1],
+             float(st.max_stretch.max()), float(st.p99_stretch.max()), 1e3 * float(st.max_penetration_m.max()),
+             int(st.nan_count.sum()), len(st.recoveries), st.wall_s)
+    files.save_npz(out_npz, {
+        "frames": res.frames.astype(np.float32), "faces": tpl.faces, "fps": np.float64(motion.fps),
+        "max_stretch": st.max_stretch, "p99_stretch": st.p99_stretch, "max_penetration_m": st.max_penetration_m,
+        "nan_count": st.nan_count, "substeps": st.substeps,
+    }, config=cloth_cfg, meta={"motion": motion.name, "params": dataclasses.asdict(params),
+                               "recoveries": st.recoveries, "wall_s": st.wall_s})
+    return res

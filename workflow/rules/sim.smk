@@ -1,0 +1,63 @@
+# Garment template, body motions to simulate, cloth simulation (DESIGN.md §4).
+# Only scenes with a garment (kind skirt/dress) request these; a tight-clothed scene
+# skips them (DESIGN.md §6).
+
+
+rule template:
+    input:
+        "data/{scene}",
+    output:
+        ply="results/{scene}/template.ply",
+        npz="results/{scene}/template.npz",
+    log:
+        "logs/{scene}/template.log",
+    benchmark:
+        "benchmarks/runs/{scene}/template.tsv"
+    params:
+        kind=lambda wc: config["scenes"][wc.scene]["kind"],
+        vertices=config["template"]["vertices"],
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    script:
+        "../scripts/template.py"
+
+
+rule motions:
+    input:
+        "data/{scene}",
+    output:
+        "results/{scene}/motions/{motion}.npz",
+    log:
+        "logs/{scene}/motions/{motion}.log",
+    params:
+        sim=motion_params,
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    script:
+        "../scripts/motions.py"
+
+
+rule simulate:
+    input:
+        template="results/{scene}/template.npz",
+        motion="results/{scene}/motions/{motion}.npz",
+        scene="data/{scene}",
+    output:
+        "results/{scene}/sim/{motion}.npz",
+    log:
+        "logs/{scene}/simulate/{motion}.log",
+    benchmark:
+        "benchmarks/runs/{scene}/simulate/{motion}.tsv"
+    params:
+        cloth=config["simulate"]["cloth"],
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=60,
+        gpu=0,
+    script:
+        "../scripts/simulate.py"
