@@ -41,12 +41,13 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import cv2
 import numpy as np
+
+from .files import write_text
 
 __all__ = [
     "read_intri",
@@ -67,31 +68,6 @@ _ROT_TOL = 1e-4
 
 
 # --------------------------------------------------------------------------- files
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same directory.
-
-    The temporary file is renamed onto ``path`` with :func:`os.replace` only once it is
-    complete, so readers never see a half-written file. Line ends are written as given.
-    (Private stand-in for ``anidress_core.io.files.atomic_path``.)
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        # mkstemp creates 0600 files; give the result the usual umask-based mode.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _open(path: PathLike) -> tuple[Path, cv2.FileStorage]:
@@ -309,7 +285,7 @@ class _Writer:
         self.lines.append(f"{key}: {int(value)}")
 
     def save(self) -> None:
-        _atomic_write_text(self.path, "".join(line + "\r\n" for line in self.lines))
+        write_text(self.path, "".join(line + "\r\n" for line in self.lines), newline="")
 
 
 def _check_names(cameras: Mapping[str, Any], path: Path) -> list[str]:

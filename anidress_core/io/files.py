@@ -22,6 +22,7 @@ from .. import __version__
 __all__ = [
     "ArtifactError",
     "atomic_path",
+    "write_text",
     "write_exr",
     "read_exr",
     "write_png",
@@ -36,6 +37,10 @@ __all__ = [
 ]
 
 HEADER_KEY = "__anidress_header__"
+
+# mkstemp creates 0600 files; finished artifacts get the usual umask-based mode
+_UMASK = os.umask(0)
+os.umask(_UMASK)
 
 
 class ArtifactError(ValueError):
@@ -57,10 +62,18 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     tmp = Path(tmp)
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def write_text(path: str | os.PathLike, text: str, newline: str | None = None) -> None:
+    """Write a text file atomically (UTF-8; ``newline=""`` keeps line ends as given)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline=newline) as fh:
+            fh.write(text)
 
 
 def _require(path: Path) -> None:
@@ -231,8 +244,7 @@ def load_npz(path: str | os.PathLike, required: tuple[str, ...] = ()) -> tuple[d
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=1, default=str))
+    write_text(path, json.dumps(obj, indent=1, default=str))
 
 
 def read_json(path: str | os.PathLike) -> Any:

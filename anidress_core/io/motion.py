@@ -22,12 +22,13 @@ import json
 import os
 import pickle
 import re
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .files import write_text
 
 __all__ = [
     "read_smpl_model_file",
@@ -130,19 +131,6 @@ def _require(path: Path, data: dict, keys) -> None:
     missing = [k for k in keys if k not in data]
     if missing:
         raise ValueError(f"{path}: missing key(s) {missing}; found {sorted(data)}")
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _exists(path: str | os.PathLike, kind: str = "file") -> Path:
@@ -310,7 +298,7 @@ def write_easymocap_smpl(path: str | os.PathLike, poses, Rh, Th, shapes, person_
         "poses": [_flat("poses", poses, 72)],
         "shapes": [_flat("shapes", shapes, None)],
     }
-    _atomic_write_text(Path(path), json.dumps([person], indent=1) + "\n")
+    write_text(Path(path), json.dumps([person], indent=1) + "\n")
 
 
 def write_easymocap_smpl_dir(directory: str | os.PathLike, poses, Rh, Th, shapes, start_frame: int = 0,
