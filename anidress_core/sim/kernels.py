@@ -47,8 +47,10 @@ def skin_body(
     inv_dt: float,
     points: wp.array(dtype=wp.vec3),  # (Vb,) in: previous substep, out: this substep
     velocities: wp.array(dtype=wp.vec3),  # (Vb,) out: (x_new - x_old) / dt
+    max_move: wp.array(dtype=wp.float32),  # (1,) running max of |x_new - x_old| (reset by the consumer)
 ):
-    """Skin the body mesh for one substep and write its per-vertex velocity."""
+    """Skin the body mesh for one substep, write its per-vertex velocity and the largest
+    vertex displacement (which bounds the displacement of every surface point)."""
     n = wp.tid()
     p = rest[n]
     acc = wp.vec3(0.0, 0.0, 0.0)
@@ -56,7 +58,9 @@ def skin_body(
         wk = weight[n, k]
         if wk != 0.0:
             acc += wk * wp.transform_point(transforms[offset + bone[n, k]], p)
-    velocities[n] = (acc - points[n]) * inv_dt
+    dx = acc - points[n]
+    velocities[n] = dx * inv_dt
+    wp.atomic_max(max_move, 0, wp.length(dx))
     points[n] = acc
 
 
@@ -279,3 +283,199 @@ def signed_distance_fast(
         return
     cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
     out[i] = q.sign * wp.length(x[i] - cp)
+
+
+# --------------------------------------------------------------------------------------
+# Fused serial substep (CPU). Warp runs a CPU launch's threads one after another on one
+# core, so a launch over the colour-sorted constraints *is* the colour-by-colour
+# Gauss–Seidel sweep; fusing the whole substep after the body refit into one
+# single-thread kernel gives the same updates in the same order as the per-colour
+# launches above (bitwise, on the CPU), with 3 host calls per substep instead of ~40.
+# Never use it on CUDA (one GPU thread).
+@wp.kernel
+def substep_serial(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=wp.float32),
+    band_rest: wp.array(dtype=wp.vec3),
+    band_bone: wp.array2d(dtype=wp.int32),
+    band_w: wp.array2d(dtype=wp.float32),
+    band_idx: wp.array(dtype=wp.int32),
+    band_target: wp.array(dtype=wp.vec3),
+    transforms: wp.array(dtype=wp.mat44),
+    offset: int,
+    mesh: wp.uint64,
+    radius: float,
+    gravity: wp.vec3,
+    damping: float,
+    dt: float,
+    inv_dt2: float,
+    ci: wp.array(dtype=wp.int32),
+    cj: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.float32),
+    compliance: wp.array(dtype=wp.float32),
+    lam: wp.array(dtype=wp.float32),
+    anchor: wp.array(dtype=wp.int32),
+    max_dist: wp.array(dtype=wp.float32),
+    contact_point: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_vel: wp.array(dtype=wp.vec3),
+    contact_flag: wp.array(dtype=wp.int32),
+    thickness: float,
+    friction: float,
+    iterations: int,
+    query_radius: float,
+    max_move: wp.array(dtype=wp.float32),
+    travel: wp.array(dtype=wp.float64),
+    q_pos: wp.array(dtype=wp.vec3),
+    q_clear: wp.array(dtype=wp.float32),
+    q_travel: wp.array(dtype=wp.float64),
+):
+    """One substep after the body skinning + refit: steps 2-6 of the solver, serially.
+
+    Contact queries are skipped where they provably find nothing: at each query at
+    position q_pos[i] the particle's clearance (distance to the body, ``query_radius``
+    when nothing is nearer, 0 inside) is stored; since then the particle has moved
+    |x - q_pos| and no body surface point more than the summed per-substep maximum
+    vertex displacement (``travel`` - q_travel[i]), so
+        clearance >= q_clear - |x - q_pos| - (travel - q_travel)
+    and the query (radius ``radius`` < ``query_radius``) runs only when that bound
+    drops below ``radius``. Contacts are therefore the same as querying every particle.
+    """
+    V = x.shape[0]
+    C = ci.shape[0]
+    tr = travel[0] + wp.float64(max_move[0])
+    travel[0] = tr
+    max_move[0] = 0.0
+    # 2. Band (kinematic) targets.
+    for n in range(band_idx.shape[0]):
+        p = band_rest[n]
+        acc = wp.vec3(0.0, 0.0, 0.0)
+        for k in range(band_bone.shape[1]):
+            wk = band_w[n, k]
+            if wk != 0.0:
+                acc += wk * wp.transform_point(transforms[offset + band_bone[n, k]], p)
+        band_target[band_idx[n]] = acc
+    # 3. Prediction; 4. contacts.
+    for i in range(V):
+        x0 = x[i]
+        x_prev[i] = x0
+        contact_flag[i] = 0
+        if inv_mass[i] == 0.0:
+            x[i] = band_target[i]
+            v[i] = (band_target[i] - x0) / dt
+        else:
+            vi = (v[i] + gravity * dt) * damping
+            v[i] = vi
+            p = x0 + vi * dt
+            x[i] = p
+            bound = q_clear[i] - wp.length(p - q_pos[i]) - float(tr - q_travel[i])
+            if bound < radius:
+                q_pos[i] = p
+                q_travel[i] = tr
+                q_clear[i] = query_radius
+                q = wp.mesh_query_point_sign_normal(mesh, p, query_radius)
+                if q.result:
+                    cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+                    d = p - cp
+                    dist = wp.length(d)
+                    if q.sign > 0.0:
+                        q_clear[i] = dist
+                    else:
+                        q_clear[i] = 0.0
+                    if dist < radius:
+                        nrm = wp.mesh_eval_face_normal(mesh, q.face)
+                        if q.sign > 0.0 and dist > 1.0e-7:
+                            nrm = d / dist
+                        contact_point[i] = cp
+                        contact_normal[i] = nrm
+                        contact_vel[i] = wp.mesh_eval_velocity(mesh, q.face, q.u, q.v)
+                        contact_flag[i] = 1
+    for c in range(C):
+        lam[c] = 0.0
+    # 5. Gauss–Seidel iterations.
+    for it in range(iterations):
+        for c in range(C):
+            i = ci[c]
+            j = cj[c]
+            wi = inv_mass[i]
+            wj = inv_mass[j]
+            w = wi + wj
+            if w > 0.0:
+                d = x[i] - x[j]
+                L = wp.length(d)
+                if L >= 1.0e-9:
+                    nn = d / L
+                    Cv = L - rest[c]
+                    at = compliance[c] * inv_dt2
+                    dl = (-Cv - at * lam[c]) / (w + at)
+                    lam[c] = lam[c] + dl
+                    x[i] = x[i] + wi * dl * nn
+                    x[j] = x[j] - wj * dl * nn
+        for i in range(V):
+            if inv_mass[i] != 0.0:
+                a = anchor[i]
+                if a >= 0:
+                    d = x[i] - x[a]
+                    L = wp.length(d)
+                    m = max_dist[i]
+                    if L > m:
+                        x[i] = x[a] + d * (m / L)
+        for i in range(V):
+            if contact_flag[i] != 0:
+                nrm = contact_normal[i]
+                s = wp.dot(x[i] - contact_point[i], nrm) - thickness
+                if s < 0.0:
+                    x[i] = x[i] - s * nrm
+    # 6. Friction, final push-out, velocities.
+    for i in range(V):
+        if inv_mass[i] != 0.0:
+            p = x[i]
+            if contact_flag[i] != 0:
+                nrm = contact_normal[i]
+                s = wp.dot(p - contact_point[i], nrm) - thickness
+                depth = float(0.0)
+                if s < 0.0:
+                    p = p - s * nrm
+                    depth = -s
+                if s < 0.25 * thickness:
+                    rel = (p - x_prev[i]) - contact_vel[i] * dt
+                    rel_t = rel - wp.dot(rel, nrm) * nrm
+                    lt = wp.length(rel_t)
+                    lim = friction * wp.max(depth, 0.05 * thickness)
+                    if lt > 0.0:
+                        if lt <= lim:
+                            p = p - rel_t
+                        else:
+                            p = p - rel_t * (lim / lt)
+                x[i] = p
+            v[i] = (p - x_prev[i]) / dt
+
+
+@wp.kernel
+def signed_distance_bounded(
+    mesh: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    skip_above: float,
+    travel: wp.array(dtype=wp.float64),
+    q_pos: wp.array(dtype=wp.vec3),
+    q_clear: wp.array(dtype=wp.float32),
+    q_travel: wp.array(dtype=wp.float64),
+    out: wp.array(dtype=wp.float32),
+):
+    """As :func:`signed_distance_fast`, skipping (out = max_dist) particles whose
+    clearance bound (see :func:`substep_serial`) exceeds ``skip_above``."""
+    i = wp.tid()
+    p = x[i]
+    bound = q_clear[i] - wp.length(p - q_pos[i]) - float(travel[0] - q_travel[i])
+    if bound > skip_above:
+        out[i] = max_dist
+        return
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if not q.result:
+        out[i] = max_dist
+        return
+    cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    out[i] = q.sign * wp.length(p - cp)
