@@ -1,0 +1,472 @@
+"""Stages `masks`, `flows`, `normals` and the cue evaluation (DESIGN.md §6, §7).
+
+Per sequence of a scene, for the selected cameras (``train``: the scene's training
+cameras, ``all``: every camera), directory outputs::
+
+    <out>/masks/<cam>/<frame:06d>.png   labels 0 background, 1 body, 2 garment
+                                        (anidress_core.io.files.write_mask / read_mask)
+    <out>/flows/<cam>/<frame:06d>.exr   channels X, Y, valid: forward flow from frame-1
+                                        to frame in pixels on frame-1's pixel grid; no file
+                                        for the first frame; valid = 1 inside the processed
+                                        region (dilated subject box of both frames), else 0
+    <out>/normals.json                  the normal cue: the shipped folder used as it is,
+                                        or {"skipped": true, "reason": ..., "normal_weight": 0}
+
+Masks and normals shipped with a sequence (``data/<scene>/<seq>/masks``, ``normals``)
+are used as they are; ``data/<scene>/<seq>/gt`` is ground truth for evaluation only
+and is never read by the estimators. A directory output is written into a hidden
+temporary sibling and renamed into place at the end: a failure leaves nothing
+half-written.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import os
+import shutil
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .. import __version__
+from ..camera import load_cameras
+from ..cues import evaluate as cue_eval
+from ..cues import flow as cue_flow
+from ..cues import masks as cue_masks
+from ..geometry import lbs
+from ..io import files
+from .scene import load_body, load_sequence_motion, read_scene
+
+__all__ = [
+    "IMAGE_EXTS",
+    "select_cameras",
+    "sequence_frames",
+    "image_path",
+    "atomic_dir",
+    "mask_params",
+    "run_masks",
+    "run_flows",
+    "run_normals",
+    "evaluate_cues",
+    "format_table",
+]
+
+log = logging.getLogger("anidress.cues")
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+
+
+# --------------------------------------------------------------------------- scene helpers
+
+
+def select_cameras(info: dict, which: str | Sequence[str], scene_dir: str | os.PathLike = "") -> list[str]:
+    """Camera names of a scene: ``train`` (its training cameras), ``all`` or an explicit list."""
+    cams = info.get("cameras") or {}
+    if isinstance(which, str):
+        if which == "train":
+            names = list(cams.get("train") or [])
+        elif which == "all":
+            names = list(cams.get("train") or []) + list(cams.get("test") or [])
+        else:
+            raise ValueError(f"cameras must be 'train', 'all' or a list of names, got {which!r}")
+    else:
+        names = list(which)
+    if not names:
+        raise ValueError(f"{Path(scene_dir) / 'scene.yaml'}: no cameras for selection {which!r}")
+    return names
+
+
+def image_path(seq_dir: Path, cam: str, frame: int) -> Path:
+    """``<seq_dir>/images/<cam>/<frame:06d>.{png,jpg,jpeg}`` (the first that exists; .png if none)."""
+    base = seq_dir / "images" / cam / f"{frame:06d}"
+    for ext in IMAGE_EXTS:
+        p = base.with_suffix(ext)
+        if p.is_file():
+            return p
+    return base.with_suffix(".png")
+
+
+def sequence_frames(seq_dir: str | os.PathLike, cams: Sequence[str]) -> list[int]:
+    """Frame numbers of a sequence: the images of its first camera; every camera must have them all."""
+    seq_dir = Path(seq_dir)
+    frames = None
+    for cam in cams:
+        d = seq_dir / "images" / cam
+        if not d.is_dir():
+            raise FileNotFoundError(f"{d}: image folder not found")
+        fr = sorted(int(p.stem) for p in d.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit())
+        if not fr:
+            raise FileNotFoundError(f"{d}: no <frame>.png/.jpg images")
+        if frames is None:
+            frames = fr
+        elif fr != frames:
+            missing = sorted(set(frames) ^ set(fr))[:5]
+            raise FileNotFoundError(f"{d}: frames differ from camera {cams[0]!r} (e.g. {missing})")
+    return frames
+
+
+@contextlib.contextmanager
+def atomic_dir(out_dir: str | os.PathLike) -> Iterator[Path]:
+    """Yield a hidden temporary sibling of ``out_dir``; on success it replaces ``out_dir``.
+
+    On any exception the temporary folder is removed and ``out_dir`` is left as it was.
+    """
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~files._UMASK)
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(tmp, out_dir)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _cameras(seq_dir: Path, names: Sequence[str], info: dict):
+    size = info.get("image_size") or [None, None]
+    try:
+        return load_cameras(seq_dir / "intri.yml", seq_dir / "extri.yml", names, height=size[0], width=size[1],
+                            dtype=torch.float32)
+    except (ValueError, KeyError) as e:
+        raise ValueError(f"{seq_dir / 'intri.yml'}: {e}") from e
+
+
+def _read_rgb(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
+    img = files.read_image(path)
+    if shape is not None and img.shape[:2] != tuple(shape):
+        raise files.ArtifactError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, expected "
+                                  f"{shape[1]}x{shape[0]}")
+    return img
+
+
+# --------------------------------------------------------------------------- masks
+
+
+def mask_params(cfg: dict) -> cue_masks.MaskParams:
+    """MaskParams from a validated ``cues/masks`` config section (extra keys ignored)."""
+    names = {f.name for f in dataclasses.fields(cue_masks.MaskParams)}
+    return cue_masks.MaskParams(**{k: v for k, v in cfg.items() if k in names})
+
+
+class _Prior:
+    """The shape prior of one sequence: posed body + skinned garment template, per frame."""
+
+    def __init__(self, scene_dir: Path, seq: str, info: dict, template_npz: str | os.PathLike | None,
+                 cams, frames: list[int]):
+        from .template import load_template
+
+        body = load_body(scene_dir, info)
+        motion = load_sequence_motion(scene_dir, seq, info["fps"])
+        smpl_frames = sorted(int(p.stem) for p in (scene_dir / seq / "smpl").glob("*.json"))
+        index = {f: i for i, f in enumerate(smpl_frames)}
+        missing = [f for f in frames if f not in index]
+        if missing:
+            raise FileNotFoundError(f"{scene_dir / seq / 'smpl'}: no body parameters for frames {missing[:5]}")
+        sel = torch.tensor([index[f] for f in frames])
+        posed = body.pose(motion.poses[sel], motion.Rh[sel], motion.Th[sel], motion.shapes)
+        self.body_verts, self.body_faces = posed.vertices.float(), body.faces
+        self.garment_verts = self.garment_faces = None
+        if template_npz is not None:
+            tpl = load_template(template_npz)
+            # garment vertices follow the body: x = sum_k w_k A_k x_rest (template body weights)
+            self.garment_verts = lbs(torch.from_numpy(tpl.verts).float(), torch.from_numpy(tpl.body_weights).float(),
+                                     posed.transforms.float())
+            self.garment_faces = torch.from_numpy(tpl.faces)
+        self.cams, self.frame_pos = cams, {f: i for i, f in enumerate(frames)}
+
+    def labels(self, frame: int) -> np.ndarray:
+        t = self.frame_pos[frame]
+        g = None if self.garment_verts is None else self.garment_verts[t]
+        return cue_masks.render_prior(self.body_verts[t], self.body_faces, g, self.garment_faces, self.cams.K,
+                                      self.cams.world_to_cam, self.cams.height, self.cams.width).numpy()
+
+
+def _plates(seq_dir: Path, cams: Sequence[str], frames: list[int], background: str, shape, median_frames: int,
+            pool: ThreadPoolExecutor) -> np.ndarray:
+    """Background plates (C, H, W, 3): recorded ``backgrounds/<cam>.png`` or temporal medians."""
+    if background == "plate":
+        paths = [seq_dir / "backgrounds" / f"{c}.png" for c in cams]
+        return np.stack(list(pool.map(lambda p: _read_rgb(p, shape), paths)))
+    if background != "temporal_median":
+        raise ValueError(f"cues/masks/background must be 'plate' or 'temporal_median', got {background!r}")
+    pick = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(median_frames, len(frames))).round()
+                                         .astype(int))]
+    out = []
+    for c in cams:
+        imgs = np.stack(list(pool.map(lambda f: _read_rgb(image_path(seq_dir, c, f), shape), pick)))
+        out.append(cue_masks.temporal_median_plate(imgs))
+    return np.stack(out)
+
+
+def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike, cfg: dict,
+              template_npz: str | os.PathLike | None = None, cameras: str | Sequence[str] = "train",
+              threads: int = 2, progress: bool = True) -> dict:
+    """Estimate body/garment masks of one sequence into ``out_dir/<cam>/<frame>.png``.
+
+    cfg: the ``cues/masks`` config section (:class:`MaskParams` fields plus
+    ``background`` ('plate' | 'temporal_median'), ``colour_frames``, ``median_frames``).
+    template_npz: the scene's garment template (None: a tight-clothed scene, labels
+    are 0/1 only). Returns timing statistics.
+    """
+    t_start = time.perf_counter()
+    scene_dir = Path(scene_dir)
+    seq_dir = scene_dir / seq
+    info = read_scene(scene_dir)
+    params = mask_params(cfg)
+    names = select_cameras(info, cameras, scene_dir)
+    cams = _cameras(seq_dir, names, info)
+    shape = (cams.height, cams.width)
+    frames = sequence_frames(seq_dir, names)
+    has_garment = template_npz is not None
+    log.info("masks %s/%s: %d cameras x %d frames at %dx%d, method %s, background %s%s", scene_dir.name, seq,
+             len(names), len(frames), shape[1], shape[0], params.method, cfg.get("background", "plate"),
+             "" if has_garment else " (no garment: labels 0/1)")
+    torch.set_num_threads(max(1, threads))
+    cam_idx = np.arange(len(names))
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        plates = _plates(seq_dir, names, frames, cfg.get("background", "plate"), shape,
+                         int(cfg.get("median_frames", 50)), pool)
+        prior = _Prior(scene_dir, seq, info, template_npz, cams, frames) if has_garment else None
+
+        def load(frame: int) -> np.ndarray:
+            return np.stack(list(pool.map(lambda c: _read_rgb(image_path(seq_dir, c, frame), shape), names)))
+
+        # 1. colour model (method colour) from a few frames spread over the sequence
+        model = None
+        if has_garment and params.method == "colour":
+            n = min(int(cfg.get("colour_frames", 12)), len(frames))
+            pick = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, n).round().astype(int))]
+            ims, fgs, pri, cid = [], [], [], []
+            for f in pick:
+                im = load(f)
+                ims.append(im)
+                fgs.append(cue_masks.foreground(cue_masks.colour_distance(im, plates, params.blur_px), params))
+                pri.append(prior.labels(f))
+                cid.append(cam_idx)
+            model = cue_masks.fit_colour_model(np.concatenate(ims), np.concatenate(cid), np.concatenate(fgs),
+                                               np.concatenate(pri), len(names), params)
+            log.info("colour model: %d frames, %d bins per channel", len(pick), params.hist_bins)
+        # 2. every frame, all cameras at once
+        with atomic_dir(out_dir) as tmp:
+            pending = []
+            subject = 0.0
+            for f in tqdm(frames, desc=f"masks {seq}", unit="frame", disable=not progress):
+                im = load(f)
+                pr = prior.labels(f) if has_garment else None
+                lab = cue_masks.estimate_masks(im, plates, pr, params, cam_idx, model, has_garment)
+                subject += float((lab > 0).mean())
+                for c, cam in enumerate(names):
+                    pending.append(pool.submit(files.write_mask, tmp / cam / f"{f:06d}.png", lab[c]))
+                if len(pending) > 64:
+                    for p in pending:
+                        p.result()
+                    pending = []
+            for p in pending:
+                p.result()
+    wall = time.perf_counter() - t_start
+    stats = {"cameras": len(names), "frames": len(frames), "wall_s": wall,
+             "per_frame_s": wall / max(1, len(frames)), "subject_fraction": subject / max(1, len(frames))}
+    log.info("masks %s/%s: wrote %s in %.1f s (%.3f s per frame of %d cameras)", scene_dir.name, seq, out_dir,
+             wall, stats["per_frame_s"], len(names))
+    return stats
+
+
+# --------------------------------------------------------------------------- flows
+
+
+def _read_labels(path: Path, shape) -> np.ndarray:
+    m = files.read_mask(path)
+    if shape is not None and m.shape != tuple(shape):
+        raise files.ArtifactError(f"{path}: mask is {m.shape[1]}x{m.shape[0]}, expected {shape[1]}x{shape[0]}")
+    return m
+
+
+def _flow_camera(seq_dir: Path, masks_dir: Path, cam: str, frames: list[int], method: str, margin: int,
+                 shape, out: Path | None, keep: bool = False) -> dict:
+    """Flows of one camera, frame after frame (each image is read once)."""
+    est = cue_flow.make_estimator(method)
+    prev_img = prev_mask = None
+    compute, pixels, kept = 0.0, 0, {}
+    for i, f in enumerate(frames):
+        img = cue_flow.to_gray8(_read_rgb(image_path(seq_dir, cam, f), shape))
+        mask = _read_labels(masks_dir / cam / f"{f:06d}.png", shape)
+        if i > 0:
+            region = cue_flow.flow_region(prev_mask, mask, margin)
+            if region is None:
+                r = cue_flow.FlowEstimate(np.zeros(shape + (2,), np.float32), np.zeros(shape, bool), None, 0.0)
+            else:
+                r = cue_flow.estimate_flow(prev_img, img, method, region, est)
+                pixels += (region.y1 - region.y0) * (region.x1 - region.x0)
+            compute += r.compute_s
+            if out is not None:
+                files.write_exr(out / cam / f"{f:06d}.exr",
+                                np.concatenate([r.flow, r.valid[..., None].astype(np.float32)], -1),
+                                ("X", "Y", "valid"))
+            if keep:
+                kept[f] = r
+        prev_img, prev_mask = img, mask
+    return {"compute_s": compute, "pixels": pixels, "pairs": len(frames) - 1, "flows": kept}
+
+
+@contextlib.contextmanager
+def _cv2_threads(n: int):
+    import cv2
+
+    old = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(old)
+
+
+def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLike, out_dir: str | os.PathLike,
+              cfg: dict, cameras: str | Sequence[str] = "train", threads: int = 2, progress: bool = True) -> dict:
+    """Forward optical flow of one sequence into ``out_dir/<cam>/<frame>.exr`` (no file for the first frame).
+
+    cfg: the ``cues/flows`` config section (``method``, ``margin_px``). masks_dir: the
+    sequence's masks (shipped or estimated), which bound the processed region.
+    Cameras run in parallel on ``threads`` threads (OpenCV itself single-threaded).
+    """
+    t_start = time.perf_counter()
+    scene_dir, masks_dir = Path(scene_dir), Path(masks_dir)
+    seq_dir = scene_dir / seq
+    info = read_scene(scene_dir)
+    names = select_cameras(info, cameras, scene_dir)
+    size = info.get("image_size")
+    shape = tuple(size) if size else None
+    frames = sequence_frames(seq_dir, names)
+    method, margin = cfg["method"], int(cfg["margin_px"])
+    if method not in cue_flow.FLOW_METHODS:
+        raise ValueError(f"cues/flows/method must be one of {cue_flow.FLOW_METHODS}, got {method!r}")
+    if shape is None:
+        img = files.read_image(image_path(seq_dir, names[0], frames[0]))
+        shape = img.shape[:2]
+    log.info("flows %s/%s: %s, %d cameras x %d pairs, margin %d px, %d threads", scene_dir.name, seq, method,
+             len(names), len(frames) - 1, margin, threads)
+    with atomic_dir(out_dir) as tmp, _cv2_threads(1), ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        futs = [pool.submit(_flow_camera, seq_dir, masks_dir, cam, frames, method, margin, shape, tmp)
+                for cam in names]
+        res = [f.result() for f in tqdm(futs, desc=f"flows {seq}", unit="camera", disable=not progress)]
+    wall = time.perf_counter() - t_start
+    pairs = sum(r["pairs"] for r in res)
+    compute = sum(r["compute_s"] for r in res)
+    stats = {"method": method, "pairs": pairs, "wall_s": wall, "compute_s_per_pair": compute / max(1, pairs),
+             "region_fraction": sum(r["pixels"] for r in res) / max(1, pairs * shape[0] * shape[1])}
+    log.info("flows %s/%s: wrote %s in %.1f s; %.4f s of %s per pair, %.0f%% of the pixels processed",
+             scene_dir.name, seq, out_dir, wall, stats["compute_s_per_pair"], method,
+             100 * stats["region_fraction"])
+    return stats
+
+
+# --------------------------------------------------------------------------- normals
+
+
+def run_normals(scene_dir: str | os.PathLike, seq: str, normals_dir: str | os.PathLike | None,
+                out_json: str | os.PathLike, cameras: str | Sequence[str] = "train",
+                reason: str | None = None) -> dict:
+    """Record the normal cue of a sequence in ``out_json`` (normals are never estimated here).
+
+    With a folder: every selected camera and frame must have a readable (H, W, 3) EXR
+    of the image size with finite values (an error names the first bad file); the
+    record points at the folder, used as it is. Without (``normals_dir`` None): the
+    stage is skipped, the fitting's normal weight is 0, and the record says why.
+    """
+    scene_dir = Path(scene_dir)
+    seq_dir = scene_dir / seq
+    info = read_scene(scene_dir)
+    names = select_cameras(info, cameras, scene_dir)
+    rec = {"scene": scene_dir.name, "sequence": seq, "cameras": names, "code_version": __version__}
+    if normals_dir is None:
+        why = reason or f"{seq_dir / 'normals'}: the sequence ships no normal maps"
+        log.warning("normals %s/%s skipped: %s; the fitting's normal weight is 0", scene_dir.name, seq, why)
+        rec.update(skipped=True, reason=why, dir=None, normal_weight=0.0)
+        files.write_json(out_json, rec)
+        return rec
+    normals_dir = Path(normals_dir)
+    frames = sequence_frames(seq_dir, names)
+    size = info.get("image_size")
+    for cam in names:
+        for f in frames:
+            p = normals_dir / cam / f"{f:06d}.exr"
+            n = files.read_exr(p)
+            if n.ndim != 3 or n.shape[-1] != 3 or (size and n.shape[:2] != tuple(size)):
+                raise files.ArtifactError(f"{p}: normal map must be ({size[0] if size else 'H'}, "
+                                          f"{size[1] if size else 'W'}, 3), got {n.shape}")
+            if not np.isfinite(n).all():
+                raise files.ArtifactError(f"{p}: normal map has non-finite values")
+    rec.update(skipped=False, reason=None, dir=str(normals_dir), source="shipped", frames=len(frames))
+    log.info("normals %s/%s: %s used as they are (%d cameras x %d frames checked)", scene_dir.name, seq,
+             normals_dir, len(names), len(frames))
+    files.write_json(out_json, rec)
+    return rec
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def evaluate_cues(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLike | None = None,
+                  flows_dir: str | os.PathLike | None = None, normals_dir: str | os.PathLike | None = None,
+                  cameras: str | Sequence[str] = "train", frames: Sequence[int] | None = None) -> dict:
+    """Compare cues with the synthetic ground truth ``<scene>/<seq>/gt`` (masks, flows, normals).
+
+    Returns the :meth:`CueErrors.summary` dict plus ``cameras`` and ``frames`` counts,
+    and the reference rows ``epe_zero_*`` (error of a zero flow: the scale of the motion).
+    """
+    scene_dir = Path(scene_dir)
+    seq_dir = scene_dir / seq
+    info = read_scene(scene_dir)
+    names = select_cameras(info, cameras, scene_dir)
+    all_frames = sequence_frames(seq_dir, names)
+    frames = list(frames) if frames is not None else all_frames
+    gt = seq_dir / "gt"
+    if not gt.is_dir():
+        raise FileNotFoundError(f"{gt}: no ground truth (only synthetic scenes have it)")
+    acc, zero = cue_eval.CueErrors(), cue_eval.CueErrors()
+    for cam in names:
+        for f in frames:
+            gl = files.read_mask(gt / "masks" / cam / f"{f:06d}.png")
+            if masks_dir is not None:
+                acc.add_masks(_read_labels(Path(masks_dir) / cam / f"{f:06d}.png", gl.shape), gl)
+            if normals_dir is not None:
+                n = files.read_exr(Path(normals_dir) / cam / f"{f:06d}.exr")
+                acc.add_normals(n[..., :3], files.read_exr(gt / "normals" / cam / f"{f:06d}.exr")[..., :3], gl)
+            if flows_dir is not None and f != all_frames[0]:
+                prev = all_frames[all_frames.index(f) - 1]
+                g = files.read_exr(gt / "flows" / cam / f"{f:06d}.exr")
+                p = Path(flows_dir) / cam / f"{f:06d}.exr"
+                e = files.read_exr(p)
+                if e.shape[-1] < 2 or e.shape[:2] != g.shape[:2]:
+                    raise files.ArtifactError(f"{p}: flow must be ({g.shape[0]}, {g.shape[1]}, >=2), got {e.shape}")
+                gl0 = files.read_mask(gt / "masks" / cam / f"{prev:06d}.png")
+                valid = g[..., 2] > 0.5
+                acc.add_flow(e[..., :2], g[..., :2], valid, gl0)
+                zero.add_flow(np.zeros_like(g[..., :2]), g[..., :2], valid, gl0)
+    out = acc.summary()
+    if flows_dir is not None:
+        out.update({k.replace("epe_", "epe_zero_", 1): v for k, v in zero.summary().items() if k.startswith("epe_")
+                    and k.endswith("_px")})
+    out.update(cameras=len(names), frames=len(frames))
+    return out
+
+
+def format_table(rows: list[dict], columns: Sequence[str]) -> str:
+    """A GitHub markdown table of ``rows`` (floats with 4 significant digits)."""
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return "" if v is None else str(v)
+
+    lines = ["| " + " | ".join(columns) + " |", "| " + " | ".join("---" for _ in columns) + " |"]
+    lines += ["| " + " | ".join(fmt(r.get(c)) for c in columns) + " |" for r in rows]
+    return "\n".join(lines)

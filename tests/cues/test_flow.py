@@ -1,0 +1,88 @@
+"""Optical flow: known translations/rotations recovered below a pixel; region logic."""
+import cv2
+import numpy as np
+import pytest
+
+from anidress_core.cues import flow as cf
+from anidress_core.synth import material_texture
+
+
+def _textured(size: int = 160, seed: int = 3) -> np.ndarray:
+    tex = material_texture("floral", 256, seed)  # (256, 256, 3) float in [0, 1], fine detail
+    return cv2.resize(tex, (size, size), interpolation=cv2.INTER_AREA)
+
+
+def _warp(img: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """img1 with img1(A p) = img0(p) for the 2x3 affine map A (pixel centres at integers)."""
+    H, W = img.shape[:2]
+    return cv2.warpAffine(img, A, (W, H), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+
+def _true_flow(A: np.ndarray, H: int, W: int) -> np.ndarray:
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    p = np.stack([xs, ys, np.ones_like(xs)], -1)
+    return (p @ A.T - p[..., :2]).astype(np.float32)
+
+
+CASES = {
+    "translation": np.array([[1.0, 0.0, 2.6], [0.0, 1.0, -1.7]]),
+    "rotation": cv2.getRotationMatrix2D((79.5, 79.5), 4.0, 1.0),
+}
+
+
+@pytest.mark.parametrize("method", cf.FLOW_METHODS)
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_known_motion_recovered_below_a_pixel(method, case):
+    img0 = _textured()
+    A = CASES[case]
+    img1 = _warp(img0, A)
+    H, W = img0.shape[:2]
+    res = cf.estimate_flow(img0, img1, method)
+    gt = _true_flow(A, H, W)
+    interior = np.zeros((H, W), bool)
+    interior[16:-16, 16:-16] = True  # away from the border (pixels leave the image there)
+    epe = np.linalg.norm(res.flow - gt, axis=-1)[interior].mean()
+    print(f"{method} {case}: EPE {epe:.3f} px (motion {np.linalg.norm(gt, axis=-1)[interior].mean():.2f} px)")
+    assert res.valid.all() and res.region == cf.Region(0, H, 0, W)
+    assert epe < 1.0
+
+
+def test_region_restricts_processing_and_marks_valid():
+    img0 = _textured()
+    A = CASES["translation"]
+    img1 = _warp(img0, A)
+    region = cf.Region(40, 120, 30, 110)
+    res = cf.estimate_flow(img0, img1, "dis_medium", region)
+    assert res.valid[40:120, 30:110].all() and res.valid.sum() == 80 * 80
+    assert np.all(res.flow[~res.valid] == 0)
+    inner = np.linalg.norm(res.flow - _true_flow(A, 160, 160), axis=-1)[56:104, 46:94]
+    assert inner.mean() < 1.0
+
+
+def test_flow_region_box_margin_and_clamp():
+    m0 = np.zeros((100, 120), np.uint8)
+    m1 = np.zeros_like(m0)
+    m0[30:50, 40:60] = 1
+    m1[45:70, 55:80] = 2
+    r = cf.flow_region(m0, m1, margin=5)
+    assert r == cf.Region(25, 75, 35, 85)
+    # clamped at the image border
+    m0[:] = 0
+    m0[0:10, 110:120] = 1
+    assert cf.flow_region(m0, np.zeros_like(m0), margin=8, min_size=0) == cf.Region(0, 18, 102, 120)
+    # grows to the minimum size about the centre, inside the image
+    tiny = np.zeros((100, 120), np.uint8)
+    tiny[98:100, 0:2] = 1
+    r = cf.flow_region(tiny, tiny, margin=0, min_size=32)
+    assert r == cf.Region(68, 100, 0, 32)
+    assert cf.flow_region(np.zeros_like(tiny), np.zeros_like(tiny), 4) is None
+
+
+def test_bad_inputs_raise():
+    img = _textured(64)
+    with pytest.raises(ValueError, match="unknown flow method"):
+        cf.estimate_flow(img, img, "raft")
+    with pytest.raises(ValueError, match="outside"):
+        cf.estimate_flow(img, img, "dis_fast", cf.Region(0, 80, 0, 10))
+    with pytest.raises(ValueError, match="must match"):
+        cf.estimate_flow(img, _textured(48), "dis_fast")

@@ -1,0 +1,142 @@
+"""Cue stage runners on a tiny scene on disk: layout, contract, errors naming files, atomicity."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from anidress_core.io import files
+from anidress_core.stages import cues as sc
+from anidress_core.stages.scene import read_scene
+
+
+@pytest.fixture(scope="module")
+def outputs(tiny_scene, cues_config, tmp_path_factory):
+    scene_dir, tpl = tiny_scene
+    out = tmp_path_factory.mktemp("cues_out")
+    ms = sc.run_masks(scene_dir, "walk", out / "masks", cues_config["masks"], tpl, progress=False)
+    fs = sc.run_flows(scene_dir, "walk", out / "masks", out / "flows", cues_config["flows"], progress=False)
+    return out, ms, fs
+
+
+def _copy_scene(tiny_scene, tmp_path) -> Path:
+    dst = tmp_path / "data" / "t"
+    shutil.copytree(tiny_scene[0], dst)
+    return dst
+
+
+def test_masks_and_flows_layout_and_contract(tiny_scene, outputs):
+    scene_dir, _ = tiny_scene
+    out, mstats, fstats = outputs
+    train = read_scene(scene_dir)["cameras"]["train"]
+    assert sorted(p.name for p in (out / "masks").iterdir()) == sorted(train)
+    for cam in train:
+        assert sorted(p.name for p in (out / "masks" / cam).iterdir()) == [f"{i:06d}.png" for i in range(4)]
+        assert sorted(p.name for p in (out / "flows" / cam).iterdir()) == [f"{i:06d}.exr" for i in range(1, 4)]
+        m = files.read_mask(out / "masks" / cam / "000002.png")
+        assert m.shape == (64, 64) and set(np.unique(m)) <= {0, 1, 2} and (m == 2).any() and (m == 1).any()
+        f = files.read_exr(out / "flows" / cam / "000002.exr")
+        assert f.shape == (64, 64, 3) and set(np.unique(f[..., 2])) <= {0.0, 1.0}
+        assert (f[..., :2][f[..., 2] == 0] == 0).all()  # no flow outside the processed region
+        # the processed region covers the subject of both frames
+        m1 = files.read_mask(out / "masks" / cam / "000001.png")
+        assert (f[..., 2][(m > 0) | (m1 > 0)] == 1).all()
+    assert mstats["frames"] == 4 and fstats["pairs"] == 3 * len(train)
+    # nothing but the outputs is left beside them
+    assert sorted(p.name for p in out.iterdir()) == ["flows", "masks"]
+
+
+def test_estimated_cues_against_ground_truth(tiny_scene, outputs):
+    scene_dir, _ = tiny_scene
+    out, _, _ = outputs
+    res = sc.evaluate_cues(scene_dir, "walk", out / "masks", out / "flows", scene_dir / "walk" / "normals")
+    print({k: round(v, 4) for k, v in res.items() if isinstance(v, float)})
+    assert res["iou_subject"] > 0.85  # 64x64: the silhouette ring is a large share of the subject
+    assert res["iou_garment"] > 0.6
+    assert res["epe_subject_px"] < 1.0
+    assert 0 < res["normal_garment_mean_deg"] < 45
+
+
+def test_ground_truth_as_estimate_scores_perfectly(tiny_scene):
+    scene_dir, _ = tiny_scene
+    gt = scene_dir / "walk" / "gt"
+    res = sc.evaluate_cues(scene_dir, "walk", gt / "masks", gt / "flows", gt / "normals", cameras="all")
+    assert res["iou_subject"] == res["iou_garment"] == res["iou_body"] == 1.0
+    assert res["epe_all_px"] == res["epe_garment_px"] == 0.0
+    assert res["normal_subject_mean_deg"] < 0.1
+    assert res["cameras"] == 6
+
+
+def test_normals_record_and_skip(tiny_scene, tmp_path):
+    scene_dir, _ = tiny_scene
+    rec = sc.run_normals(scene_dir, "walk", scene_dir / "walk" / "normals", tmp_path / "n.json")
+    assert json.loads((tmp_path / "n.json").read_text()) == rec
+    assert rec["skipped"] is False and rec["dir"] == str(scene_dir / "walk" / "normals")
+    rec = sc.run_normals(scene_dir, "walk", None, tmp_path / "skip.json", reason="no normals here")
+    assert rec["skipped"] is True and rec["normal_weight"] == 0.0 and rec["reason"] == "no normals here"
+    assert json.loads((tmp_path / "skip.json").read_text())["skipped"] is True
+
+
+def test_corrupt_or_missing_images_name_the_file_and_leave_nothing(tiny_scene, cues_config, tmp_path):
+    scene_dir = _copy_scene(tiny_scene, tmp_path)
+    tpl = tiny_scene[1]
+    cam = read_scene(scene_dir)["cameras"]["train"][1]
+    out = tmp_path / "res" / "masks"
+    # an earlier, complete output must survive a failed rerun untouched
+    (out / "old").mkdir(parents=True)
+    (out / "old" / "keep.txt").write_text("previous run")
+    bad = scene_dir / "walk" / "images" / cam / "000002.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not an image")
+    with pytest.raises(files.ArtifactError, match=str(bad)):
+        sc.run_masks(scene_dir, "walk", out, cues_config["masks"], tpl, progress=False)
+    assert (out / "old" / "keep.txt").read_text() == "previous run"
+    assert sorted(p.name for p in out.parent.iterdir()) == ["masks"]  # no partial folder left
+    bad.unlink()
+    with pytest.raises(FileNotFoundError, match=str(bad.parent)):
+        sc.run_masks(scene_dir, "walk", out, cues_config["masks"], tpl, progress=False)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["masks"]
+
+
+def test_missing_plate_and_corrupt_mask_and_normals_name_the_file(tiny_scene, cues_config, outputs, tmp_path):
+    scene_dir = _copy_scene(tiny_scene, tmp_path)
+    cam = read_scene(scene_dir)["cameras"]["train"][0]
+    plate = scene_dir / "walk" / "backgrounds" / f"{cam}.png"
+    plate.unlink()
+    with pytest.raises(FileNotFoundError, match=str(plate)):
+        sc.run_masks(scene_dir, "walk", tmp_path / "m", cues_config["masks"], tiny_scene[1], progress=False)
+    assert not (tmp_path / "m").exists()
+    masks = tmp_path / "masks"
+    shutil.copytree(outputs[0] / "masks", masks)
+    bad = masks / cam / "000003.png"
+    bad.write_bytes(b"garbage")
+    with pytest.raises(files.ArtifactError, match=str(bad)):
+        sc.run_flows(scene_dir, "walk", masks, tmp_path / "f", cues_config["flows"], progress=False)
+    assert not (tmp_path / "f").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    nbad = scene_dir / "walk" / "normals" / cam / "000001.exr"
+    nbad.write_bytes(b"not an exr")
+    with pytest.raises(files.ArtifactError, match=str(nbad)):
+        sc.run_normals(scene_dir, "walk", scene_dir / "walk" / "normals", tmp_path / "n.json")
+    assert not (tmp_path / "n.json").exists()
+
+
+def test_camera_selection_and_bad_config(tiny_scene, cues_config, tmp_path):
+    info = read_scene(tiny_scene[0])
+    assert sc.select_cameras(info, "all") == info["cameras"]["train"] + info["cameras"]["test"]
+    assert sc.select_cameras(info, ["02"]) == ["02"]
+    with pytest.raises(ValueError, match="cameras must be"):
+        sc.select_cameras(info, "some")
+    with pytest.raises(ValueError, match="cues/flows/method"):
+        sc.run_flows(tiny_scene[0], "walk", tmp_path, tmp_path / "f", {"method": "raft", "margin_px": 4},
+                     progress=False)
+
+
+def test_tight_scene_masks_have_no_garment_label(tiny_scene, cues_config, tmp_path):
+    """Without a garment template the labels are background / body only."""
+    scene_dir, _ = tiny_scene
+    sc.run_masks(scene_dir, "walk", tmp_path / "m", cues_config["masks"], None, cameras=["01"], progress=False)
+    m = np.stack([files.read_mask(p) for p in sorted((tmp_path / "m" / "01").iterdir())])
+    assert set(np.unique(m)) == {0, 1}

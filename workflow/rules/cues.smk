@@ -1,0 +1,142 @@
+# 2D cues for garment fitting (DESIGN.md §6, §7), per sequence of a scene:
+#   masks   -> results/{scene}/{seq}/masks/<cam>/<frame>.png   (unless the sequence ships masks)
+#   flows   -> results/{scene}/{seq}/flows/<cam>/<frame>.exr
+#   normals -> results/{scene}/{seq}/normals.json   (shipped normals used as they are, or the skip and why)
+# The input functions masks_dir / flows_dir / normals_dir are what the fit rule uses.
+
+
+def _cue_sequences(scene):
+    return [s["name"] for s in config["scenes"][scene]["sequences"]]
+
+
+_ALL_SEQUENCES = sorted({s for sc in config["scenes"] for s in _cue_sequences(sc)})
+
+
+def _shipped(scene, seq, what):
+    """A captured (non-synthetic) sequence ships data/<scene>/<seq>/<what>/ when the folder exists.
+
+    Synthetic scenes are decided from the config (their data may not exist yet at
+    DAG-build time): they ship predicted normals and no masks (gt/ is evaluation only).
+    """
+    if config["scenes"][scene]["synthetic"]:
+        return what == "normals"
+    return os.path.isdir(os.path.join("data", scene, seq, what))
+
+
+def masks_dir(scene, seq):
+    """The masks the fitting uses: shipped data/<scene>/<seq>/masks if present, else the estimated ones."""
+    if _shipped(scene, seq, "masks"):
+        return f"data/{scene}/{seq}/masks"
+    return f"results/{scene}/{seq}/masks"
+
+
+def flows_dir(scene, seq):
+    """Forward optical flow t-1 -> t of a sequence (rule flows)."""
+    return f"results/{scene}/{seq}/flows"
+
+
+def normals_dir(scene, seq):
+    """Shipped normal maps of a sequence, or None (no normals, or cues/normals: off): normal weight 0.
+
+    Pass it to a rule as a param, not an input: for a synthetic scene the folder lies
+    inside rule synth's directory output data/<scene> (Snakemake's ChildIOException);
+    the input to depend on is normals_record(scene, seq).
+    """
+    if config["cues"]["normals"] == "off" or not _shipped(scene, seq, "normals"):
+        return None
+    return f"data/{scene}/{seq}/normals"
+
+
+def normals_record(scene, seq):
+    """results/<scene>/<seq>/normals.json (rule normals): the folder used, or the skip and its reason."""
+    return f"results/{scene}/{seq}/normals.json"
+
+
+def _normals_skip_reason(scene, seq):
+    if config["cues"]["normals"] == "off":
+        return "cues/normals is 'off' in the config"
+    return f"data/{scene}/{seq}/normals does not exist: the sequence ships no normal maps"
+
+
+def cues_outputs(scene):
+    """Every cue target of a scene (for rule all): masks (where estimated), flows and normals.json per sequence."""
+    out = []
+    for seq in _cue_sequences(scene):
+        if masks_dir(scene, seq).startswith("results/"):
+            out.append(masks_dir(scene, seq))
+        out += [flows_dir(scene, seq), normals_record(scene, seq)]
+    return out
+
+
+def _cue_template(wildcards):
+    """The garment template is the shape prior of mask estimation (none for a tight-clothed scene)."""
+    if has_garment(wildcards.scene):
+        return f"results/{wildcards.scene}/template.npz"
+    return []
+
+
+rule masks:
+    input:
+        scene="data/{scene}",
+        template=_cue_template,
+    output:
+        directory("results/{scene}/{seq}/masks"),
+    log:
+        "logs/{scene}/{seq}/masks.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/masks.tsv"
+    params:
+        masks=config["cues"]["masks"],
+        cameras=config["cues"]["cameras"],
+    threads: 2
+    resources:
+        mem_mb=2000,
+        runtime=20,
+    wildcard_constraints:
+        seq="|".join(_ALL_SEQUENCES) or "^$",
+    script:
+        "../scripts/masks.py"
+
+
+rule flows:
+    input:
+        scene="data/{scene}",
+        masks=lambda wc: masks_dir(wc.scene, wc.seq),
+    output:
+        directory("results/{scene}/{seq}/flows"),
+    log:
+        "logs/{scene}/{seq}/flows.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/flows.tsv"
+    params:
+        flows=config["cues"]["flows"],
+        cameras=config["cues"]["cameras"],
+    threads: 2
+    resources:
+        mem_mb=2000,
+        runtime=20,
+    wildcard_constraints:
+        seq="|".join(_ALL_SEQUENCES) or "^$",
+    script:
+        "../scripts/flows.py"
+
+
+rule normals:
+    input:
+        scene="data/{scene}",
+    output:
+        "results/{scene}/{seq}/normals.json",
+    log:
+        "logs/{scene}/{seq}/normals.log",
+    params:
+        normals=lambda wc: normals_dir(wc.scene, wc.seq),
+        reason=lambda wc: _normals_skip_reason(wc.scene, wc.seq),
+        cameras=config["cues"]["cameras"],
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    wildcard_constraints:
+        seq="|".join(_ALL_SEQUENCES) or "^$",
+    script:
+        "../scripts/normals.py"

@@ -1,0 +1,11 @@
+# Rule flows: forward optical flow of one sequence (anidress_core.stages.cues.run_flows).
+from anidress_core.stages import setup_logging
+from anidress_core.stages.cues import run_flows
+
+log = setup_logging(snakemake.log[0])
+try:
+    run_flows(snakemake.input.scene, snakemake.wildcards.seq, snakemake.input.masks, snakemake.output[0],
+              snakemake.params.flows, cameras=snakemake.params.cameras, threads=snakemake.threads, progress=False)
+except Exception:
+    log.exception("flows failed")
+    raise
