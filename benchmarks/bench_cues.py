@@ -1,0 +1,337 @@
+"""Benchmark of the 2D cues (anidress_core.cues) against the synthetic ground truth.
+
+Run: .venv/bin/python benchmarks/bench_cues.py [--scenes skirt,dress] [--seqs walk] [--frames 60]
+     [--flow-methods all] [--mask-methods all]
+Writes benchmarks/cues.md and benchmarks/cues.csv. Not a test.
+
+For each scene and sequence, on the scene's training cameras (the cues the fitting
+uses), with one thread (so per-pair times are comparable):
+
+* masks: every method of ``cues/masks/method`` (anidress_core.cues.masks), IoU of the
+  subject, body and garment labels against ``gt/masks``; reference rows: the shape
+  prior alone (posed body + skinned template, no image) and the ground truth;
+* flows: every OpenCV method on the estimated masks' region (the pipeline's setting),
+  end-point error on all ground-truth-valid pixels, on the subject and on the garment
+  (frame t-1 labels), fraction above 3 px, time per camera pair and per frame (all
+  training cameras); reference rows: the ground-truth flow (what EPE is measured
+  against, 0 by definition) and the zero flow (the size of the motion); the default
+  method's full-frame run shows what the region restriction saves. The default is
+  the method with the lowest garment EPE x seconds per pair ("best error per second");
+* normals: the shipped degraded normals against ``gt/normals`` (angular error on the
+  garment and on all subject pixels; the ground truth as reference).
+
+The scene's template is results/<scene>/template.npz when present, else one is made
+from data/<scene>/garment/template.obj with the default config into a temporary folder.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from anidress_core.config import load_config  # noqa: E402
+from anidress_core.cues import FLOW_METHODS, MASK_METHODS, CueErrors  # noqa: E402
+from anidress_core.cues import masks as cm  # noqa: E402
+from anidress_core.io import files  # noqa: E402
+from anidress_core.stages import cues as sc  # noqa: E402
+from anidress_core.stages.scene import read_scene  # noqa: E402
+
+COLUMNS = ["scene", "sequence", "cue", "method", "reference", "cameras", "frames", "wall_s", "per_frame_s",
+           "per_pair_ms", "region_frac", "iou_subject", "iou_body", "iou_garment", "epe_all_px", "epe_subject_px",
+           "epe_garment_px", "epe_garment_gt3px_frac", "epe_garment_x_s_per_pair", "normal_subject_mean_deg",
+           "normal_subject_median_deg", "normal_garment_mean_deg", "normal_garment_median_deg",
+           "normal_garment_within20_frac", "default", "notes"]
+
+
+def machine() -> str:
+    cpu = platform.processor() or "?"
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import cv2
+    import torch
+
+    return (f"{cpu}, {os.cpu_count()} logical CPUs; Python {platform.python_version()}, OpenCV {cv2.__version__}, "
+            f"torch {torch.__version__}, numpy {np.__version__}")
+
+
+def git_rev() -> str:
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "anidress_core/cues", "anidress_core/stages/cues.py"],
+                               cwd=ROOT, capture_output=True, text=True).stdout
+        return rev.strip() + (" (cue code modified)" if dirty.strip() else "")
+    except OSError:
+        return "?"
+
+
+def load() -> str:
+    return " / ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def template_for(scene: str, tmp: Path) -> tuple[Path, str]:
+    p = ROOT / "results" / scene / "template.npz"
+    if p.is_file():
+        return p, str(p.relative_to(ROOT))
+    from anidress_core.stages.scene import load_body
+    from anidress_core.stages.template import run_template
+
+    data = ROOT / "data" / scene
+    info = read_scene(data)
+    cfg = load_config(ROOT / "config" / "config.yaml")
+    out = tmp / f"{scene}_template.npz"
+    run_template(data / info["garment_template"], info["garment_kind"], load_body(data, info),
+                 cfg["template"]["vertices"], tmp / f"{scene}_template.ply", out)
+    return out, f"made from data/{scene}/{info['garment_template']} (template/vertices {cfg['template']['vertices']})"
+
+
+def prior_iou(scene_dir: Path, seq: str, tpl: Path, frames: list[int]) -> dict:
+    """IoU of the shape prior alone (no image) against the ground truth."""
+    info = read_scene(scene_dir)
+    names = sc.select_cameras(info, "train", scene_dir)
+    cams = sc._cameras(scene_dir / seq, names, info)
+    prior = sc._Prior(scene_dir, seq, info, tpl, cams, frames)
+    acc = CueErrors()
+    for f in frames:
+        gt = np.stack([files.read_mask(scene_dir / seq / "gt" / "masks" / c / f"{f:06d}.png") for c in names])
+        acc.add_masks(prior.labels(f), gt)
+    return acc.summary()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="skirt")
+    ap.add_argument("--seqs", default="", help="sequences (default: the first of each scene)")
+    ap.add_argument("--frames", type=int, default=0, help="first N frames only (default: all)")
+    ap.add_argument("--mask-methods", default="all")
+    ap.add_argument("--flow-methods", default="all")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks"))
+    args = ap.parse_args()
+    import cv2
+    import torch
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    mask_methods = list(MASK_METHODS) if args.mask_methods == "all" else args.mask_methods.split(",")
+    flow_methods = list(FLOW_METHODS) if args.flow_methods == "all" else args.flow_methods.split(",")
+    cfg = load_config(ROOT / "config" / "config.yaml")["cues"]
+    load_before = load()
+    started = datetime.datetime.now().isoformat(timespec="seconds")
+    rows: list[dict] = []
+    notes_md: list[str] = []
+    with tempfile.TemporaryDirectory(prefix="bench_cues_") as tmpdir:
+        tmp = Path(tmpdir)
+        for scene in args.scenes.split(","):
+            scene_dir = ROOT / "data" / scene
+            info = read_scene(scene_dir)
+            seqs = args.seqs.split(",") if args.seqs else [info["sequences"][0]["name"]]
+            tpl, tpl_note = template_for(scene, tmp)
+            notes_md.append(f"- `{scene}`: shape prior template {tpl_note}.")
+            for seq in seqs:
+                names = sc.select_cameras(info, "train", scene_dir)
+                frames = sc.sequence_frames(scene_dir / seq, names)
+                if args.frames:
+                    frames = frames[: args.frames]
+                # evaluate on a copy of the sequence restricted to the frames (symlinks, no copy of data)
+                src = scene_dir
+                if args.frames:
+                    src = tmp / "scenes" / scene
+                    _subset(scene_dir, src, seq, frames)
+                base = {"scene": scene, "sequence": seq, "cameras": len(names), "frames": len(frames)}
+                print(f"[{scene}/{seq}] {len(names)} cameras x {len(frames)} frames", flush=True)
+
+                # ---- masks
+                pr = prior_iou(src, seq, tpl, frames)
+                rows.append({**base, "cue": "masks", "method": "shape prior alone", "reference": "ground truth",
+                             **_pick(pr, "iou_"), "notes": "posed body + skinned template rasterised, no image"})
+                default_masks = None
+                for method in mask_methods:
+                    mcfg = {**cfg["masks"], "method": method}
+                    out = tmp / scene / seq / f"masks_{method}"
+                    st = sc.run_masks(src, seq, out, mcfg, tpl, progress=False, threads=1)
+                    ev = sc.evaluate_cues(src, seq, masks_dir=out)
+                    is_default = method == cfg["masks"]["method"]
+                    if is_default:
+                        default_masks = out
+                    rows.append({**base, "cue": "masks", "method": method, "reference": "ground truth",
+                                 "wall_s": st["wall_s"], "per_frame_s": st["per_frame_s"], **_pick(ev, "iou_"),
+                                 "default": "yes (config)" if is_default else ""})
+                    print(f"  masks {method}: {_fmt_row(rows[-1])}", flush=True)
+                rows.append({**base, "cue": "masks", "method": "ground truth", "reference": "ground truth",
+                             "iou_subject": 1.0, "iou_body": 1.0, "iou_garment": 1.0, "notes": "by definition"})
+                if default_masks is None:
+                    default_masks = tmp / scene / seq / "masks_default"
+                    sc.run_masks(src, seq, default_masks, cfg["masks"], tpl, progress=False, threads=1)
+
+                # ---- flows (on the default estimated masks' region)
+                flow_rows = []
+                for method in flow_methods:
+                    out = tmp / scene / seq / f"flows_{method}"
+                    st = sc.run_flows(src, seq, default_masks, out, {**cfg["flows"], "method": method}, threads=1,
+                                      progress=False)
+                    ev = sc.evaluate_cues(src, seq, flows_dir=out)
+                    r = {**base, "cue": "flows", "method": method, "reference": "ground-truth flow",
+                         "wall_s": st["wall_s"], "per_pair_ms": 1e3 * st["compute_s_per_pair"],
+                         "per_frame_s": st["compute_s_per_pair"] * len(names), "region_frac": st["region_fraction"],
+                         **_pick(ev, "epe_"), "epe_garment_x_s_per_pair": ev["epe_garment_px"] * st["compute_s_per_pair"],
+                         "notes": f"region: estimated masks, margin {cfg['flows']['margin_px']} px"}
+                    rows.append(r)
+                    flow_rows.append(r)
+                    print(f"  flows {method}: {_fmt_row(r)}", flush=True)
+                    zero = {k.replace("epe_zero_", "epe_"): v for k, v in ev.items() if k.startswith("epe_zero_")}
+                best = min(flow_rows, key=lambda r: r["epe_garment_x_s_per_pair"]) if flow_rows else None
+                if best is not None:
+                    best["default"] = "best error x time" + (" (= config)" if best["method"] == cfg["flows"]["method"]
+                                                             else f" (config has {cfg['flows']['method']})")
+                    # the same method on the full frame: what the region restriction saves
+                    out = tmp / scene / seq / "flows_full"
+                    st = sc.run_flows(src, seq, default_masks, out, {"method": best["method"], "margin_px": 1 << 20},
+                                      threads=1, progress=False)
+                    ev = sc.evaluate_cues(src, seq, flows_dir=out)
+                    rows.append({**base, "cue": "flows", "method": best["method"] + " full frame",
+                                 "reference": "ground-truth flow", "wall_s": st["wall_s"],
+                                 "per_pair_ms": 1e3 * st["compute_s_per_pair"],
+                                 "per_frame_s": st["compute_s_per_pair"] * len(names), "region_frac": 1.0,
+                                 **_pick(ev, "epe_"), "notes": "no region restriction"})
+                    rows.append({**base, "cue": "flows", "method": "zero flow", "reference": "ground-truth flow",
+                                 **_pick(zero, "epe_"), "notes": "no motion: the size of the motion"})
+                rows.append({**base, "cue": "flows", "method": "ground-truth flow", "reference": "ground-truth flow",
+                             "epe_all_px": 0.0, "epe_subject_px": 0.0, "epe_garment_px": 0.0, "notes": "by definition"})
+
+                # ---- normals
+                nd = scene_dir / seq / "normals"
+                if nd.is_dir():
+                    ev = sc.evaluate_cues(src, seq, normals_dir=src / seq / "normals")
+                    rows.append({**base, "cue": "normals", "method": "shipped (degraded true normals)",
+                                 "reference": "gt/normals", **_pick(ev, "normal_"),
+                                 "notes": f"scene predicted_normals: {_pn(scene)}"})
+                    rows.append({**base, "cue": "normals", "method": "ground truth", "reference": "gt/normals",
+                                 "normal_subject_mean_deg": 0.0, "normal_garment_mean_deg": 0.0, "notes": "by definition"})
+                    print(f"  normals: {_fmt_row(rows[-2])}", flush=True)
+    write(rows, args, started, load_before, notes_md)
+
+
+def _pn(scene: str) -> str:
+    cfg = load_config(ROOT / "config" / "config.yaml")["scenes"][scene]["predicted_normals"]
+    return ", ".join(f"{k} {v}" for k, v in cfg.items())
+
+
+def _subset(scene_dir: Path, dst: Path, seq: str, frames: list[int]) -> None:
+    """A view of one sequence restricted to ``frames``: symlinks to the files (nothing copied)."""
+    if dst.exists():
+        return
+    dst.mkdir(parents=True)
+    for p in scene_dir.iterdir():
+        if p.name != seq:
+            os.symlink(p, dst / p.name)
+    keep = {f"{f:06d}" for f in frames}
+    for root, dirs, fnames in os.walk(scene_dir / seq):
+        rel = Path(root).relative_to(scene_dir)
+        (dst / rel).mkdir(parents=True, exist_ok=True)
+        for fn in fnames:
+            stem = Path(fn).stem
+            if stem.isdigit() and len(stem) == 6 and stem not in keep:
+                continue
+            os.symlink(Path(root) / fn, dst / rel / fn)
+
+
+def _pick(d: dict, prefix: str) -> dict:
+    return {k: v for k, v in d.items() if k.startswith(prefix) and k in COLUMNS}
+
+
+def _fmt_row(r: dict) -> str:
+    return ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()
+                     if k not in ("scene", "sequence", "cue", "method", "reference", "notes", "cameras", "frames"))
+
+
+def _table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
+    head = "| " + " | ".join(c[1] for c in cols) + " |"
+    sep = "| " + " | ".join("---" for _ in cols) + " |"
+    lines = [head, sep]
+    for r in rows:
+        cells = []
+        for key, _, spec in cols:
+            v = r.get(key, "")
+            cells.append(format(v, spec) if isinstance(v, (float, int)) and not isinstance(v, bool) and spec else str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write(rows: list[dict], args, started: str, load_before: str, notes_md: list[str]) -> None:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with files.atomic_path(out / "cues.csv") as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    cmd = ".venv/bin/python benchmarks/bench_cues.py " + " ".join(sys.argv[1:])
+    md = [
+        "# 2D cues benchmark (`anidress_core.cues`)",
+        "",
+        f"Command: `{cmd.strip()}`  ",
+        f"Date: {started}  ",
+        f"Git revision: {git_rev()}  ",
+        f"Machine: {machine()}; torch and OpenCV set to 1 thread  ",
+        f"Load average (1, 5, 15 min) before the run: {load_before}; after: {load()}  ",
+        "Cameras: each scene's training cameras (what the fitting uses). Ground truth: data/<scene>/<seq>/gt "
+        "(masks and flows at pixel centres; the images are 2x2 supersampled, so a silhouette pixel whose "
+        "centre is in the subject can be half covered: about a quarter of the silhouette pixels are ambiguous).",
+        "",
+        *notes_md,
+        "",
+        "## Masks (IoU against gt/masks; 0 background, 1 body, 2 garment)",
+        "",
+        _table([r for r in rows if r["cue"] == "masks"], [
+            ("scene", "scene", ""), ("sequence", "seq", ""), ("method", "method", ""), ("reference", "reference", ""),
+            ("iou_subject", "IoU subject", ".4f"), ("iou_body", "IoU body", ".4f"), ("iou_garment", "IoU garment", ".4f"),
+            ("per_frame_s", "s per frame (all cameras)", ".3f"), ("default", "default", ""), ("notes", "notes", "")]),
+        "",
+        "## Optical flow (end-point error against gt/flows, pixels)",
+        "",
+        "EPE *all*: every pixel where the ground truth is valid (visible in both frames; outside the processed "
+        "region the estimate is 0, right for the static background); *subject* / *garment*: those pixels of "
+        "frame t-1's subject / garment. Times: the OpenCV call alone, one thread; per frame = all training "
+        "cameras. The default is the lowest garment EPE x seconds per pair.",
+        "",
+        _table([r for r in rows if r["cue"] == "flows"], [
+            ("scene", "scene", ""), ("sequence", "seq", ""), ("method", "method", ""), ("reference", "reference", ""),
+            ("epe_all_px", "EPE all", ".4f"), ("epe_subject_px", "EPE subject", ".4f"),
+            ("epe_garment_px", "EPE garment", ".4f"), ("epe_garment_gt3px_frac", "garment >3 px", ".4f"),
+            ("per_pair_ms", "ms per pair", ".2f"), ("per_frame_s", "s per frame", ".3f"),
+            ("region_frac", "pixels processed", ".3f"), ("epe_garment_x_s_per_pair", "EPE x s", ".3g"),
+            ("default", "default", ""), ("notes", "notes", "")]),
+        "",
+        "## Normals (angular error against gt/normals, degrees)",
+        "",
+        _table([r for r in rows if r["cue"] == "normals"], [
+            ("scene", "scene", ""), ("sequence", "seq", ""), ("method", "method", ""), ("reference", "reference", ""),
+            ("normal_garment_mean_deg", "garment mean", ".2f"), ("normal_garment_median_deg", "garment median", ".2f"),
+            ("normal_garment_within20_frac", "garment < 20 deg", ".3f"),
+            ("normal_subject_mean_deg", "subject mean", ".2f"), ("normal_subject_median_deg", "subject median", ".2f"),
+            ("notes", "notes", "")]),
+        "",
+    ]
+    files.write_text(out / "cues.md", "\n".join(md))
+    print(f"wrote {out / 'cues.md'} and {out / 'cues.csv'}")
+
+
+if __name__ == "__main__":
+    main()
