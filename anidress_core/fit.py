@@ -1,0 +1,848 @@
+"""Garment dynamics fitting by differentiable rendering (AniDress paper §3.2, DESIGN.md §8).
+
+Per frame t the B bone transforms G^t (B, 4, 4) of the garment rig (rest (V, 3),
+weights (V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
+``x = LBS(rest, W, G^t)`` explains the 2D cues of C training views:
+
+    L_fit = w_M L_M + w_N L_N + w_of L_of,   (w_M, w_N, w_of) = (2.0, 0.1, 3.0)  [paper, supp.]
+
+* L_M, silhouette: rendered garment coverage (hard rasterisation, antialiased at the
+  silhouette edges, :func:`anidress_core.raster.silhouette`; the body is an occluder,
+  :func:`anidress_core.raster.occlude`) against the garment mask (label 2), squared
+  difference summed over all pixels of all views, divided by the length in pixels of
+  the target masks' contours (so for sub-pixel misalignment L_M is about the mean
+  squared contour offset in pixels^2).
+* L_N, normals: camera-space normals of the visible faces
+  (:func:`anidress_core.raster.face_normals_cam`) against the normal maps, squared
+  difference of unit vectors, summed over pixels that are garment in both the render
+  and the mask (and have a finite normal), divided by the number of mask pixels with
+  a normal.
+* L_of, optical flow: projections of the vertices of the previous frame's fitted mesh
+  that are visible in a view and land on garment pixels (mask of t-1), moved by the
+  forward flow t-1 -> t sampled there, are the targets of the same vertices' projections
+  now; squared distance in pixels, mean over (view, vertex) targets. Off at frame 0.
+
+The paper sums over views; we average (every term is a mean in pixel units), which
+keeps the weights meaningful whatever the number of views.
+
+Optimisation. The unknowns are increments (omega_b, tau_b) of every bone: a rotation
+by the axis-angle omega_b about the bone's current centre (the rig's rest centroid
+carried by G_b) followed by a translation tau_b, composed onto G_b after each step
+(a local exponential chart, so no parameterisation singularity is ever reached; the
+accumulated rotations are stored as matrices). The loss is a sum of squared residuals,
+minimised by Levenberg-Marquardt (Marquardt's diagonal scaling, Nielsen's damping
+update) with exact Gauss-Newton Jacobians: every residual depends on at most three
+vertices (a silhouette crossing on its edge's two end points, a face normal on its
+face's corners, a flow target on one vertex), so its derivative w.r.t. those vertices
+is computed locally (analytically, or by autograd on the gathered corners), then
+chained with the projection Jacobian and dx/d(omega, tau) (linear in the skinning
+weights). Rasterisation (visibility, which pixels and edges) is redone at every
+evaluation and held fixed inside one linearisation (nvdiffrast's split). A frame stops
+when an accepted step lowers the loss by less than ``rel_tol`` (relative), when the
+step is below ``step_tol``, or after ``max_iters`` evaluations.
+
+Ablation (a) of the paper, direct vertex fitting without the rig, optimises the V x 3
+vertex positions with Adam on the same loss through autograd (Gauss-Newton on 3V
+unknowns is not practical); ablations (b) no normal + no flow and (c) no flow are the
+rig fit with those weights set to 0. See :data:`ABLATIONS`.
+
+Shapes: T frames, V vertices, F faces, B bones, C cameras, H, W image size, N residuals.
+Float64 for poses and geometry, float32 for the Jacobians; CPU or CUDA (whatever device
+the inputs are on).
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from typing import Callable, NamedTuple
+
+import torch
+import torch.nn.functional as Fnn
+from torch import Tensor
+
+from . import raster
+from .geometry import axis_angle_to_matrix, lbs
+
+__all__ = [
+    "FitConfig",
+    "ABLATIONS",
+    "config_for",
+    "RigParts",
+    "Views",
+    "FrameCues",
+    "FlowTargets",
+    "FrameFit",
+    "contour_length",
+    "flow_targets",
+    "occluder_depth",
+    "fit_frame",
+    "downsample",
+    "fit_sequence",
+    "loss_terms",
+    "apply_increment",
+    "skin_jacobian",
+    "projection_jacobian",
+]
+
+#: Ablations of the paper (Fig. 9): name -> what changes with respect to the full method.
+ABLATIONS = {
+    "vertex": "(a) direct vertex fitting without the rig (Adam on vertex positions)",
+    "no_normal_flow": "(b) no normal and no flow losses (silhouettes only)",
+    "no_flow": "(c) no flow loss (silhouettes and normals)",
+}
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Parameters of the garment fit (config section ``fit``)."""
+
+    w_mask: float = 2.0
+    """lambda_M, weight of the silhouette loss (paper: 2.0)."""
+    w_normal: float = 0.1
+    """lambda_N, weight of the normal loss (paper: 0.1); 0 switches it off."""
+    w_flow: float = 3.0
+    """lambda_of, weight of the optical-flow loss (paper: 3.0); 0 switches it off."""
+    method: str = "rig"
+    """'rig' (bone transforms, Levenberg-Marquardt) or 'vertex' (ablation a, Adam on vertices)."""
+    max_iters: int = 20
+    """Most loss evaluations per frame t > 0 (the LM stops earlier on convergence)."""
+    max_iters_first: int = 60
+    """Most loss evaluations for the first frame (starts further from the answer)."""
+    levels: tuple = (1,)
+    """Resolution pyramid of frames t > 0: image reduction factors, coarse to fine, ending with 1
+    (see :func:`downsample`; each level gets up to ``max_iters`` evaluations)."""
+    levels_first: tuple = (1,)
+    """Resolution pyramid of the first frame (each level up to ``max_iters_first`` evaluations)."""
+    rel_tol: float = 1e-3
+    """Converged when an accepted step lowers the loss by less than this fraction."""
+    step_tol: float = 1e-5
+    """Converged when the largest increment is below this (radians, metres)."""
+    damping: float = 1e-4
+    """Initial LM damping, relative to the largest diagonal entry of J^T J."""
+    vis_depth_tol: float = 0.005
+    """Relative depth tolerance of the vertex visibility test (flow targets)."""
+    vertex_lr: float = 1e-3
+    """Adam learning rate (metres) of the vertex ablation."""
+    vertex_max_iters: int = 60
+    """Most Adam iterations per frame of the vertex ablation (first frame: 3x)."""
+    vertex_patience: int = 10
+    """Vertex ablation: stop when the best loss improved by less than rel_tol in this many iterations."""
+
+    def __post_init__(self):
+        if self.method not in ("rig", "vertex"):
+            raise ValueError(f"FitConfig.method must be 'rig' or 'vertex', got {self.method!r}")
+        for k in ("w_mask", "w_normal", "w_flow"):
+            v = getattr(self, k)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"FitConfig.{k} must be finite and >= 0, got {v}")
+        if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex_max_iters < 1:
+            raise ValueError("FitConfig: iteration limits must be >= 1")
+        for k in ("levels", "levels_first"):
+            lv = tuple(getattr(self, k))
+            if not lv or lv[-1] != 1 or any(int(x) != x or x < 1 for x in lv):
+                raise ValueError(f"FitConfig.{k} must be reduction factors >= 1 ending with 1, got {lv}")
+            object.__setattr__(self, k, tuple(int(x) for x in lv))
+
+
+def config_for(base: FitConfig, ablation: str | None) -> FitConfig:
+    """The configuration of an ablation (:data:`ABLATIONS`) derived from the full method's."""
+    if ablation in (None, "", "full"):
+        return base
+    if ablation == "vertex":
+        return replace(base, method="vertex")
+    if ablation == "no_normal_flow":
+        return replace(base, w_normal=0.0, w_flow=0.0)
+    if ablation == "no_flow":
+        return replace(base, w_flow=0.0)
+    raise ValueError(f"unknown ablation {ablation!r}; choose from {sorted(ABLATIONS)}")
+
+
+class RigParts(NamedTuple):
+    """The garment rig as the fit uses it (float64, one device); build with :meth:`make`."""
+
+    rest: Tensor  # (V, 3) rest vertices (body canonical frame)
+    weights: Tensor  # (V, B) convex skinning weights
+    centres: Tensor  # (B, 3) rest-pose bone centres
+    faces: Tensor  # (F, 3) int64
+    edges: tuple  # raster.mesh_edges(faces): (E, 2) vertex ids, (E, 2) faces either side
+    layout: "_HessianLayout"  # sparsity pattern of the vertex-space Gauss-Newton matrix
+
+    @staticmethod
+    def make(rest: Tensor, weights: Tensor, centres: Tensor, faces: Tensor) -> "RigParts":
+        rest = torch.as_tensor(rest).double()
+        dev = rest.device
+        weights = torch.as_tensor(weights, device=dev).double()
+        centres = torch.as_tensor(centres, device=dev).double()
+        faces = torch.as_tensor(faces, device=dev).long()
+        V = rest.shape[0]
+        if rest.shape != (V, 3) or weights.ndim != 2 or weights.shape[0] != V or centres.shape != (weights.shape[1], 3):
+            raise ValueError(f"RigParts: rest (V, 3), weights (V, B), centres (B, 3) expected, got "
+                             f"{tuple(rest.shape)}, {tuple(weights.shape)}, {tuple(centres.shape)}")
+        if faces.ndim != 2 or faces.shape[1] != 3 or (faces.numel() and (faces.min() < 0 or faces.max() >= V)):
+            raise ValueError(f"RigParts: faces must be (F, 3) indices into {V} vertices")
+        if not (bool(torch.isfinite(rest).all()) and bool(torch.isfinite(weights).all())
+                and bool(torch.isfinite(centres).all())):
+            raise ValueError("RigParts: rest, weights or centres contain NaN or inf")
+        return RigParts(rest, weights, centres, faces, raster.mesh_edges(faces), _HessianLayout.make(faces, V))
+
+
+class _HessianLayout(NamedTuple):
+    """Block pattern of sum_residuals J_x^T J_x for residuals living on one face or vertex.
+
+    Vertex pairs (a, b) that share a face (and every (v, v)), sorted by a * V + b; each
+    pair is a 3x3 block. ``face_pair`` (F, 3, 3) is the pair of (faces[f, k], faces[f, l]),
+    ``diag`` (V,) the pair (v, v); ``perm``, ``crow``, ``col`` turn the (pairs, 3, 3)
+    buffer into a (3V, 3V) CSR matrix.
+    """
+
+    num_vertices: int
+    face_pair: Tensor
+    diag: Tensor
+    perm: Tensor
+    crow: Tensor
+    col: Tensor
+
+    @staticmethod
+    def make(faces: Tensor, V: int) -> "_HessianLayout":
+        dev = faces.device
+        fa = faces[:, :, None].expand(-1, 3, 3)
+        fb = faces[:, None, :].expand(-1, 3, 3)
+        ar = torch.arange(V, device=dev)
+        codes = torch.unique(torch.cat([(fa * V + fb).reshape(-1), ar * V + ar]))  # sorted
+        face_pair = torch.searchsorted(codes, fa * V + fb)
+        diag = torch.searchsorted(codes, ar * V + ar)
+        a, b = codes // V, codes % V
+        i = torch.arange(3, device=dev)
+        rows = (3 * a[:, None, None] + i[None, :, None]).expand(-1, 3, 3).reshape(-1)
+        cols = (3 * b[:, None, None] + i[None, None, :]).expand(-1, 3, 3).reshape(-1)
+        perm = torch.argsort(rows * (3 * V) + cols)
+        crow = torch.zeros(3 * V + 1, dtype=torch.int64, device=dev)
+        crow[1:] = torch.cumsum(torch.bincount(rows, minlength=3 * V), 0)
+        return _HessianLayout(V, face_pair, diag, perm, crow, cols[perm])
+
+    def matrix(self, blocks: Tensor) -> Tensor:
+        """(pairs, 3, 3) blocks -> (3V, 3V) sparse CSR."""
+        n = 3 * self.num_vertices
+        with warnings.catch_warnings():  # "sparse CSR support is in beta"
+            warnings.simplefilter("ignore")
+            return torch.sparse_csr_tensor(self.crow, self.col, blocks.reshape(-1)[self.perm], (n, n))
+
+
+class Views(NamedTuple):
+    """C undistorted pinhole views (see :mod:`anidress_core.raster` for the conventions)."""
+
+    K: Tensor  # (C, 3, 3)
+    world_to_cam: Tensor  # (C, 4, 4)
+    height: int
+    width: int
+
+    @staticmethod
+    def from_cameras(cams) -> "Views":
+        """From :class:`anidress_core.camera.Cameras`; distortion is not modelled, so it must be 0."""
+        if bool((cams.dist.abs() > 1e-9).any()):
+            raise ValueError(f"fit: cameras {cams.names} have lens distortion, which the rasteriser does not "
+                             "model; undistort the images and cues first")
+        return Views(cams.K.double(), cams.world_to_cam.double(), cams.height, cams.width)
+
+
+class FrameCues(NamedTuple):
+    """The 2D observations of one frame in C views (pixels on the image grid)."""
+
+    mask: Tensor  # (C, H, W) bool garment pixels (label 2), or float garment coverage in [0, 1]
+    normals: Tensor | None  # (C, H, W, 3) camera-space unit normals; non-finite / zero = none
+    occluder: Tensor  # (C, H, W) camera z of the body (+inf where none), see occluder_depth
+
+
+class FlowTargets(NamedTuple):
+    """Where the flow says visible vertices of the previous fitted mesh went (N targets)."""
+
+    cam: Tensor  # (N,) int64
+    vert: Tensor  # (N,) int64
+    target: Tensor  # (N, 2) float64 pixel positions in frame t
+
+
+@dataclass
+class FrameFit:
+    """Result of :func:`fit_frame`."""
+
+    transforms: Tensor
+    """(B, 4, 4) bone transforms rest -> world (for the vertex method: the start's, unchanged)."""
+    verts: Tensor
+    """(V, 3) fitted mesh."""
+    terms: dict
+    """Unweighted loss terms at the result: mask, normal, flow (float; 0 for an unused term)."""
+    loss: float
+    """Weighted total at the result."""
+    iterations: int
+    """Loss evaluations spent (LM: accepted + rejected steps; vertex: Adam steps)."""
+    converged: bool
+    """Stopped by a tolerance rather than by the iteration limit."""
+    curve: list = field(default_factory=list)
+    """Weighted total loss after each accepted step (index 0: the start)."""
+    fragments: raster.Fragments | None = None
+    """Occluded fragments of the result (for the next frame's flow targets)."""
+
+
+# --------------------------------------------------------------------------------------
+# cues and small geometric helpers
+# --------------------------------------------------------------------------------------
+
+
+def contour_length(mask: Tensor) -> Tensor:
+    """(C,) number of horizontally or vertically adjacent pixel pairs with different labels in mask (C, H, W)."""
+    m = mask.bool()
+    return (m[:, :, 1:] != m[:, :, :-1]).sum((1, 2)) + (m[:, 1:, :] != m[:, :-1, :]).sum((1, 2))
+
+
+def occluder_depth(verts: Tensor, faces: Tensor, views: Views) -> Tensor:
+    """(C, H, W) camera z of an occluding mesh (the posed body), +inf where it is absent."""
+    return raster.rasterize(verts, faces, views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype),
+                            views.height, views.width).depth
+
+
+def _sanitize_normals(normals: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+    """(normals with NaN/inf replaced by 0, valid (C, H, W) bool) or (None, None)."""
+    if normals is None:
+        return None, None
+    n = normals.double()
+    ok = torch.isfinite(n).all(-1)
+    n = torch.where(ok[..., None], n, torch.zeros_like(n))
+    ok &= n.norm(dim=-1) > 0.5
+    return n, ok
+
+
+@torch.no_grad()
+def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragments, flow: Tensor,
+                 flow_valid: Tensor | None, prev_mask: Tensor, depth_tol: float = 0.005) -> FlowTargets:
+    """Flow-loss targets of frame t from the fitted mesh of frame t-1 (paper eq. L_of).
+
+    prev_verts (V, 3) fitted mesh of t-1; prev_fragments: its :func:`raster.occlude`-d
+    fragments (visibility of t-1); flow (C, H, W, 2) forward flow t-1 -> t on frame t-1's
+    pixel grid, in pixels; flow_valid (C, H, W) bool or None (all valid); prev_mask
+    (C, H, W) garment mask of t-1. A vertex gets a target in a view when it is visible
+    there (:func:`raster.visible_vertices`), its nearest pixel is garment in the mask and
+    valid in the flow, and the bilinearly sampled flow is finite:
+    ``target = project(prev_verts) + flow(project(prev_verts))``.
+    """
+    C, H, W = prev_mask.shape
+    if flow.shape != (C, H, W, 2):
+        raise ValueError(f"flow_targets: flow must be ({C}, {H}, {W}, 2), got {tuple(flow.shape)}")
+    K, E = views.K.to(prev_verts.dtype), views.world_to_cam.to(prev_verts.dtype)
+    uv, _ = raster.project_vertices(prev_verts, K, E)  # (C, V, 2)
+    vis = raster.visible_vertices(prev_verts, K, E, prev_fragments, depth_tol)  # (C, V)
+    col = uv[..., 0].round().clamp(0, W - 1).long()
+    row = uv[..., 1].round().clamp(0, H - 1).long()
+    cam = torch.arange(C, device=uv.device)[:, None].expand_as(col)
+    ok = vis & prev_mask.bool()[cam, row, col]
+    if flow_valid is not None:
+        ok &= flow_valid.bool()[cam, row, col]
+    # bilinear flow at the projections; pixel centres sit at integer coordinates
+    f = flow.permute(0, 3, 1, 2).to(uv.dtype)  # (C, 2, H, W)
+    grid = torch.stack([2 * uv[..., 0] / max(W - 1, 1) - 1, 2 * uv[..., 1] / max(H - 1, 1) - 1], -1)
+    grid = torch.where(torch.isfinite(grid), grid, torch.full_like(grid, -2.0))
+    fs = Fnn.grid_sample(f, grid[:, None], mode="bilinear", padding_mode="border", align_corners=True)
+    fs = fs[:, :, 0].permute(0, 2, 1)  # (C, V, 2)
+    ok &= torch.isfinite(fs).all(-1)
+    c, v = ok.nonzero(as_tuple=True)
+    return FlowTargets(c, v, (uv[c, v] + fs[c, v]).double())
+
+
+def apply_increment(transforms: Tensor, centres: Tensor, delta: Tensor) -> Tensor:
+    """Compose per-bone increments onto transforms.
+
+    transforms (B, 4, 4) rest -> world; centres (B, 3) rest bone centres; delta (B, 6)
+    = (omega, tau): rotate by axis-angle omega about the bone's current world centre
+    c_w = R c + t, then translate by tau. ``x' = exp(omega) (R r + t - c_w) + c_w + tau``.
+    """
+    R, t = transforms[:, :3, :3], transforms[:, :3, 3]
+    cw = torch.einsum("bij,bj->bi", R, centres) + t
+    Q = axis_angle_to_matrix(delta[:, :3])
+    out = transforms.clone()
+    out[:, :3, :3] = Q @ R
+    out[:, :3, 3] = torch.einsum("bij,bj->bi", Q, t - cw) + cw + delta[:, 3:]
+    return out
+
+
+def skin_jacobian(rig: RigParts, transforms: Tensor) -> Tensor:
+    """dx/d(delta) at delta = 0: (V, 3, B * 6), columns (bone, [omega, tau]).
+
+    x_v = sum_b W_vb (R_b r_v + t_b); d x_v / d omega_b = -W_vb [a_vb]_x with
+    a_vb = R_b (r_v - c_b) (the vertex relative to the bone centre); d x_v / d tau_b = W_vb I.
+    """
+    R = transforms[:, :3, :3]
+    a = torch.einsum("bij,vbj->vbi", R, rig.rest[:, None, :] - rig.centres[None])  # (V, B, 3)
+    x, y, z = a.unbind(-1)
+    o = torch.zeros_like(x)
+    skew = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).view(*a.shape[:2], 3, 3)  # [a]_x
+    Wt = rig.weights[..., None, None]
+    J = torch.cat([-Wt * skew, Wt * torch.eye(3, dtype=a.dtype, device=a.device)], -1)  # (V, B, 3, 6)
+    V, B = a.shape[:2]
+    return J.permute(0, 2, 1, 3).reshape(V, 3, B * 6)
+
+
+def projection_jacobian(verts: Tensor, views: Views) -> tuple[Tensor, Tensor]:
+    """uv (C, V, 2) and d uv / d x (C, V, 2, 3) of the pinhole projection of world points verts (V, 3)."""
+    E = views.world_to_cam.to(verts.dtype)
+    K = views.K.to(verts.dtype)
+    Xc = torch.einsum("cij,vj->cvi", E[:, :3, :3], verts) + E[:, None, :3, 3]  # (C, V, 3)
+    X, Y, Z = Xc.unbind(-1)
+    iz = 1.0 / Z
+    fx, s, cx = K[:, 0, 0, None], K[:, 0, 1, None], K[:, 0, 2, None]
+    fy, cy = K[:, 1, 1, None], K[:, 1, 2, None]
+    u = (fx * X + s * Y) * iz + cx
+    v = fy * Y * iz + cy
+    o = torch.zeros_like(X)
+    du = torch.stack([fx * iz + o, s * iz + o, -(fx * X + s * Y) * iz * iz], -1)
+    dv = torch.stack([o, fy * iz + o, -fy * Y * iz * iz], -1)
+    D = torch.stack([du, dv], -2)  # (C, V, 2, 3) d uv / d X_cam
+    return torch.stack([u, v], -1), D @ E[:, None, :3, :3]
+
+
+# --------------------------------------------------------------------------------------
+# loss evaluation (values, fragments) and Gauss-Newton systems
+# --------------------------------------------------------------------------------------
+
+
+class _Problem(NamedTuple):
+    """Everything fixed during one frame's optimisation."""
+
+    rig: RigParts
+    views: Views
+    mask: Tensor  # (C, H, W) bool
+    mask_flat: Tensor  # (C H W,) float64
+    n_mask: float  # contour length normaliser
+    normals: Tensor | None  # (C, H, W, 3) float64 or None
+    normal_ok: Tensor | None  # (C, H, W) bool
+    n_normal: float
+    occluder: Tensor  # (C, H, W)
+    flow: FlowTargets | None
+    n_flow: float
+    cfg: FitConfig
+
+
+class _Eval(NamedTuple):
+    loss: float
+    terms: dict
+    verts: Tensor
+    fragments: raster.Fragments
+    uv: Tensor  # (C, V, 2)
+    sil: "_SilData"
+    nrm: "_NormalData | None"
+
+
+class _SilData(NamedTuple):
+    inside_xy: Tensor
+    outside_xy: Tensor
+    cam: Tensor
+    edge: Tensor  # (N, 2)
+    pixel: Tensor  # (N,) pixel whose coverage the crossing changes
+    residual: Tensor  # (C H W,) s - m
+
+
+class _NormalData(NamedTuple):
+    cam: Tensor  # (U,)
+    face: Tensor  # (U,)
+    count: Tensor  # (U,) pixels
+    mean_target: Tensor  # (U, 3)
+
+
+def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig) -> _Problem:
+    C, H, W = views.K.shape[0], views.height, views.width
+    if cues.mask.shape != (C, H, W):
+        raise ValueError(f"fit: mask must be ({C}, {H}, {W}), got {tuple(cues.mask.shape)}")
+    if cues.occluder.shape != (C, H, W):
+        raise ValueError(f"fit: occluder depth must be ({C}, {H}, {W}), got {tuple(cues.occluder.shape)}")
+    if cues.normals is not None and cues.normals.shape != (C, H, W, 3):
+        raise ValueError(f"fit: normals must be ({C}, {H}, {W}, 3), got {tuple(cues.normals.shape)}")
+    soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
+    soft = torch.where(torch.isfinite(soft), soft.clamp(0, 1), torch.zeros_like(soft))
+    mask = soft > 0.5
+    normals, nok = _sanitize_normals(cues.normals if cfg.w_normal > 0 else None)
+    if nok is not None:
+        nok = nok & (soft >= 1)
+    occ = cues.occluder.double()
+    occ = torch.where(torch.isnan(occ), torch.full_like(occ, float("inf")), occ)
+    if flow is not None and (cfg.w_flow == 0 or flow.cam.numel() == 0):
+        flow = None
+    return _Problem(
+        rig=rig, views=views, mask=mask, mask_flat=soft.reshape(-1),
+        n_mask=float(max(int(contour_length(mask).sum()), 1)),
+        normals=normals, normal_ok=nok, n_normal=float(max(int(nok.sum()), 1)) if nok is not None else 1.0,
+        occluder=occ, flow=flow, n_flow=float(max(flow.cam.numel(), 1)) if flow is not None else 1.0, cfg=cfg,
+    )
+
+
+def downsample(views: Views, cues: FrameCues, flow: FlowTargets | None, factor: int
+               ) -> tuple[Views, FrameCues, FlowTargets | None]:
+    """The same frame at 1/factor resolution: coarse pixel = factor x factor block of fine pixels.
+
+    Cameras: ``u_coarse = (u - (factor - 1) / 2) / factor`` (pixel centres stay at integer
+    coordinates), H // factor x W // factor (a remainder row/column is dropped). Masks
+    become soft (the garment fraction of each block, i.e. supersampled area coverage,
+    which the antialiased silhouette matches to sub-pixel accuracy); normals are the
+    normalised block mean where the whole block is garment with valid normals (else
+    none); the occluder depth is the block minimum; flow targets are mapped like pixels.
+    A wider basin for the silhouette loss (an edge is seen ``factor`` fine pixels away).
+    """
+    f = int(factor)
+    if f == 1:
+        return views, cues, flow
+    C, H, W = cues.mask.shape
+    Hc, Wc = H // f, W // f
+    if Hc < 1 or Wc < 1:
+        raise ValueError(f"downsample: {H}x{W} images cannot be reduced by {f}")
+    K = views.K.clone()
+    K[:, :2, :] = K[:, :2, :] / f
+    K[:, 0, 2] = (views.K[:, 0, 2] - (f - 1) / 2) / f
+    K[:, 1, 2] = (views.K[:, 1, 2] - (f - 1) / 2) / f
+    crop = lambda x: x[:, : Hc * f, : Wc * f]  # noqa: E731
+    pool = lambda x: Fnn.avg_pool2d(x, f)  # noqa: E731  (N, ch, H, W)
+    soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
+    m = pool(crop(soft)[:, None])[:, 0]
+    normals = None
+    if cues.normals is not None:
+        n, ok = _sanitize_normals(crop(cues.normals))
+        ok = ok & (crop(soft) >= 1)
+        okf = ok.double()
+        ns = pool((n * okf[..., None]).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+        full = pool(okf[:, None])[:, 0] >= 1
+        ns = ns / ns.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        normals = torch.where(full[..., None], ns, torch.zeros_like(ns))
+    occ = -Fnn.max_pool2d(-crop(cues.occluder.double())[:, None], f)[:, 0]
+    fl = None
+    if flow is not None:
+        fl = FlowTargets(flow.cam, flow.vert, (flow.target - (f - 1) / 2) / f)
+    return Views(K, views.world_to_cam, Hc, Wc), FrameCues(m, normals, occ), fl
+
+
+def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
+    """Rasterise ``verts`` and evaluate the loss (no derivatives); keeps what the Jacobians need."""
+    v = pb.views
+    K, E = v.K, v.world_to_cam
+    uv, z = raster.project_vertices(verts, K, E)
+    frags = raster.occlude(raster.rasterize(verts, pb.rig.faces, K, E, v.height, v.width), pb.occluder)
+    cfg = pb.cfg
+    terms = {"mask": 0.0, "normal": 0.0, "flow": 0.0}
+    # 1. silhouette (raster.silhouette): hard coverage + (t - 1/2) where each edge crosses
+    hard = (frags.face_id >= 0).reshape(-1).double()
+    cr = raster.silhouette_crossings(uv, z, pb.rig.faces, frags, pb.rig.edges)
+    V = uv.shape[1]
+    uvf = uv.reshape(-1, 2)
+    t = raster.crossing_fraction(uvf[cr.cam * V + cr.edge[:, 0]], uvf[cr.cam * V + cr.edge[:, 1]], cr.inside_xy,
+                                 cr.outside_xy)
+    pix = torch.where(t > 0.5, cr.outside, cr.inside)
+    soft = hard.index_add(0, pix, t - 0.5)
+    res = soft - pb.mask_flat
+    terms["mask"] = float((res * res).sum()) / pb.n_mask
+    sil = _SilData(cr.inside_xy, cr.outside_xy, cr.cam, cr.edge, pix, res)
+    # 2. normals of the visible faces, grouped per (camera, face)
+    nrm = None
+    if pb.normals is not None:
+        sel = (frags.face_id >= 0) & pb.normal_ok
+        c, r, col = sel.nonzero(as_tuple=True)
+        f = frags.face_id[c, r, col]
+        F = pb.rig.faces.shape[0]
+        key, inv, cnt = torch.unique(c * F + f, return_inverse=True, return_counts=True)
+        tgt = pb.normals[c, r, col]  # (P, 3)
+        tsum = torch.zeros(key.shape[0], 3, dtype=tgt.dtype, device=tgt.device).index_add(0, inv, tgt)
+        tsq = torch.zeros(key.shape[0], dtype=tgt.dtype, device=tgt.device).index_add(0, inv, (tgt * tgt).sum(-1))
+        nrm = _NormalData(key // F, key % F, cnt.to(tgt.dtype), tsum / cnt[:, None].to(tgt.dtype))
+        n = raster.face_normals_cam(verts, pb.rig.faces, E)[nrm.cam, nrm.face]  # (U, 3)
+        # sum_p |n_f - t_p|^2 = cnt |n_f|^2 - 2 n_f . sum t + sum |t|^2
+        val = cnt * (n * n).sum(-1) - 2 * (n * tsum).sum(-1) + tsq
+        terms["normal"] = float(val.sum()) / pb.n_normal
+    # 3. flow targets
+    if pb.flow is not None:
+        d = uv[pb.flow.cam, pb.flow.vert] - pb.flow.target
+        terms["flow"] = float((d * d).sum()) / pb.n_flow
+    loss = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
+    return _Eval(loss, terms, verts, frags, uv, sil, nrm)
+
+
+def _normal_corner_jacobian(tri: Tensor, R: Tensor, flip: Tensor) -> tuple[Tensor, Tensor]:
+    """Camera normal n_cam = s R m/|m|, m = (x1 - x0) x (x2 - x0), and d n_cam / d x_k.
+
+    tri (U, 3, 3) world corners, R (U, 3, 3) world -> camera, flip (U,) +-1.
+    Returns n_cam (U, 3) and J (U, 3 [component], 3 [corner], 3 [coordinate]).
+    dm/dx0 = [x2 - x1]_x, dm/dx1 = [x0 - x2]_x, dm/dx2 = [x1 - x0]_x;
+    d(m/|m|)/dm = (I - n n^T) / |m|.
+    """
+    x0, x1, x2 = tri.unbind(1)
+    m = torch.cross(x1 - x0, x2 - x0, dim=-1)
+    ln = m.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    n = m / ln
+    P = (torch.eye(3, dtype=tri.dtype, device=tri.device) - n[:, :, None] * n[:, None, :]) / ln[..., None]
+    A = flip[:, None, None] * (R @ P)  # (U, 3, 3)
+
+    def skew(a):
+        x, y, z = a.unbind(-1)
+        o = torch.zeros_like(x)
+        return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).view(*a.shape[:-1], 3, 3)
+
+    J = torch.stack([A @ skew(x2 - x1), A @ skew(x0 - x2), A @ skew(x1 - x0)], 2)  # (U, 3, 3, 3)
+    return flip[:, None] * torch.einsum("uij,uj->ui", R, n), J
+
+
+def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.float64) -> tuple[Tensor, Tensor]:
+    """H = sum_k w_k/n_k J_k^T J_k and g = sum_k w_k/n_k J_k^T r_k (so that L(d) ~ L + 2 g.d + d.H d).
+
+    J_k = (d r_k / d x) (d x / d delta). Normal and flow residuals are accumulated in
+    vertex space first (3x3 blocks of vertex pairs sharing a face, H_x, and g_x), then
+    H += Jx^T H_x Jx, g += Jx^T g_x; silhouette residuals (a pixel can collect the
+    crossings of several edges) are chained to the parameters row by row.
+    """
+    cfg = pb.cfg
+    rig = pb.rig
+    verts = ev.verts
+    V = verts.shape[0]
+    Jx = skin_jacobian(rig, transforms).to(jdtype).reshape(3 * V, -1)  # (3V, P)
+    P = Jx.shape[-1]
+    _, Puv = projection_jacobian(verts, pb.views)  # (C, V, 2, 3)
+    H = torch.zeros(P, P, dtype=torch.float64, device=verts.device)
+    g = torch.zeros(P, dtype=torch.float64, device=verts.device)
+    lay = rig.layout
+    blocks = torch.zeros(lay.crow.numel() and lay.perm.numel() // 9, 3, 3, dtype=torch.float64, device=verts.device)
+    gx = torch.zeros(V, 3, dtype=torch.float64, device=verts.device)
+    any_vertex_term = False
+
+    # 1. silhouette: dt/dq by autograd on the gathered edge end points, then chain per pixel
+    s = ev.sil
+    if cfg.w_mask > 0 and s.pixel.numel():
+        C = ev.uv.shape[0]
+        uvf = ev.uv.reshape(-1, 2)
+        with torch.enable_grad():
+            q1 = uvf[s.cam * V + s.edge[:, 0]].detach().requires_grad_()
+            q2 = uvf[s.cam * V + s.edge[:, 1]].detach().requires_grad_()
+            t = raster.crossing_fraction(q1, q2, s.inside_xy, s.outside_xy)
+            g1, g2 = torch.autograd.grad(t.sum(), (q1, q2))
+        e0, e1 = s.edge[:, 0], s.edge[:, 1]
+        a0 = torch.einsum("ni,nij->nj", g1, Puv[s.cam, e0])  # dt/dx_e0 (N, 3)
+        a1 = torch.einsum("ni,nij->nj", g2, Puv[s.cam, e1])
+        J3 = Jx.view(V, 3, P)
+        Jt = torch.einsum("nj,njp->np", a0.to(jdtype), J3[e0]) + torch.einsum("nj,njp->np", a1.to(jdtype), J3[e1])
+        upix, inv = torch.unique(s.pixel, return_inverse=True)
+        Jp = torch.zeros(upix.shape[0], P, dtype=jdtype, device=verts.device).index_add(0, inv, Jt)
+        w = cfg.w_mask / pb.n_mask
+        H += w * (Jp.t() @ Jp).double()
+        g += w * (Jp.t() @ s.residual[upix].to(jdtype)).double()
+    # 2. normals: per (camera, face) residual sqrt(count) (n - mean target), on the face's corners
+    if ev.nrm is not None and cfg.w_normal > 0 and ev.nrm.cam.numel():
+        nd = ev.nrm
+        fv = rig.faces[nd.face]  # (U, 3)
+        tri = verts[fv]  # (U, 3, 3)
+        Ec = pb.views.world_to_cam[nd.cam].to(verts.dtype)
+        R = Ec[:, :3, :3]
+        with torch.no_grad():
+            m = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+            cen = torch.einsum("uij,uj->ui", R, tri.mean(1)) + Ec[:, :3, 3]
+            flip = torch.where((torch.einsum("uij,uj->ui", R, m) * cen).sum(-1) > 0, -1.0, 1.0).to(verts.dtype)
+        n, Jn = _normal_corner_jacobian(tri, R, flip)  # (U, 3), (U, 3 comp, 3 corner, 3 coord)
+        w = cfg.w_normal / pb.n_normal
+        cnt = nd.count
+        r = n - nd.mean_target  # residual sqrt(cnt) r, Jacobian sqrt(cnt) Jn
+        # block[k, l] = cnt sum_i Jn[i, k]^T Jn[i, l];  g_k = cnt sum_i Jn[i, k]^T r_i
+        blk = torch.einsum("u,uikj,uilm->uk ljm".replace(" ", ""), w * cnt, Jn, Jn)  # (U, 3, 3, 3, 3)
+        blocks.index_add_(0, lay.face_pair[nd.face].reshape(-1), blk.reshape(-1, 3, 3))
+        gk = torch.einsum("u,uikj,ui->ukj", w * cnt, Jn, r)  # (U, 3 corner, 3)
+        gx.index_add_(0, fv.reshape(-1), gk.reshape(-1, 3))
+        any_vertex_term = True
+    # 3. flow: d uv / d x of one vertex
+    if pb.flow is not None and cfg.w_flow > 0:
+        fl = pb.flow
+        w = cfg.w_flow / pb.n_flow
+        r = ev.uv[fl.cam, fl.vert] - fl.target  # (N, 2)
+        Pf = Puv[fl.cam, fl.vert]  # (N, 2, 3)
+        blocks.index_add_(0, lay.diag[fl.vert], w * Pf.transpose(1, 2) @ Pf)
+        gx.index_add_(0, fl.vert, w * torch.einsum("nij,ni->nj", Pf, r))
+        any_vertex_term = True
+    if any_vertex_term:
+        Hx = lay.matrix(blocks.to(jdtype))
+        H += (Jx.t() @ (Hx @ Jx)).double()
+        g += (Jx.t() @ gx.reshape(-1).to(jdtype)).double()
+    return H, g
+
+
+def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow: FlowTargets | None = None,
+               cfg: FitConfig = FitConfig(), fragments: raster.Fragments | None = None) -> tuple[Tensor, dict]:
+    """Differentiable (autograd) total loss of a mesh ``verts`` (V, 3) and its unweighted terms.
+
+    The same loss :func:`fit_frame` minimises, built from :func:`raster.silhouette`,
+    :func:`raster.render_face_normals` and :func:`raster.project_vertices`, for the
+    vertex ablation and to check the Gauss-Newton gradients. ``fragments``: visibility
+    to hold fixed (default: rasterise ``verts``).
+    """
+    pb = _make_problem(rig, views, cues, flow, cfg)
+    K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
+    if fragments is None:
+        fragments = raster.occlude(raster.rasterize(verts.detach(), rig.faces, K, E, views.height, views.width),
+                                   pb.occluder)
+    s = raster.silhouette(verts, rig.faces, K, E, fragments, rig.edges)
+    lm = ((s - pb.mask.to(s.dtype)) ** 2).sum() / pb.n_mask
+    terms = {"mask": lm, "normal": lm.new_zeros(()), "flow": lm.new_zeros(())}
+    if pb.normals is not None:
+        n = raster.render_face_normals(verts, rig.faces, E, fragments)
+        sel = (fragments.face_id >= 0) & pb.normal_ok
+        terms["normal"] = ((n - pb.normals.to(n.dtype)) ** 2).sum(-1)[sel].sum() / pb.n_normal
+    if pb.flow is not None:
+        uv, _ = raster.project_vertices(verts, K, E)
+        d = uv[pb.flow.cam, pb.flow.vert] - pb.flow.target.to(uv.dtype)
+        terms["flow"] = (d * d).sum() / pb.n_flow
+    total = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
+    return total, terms
+
+
+# --------------------------------------------------------------------------------------
+# per-frame optimisers
+# --------------------------------------------------------------------------------------
+
+
+def _lm(pb: _Problem, transforms: Tensor, max_iters: int) -> FrameFit:
+    """Levenberg-Marquardt on the bone increments (see the module docstring)."""
+    cfg, rig = pb.cfg, pb.rig
+    G = transforms.double().clone()
+    ev = _evaluate(pb, lbs(rig.rest, rig.weights, G))
+    if not math.isfinite(ev.loss):
+        raise ValueError("fit: the loss at the starting pose is not finite (check the cues and the start pose)")
+    curve = [ev.loss]
+    H, g = _gauss_newton(pb, ev, G)
+    mu, nu = None, 2.0
+    it, converged = 0, False
+    while it < max_iters:
+        d = H.diagonal()
+        dscale = d.clamp_min(1e-9 * float(d.max().clamp_min(1e-30)))
+        if mu is None:
+            mu = cfg.damping * float(d.max().clamp_min(1e-30))
+        if float(g.abs().max()) == 0.0:
+            converged = True
+            break
+        A = H + mu * torch.diag(dscale)
+        delta, info = torch.linalg.solve_ex(A, -g)
+        it += 1
+        if int(info) != 0 or not bool(torch.isfinite(delta).all()):
+            mu *= nu
+            nu *= 2
+            continue
+        pred = -float(2 * g @ delta + delta @ H @ delta)
+        G_new = apply_increment(G, rig.centres, delta.view(-1, 6))
+        ev_new = _evaluate(pb, lbs(rig.rest, rig.weights, G_new))
+        gain = ev.loss - ev_new.loss
+        if math.isfinite(ev_new.loss) and gain > 0:
+            rho = gain / pred if pred > 0 else 1.0
+            mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+            small = gain < cfg.rel_tol * ev.loss or float(delta.abs().max()) < cfg.step_tol
+            G, ev = G_new, ev_new
+            curve.append(ev.loss)
+            if small:
+                converged = True
+                break
+            H, g = _gauss_newton(pb, ev, G)
+        else:
+            if float(delta.abs().max()) < cfg.step_tol:
+                converged = True
+                break
+            mu *= nu
+            nu *= 2
+    return FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, it, converged, curve, ev.fragments)
+
+
+def _vertex_adam(pb: _Problem, cues: FrameCues, start_verts: Tensor, transforms: Tensor, max_iters: int) -> FrameFit:
+    """Ablation (a): Adam on the vertex positions, same loss (autograd through the renderer)."""
+    cfg, rig, views = pb.cfg, pb.rig, pb.views
+    x = start_verts.double().clone().requires_grad_(True)
+    opt = torch.optim.Adam([x], lr=cfg.vertex_lr)
+    best, best_x, best_terms, since = float("inf"), x.detach().clone(), {}, 0
+    curve = []
+    it, converged = 0, False
+    for it in range(1, max_iters + 1):
+        opt.zero_grad()
+        total, terms = loss_terms(rig, views, cues, x, pb.flow, cfg)
+        val = float(total)
+        if not math.isfinite(val):
+            break
+        if val < best * (1 - cfg.rel_tol):
+            since = 0
+        else:
+            since += 1
+        if val < best:
+            best, best_x, best_terms = val, x.detach().clone(), {k: float(v) for k, v in terms.items()}
+        curve.append(val)
+        if since >= cfg.vertex_patience:
+            converged = True
+            break
+        total.backward()
+        if not bool(torch.isfinite(x.grad).all()):
+            break
+        opt.step()
+    ev = _evaluate(pb, best_x)
+    return FrameFit(transforms.double().clone(), best_x, dict(ev.terms), ev.loss, it, converged, curve, ev.fragments)
+
+
+def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: FitConfig = FitConfig(),
+              flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None) -> FrameFit:
+    """Fit one frame.
+
+    init: (B, 4, 4) starting bone transforms (frame t-1's result, or the first frame's
+    start); flow: targets from :func:`flow_targets` (None at the first frame or without
+    flow); first: use ``max_iters_first``. For ``cfg.method == 'vertex'`` the start mesh is
+    ``init_verts`` (V, 3) (default: LBS of ``init``) and ``init`` is returned unchanged.
+    Never returns non-finite poses: steps with a non-finite loss are rejected.
+    """
+    init = torch.as_tensor(init, device=rig.rest.device).double()
+    if init.shape != (rig.weights.shape[1], 4, 4):
+        raise ValueError(f"fit_frame: init must be ({rig.weights.shape[1]}, 4, 4), got {tuple(init.shape)}")
+    if not bool(torch.isfinite(init).all()):
+        raise ValueError("fit_frame: the starting transforms contain NaN or inf")
+    flow = None if first else flow
+    if cfg.method == "vertex":
+        pb = _make_problem(rig, views, cues, flow, cfg)
+        x0 = lbs(rig.rest, rig.weights, init) if init_verts is None else init_verts.double()
+        n = cfg.vertex_max_iters * (3 if first else 1)
+        return _vertex_adam(pb, cues, x0, init, n)
+    G, spent = init, 0
+    for f in cfg.levels_first if first else cfg.levels:
+        pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg)
+        res = _lm(pb, G, cfg.max_iters_first if first else cfg.max_iters)
+        G, spent = res.transforms, spent + res.iterations
+    res.iterations = spent  # the curve and terms are those of the full resolution
+    return res
+
+
+def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],
+                 flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
+                 cfg: FitConfig = FitConfig(), progress: bool = True, log=None) -> list[FrameFit]:
+    """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
+
+    cues_of(t) -> :class:`FrameCues`; flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
+    or None) of t-1 -> t, or None (no flow for that frame: L_of off there, logged);
+    init: (B, 4, 4) start of frame 0. Returns one :class:`FrameFit` per frame (with the
+    wall time of each in ``terms['wall_s']``).
+    """
+    from tqdm import tqdm
+
+    out: list[FrameFit] = []
+    G = torch.as_tensor(init, device=rig.rest.device).double()
+    x_prev = None
+    prev_mask = None
+    for t in tqdm(range(num_frames), desc="fit", unit="frame", disable=not progress):
+        t0 = time.perf_counter()
+        cues = cues_of(t)
+        targets = None
+        if t > 0 and cfg.w_flow > 0:
+            fl = flow_of(t)
+            if fl is None:
+                if log is not None:
+                    log.warning("fit: frame %d has no flow; L_of is off for it", t)
+            else:
+                prev = out[-1]
+                targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.vis_depth_tol)
+        res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev)
+        res.terms["wall_s"] = time.perf_counter() - t0
+        res.terms["flow_targets"] = 0 if targets is None else int(targets.cam.numel())
+        out.append(res)
+        G = res.transforms
+        x_prev = res.verts if cfg.method == "vertex" else None
+        prev_mask = cues.mask
+    return out

@@ -1,0 +1,294 @@
+"""Garment fitting (anidress_core.fit): exact Gauss-Newton systems, pose recovery, robustness."""
+from __future__ import annotations
+
+import logging
+import math
+
+import pytest
+import torch
+
+from anidress_core import fit, raster
+from anidress_core.camera import ring_cameras
+from anidress_core.geometry import lbs
+
+torch.set_num_threads(1)
+
+
+def cone(n_theta=32, n_h=10, r0=0.15, r1=0.35, h=0.5, z0=1.0):
+    th = torch.arange(n_theta, dtype=torch.float64) / n_theta * 2 * math.pi
+    s = torch.linspace(0, 1, n_h, dtype=torch.float64)
+    r = r0 + (r1 - r0) * s
+    v = torch.stack([r[:, None] * torch.cos(th), r[:, None] * torch.sin(th), (z0 - h * s)[:, None].expand(-1, n_theta)],
+                    -1).reshape(-1, 3)
+    f = []
+    for i in range(n_h - 1):
+        for j in range(n_theta):
+            a, b = i * n_theta + j, i * n_theta + (j + 1) % n_theta
+            f += [[a, a + n_theta, b], [b, a + n_theta, b + n_theta]]
+    return v, torch.tensor(f)
+
+
+def toy(C=4, H=64, W=64, n_theta=32, n_h=10, nb=3):
+    """A cone 'skirt' with 2 nb bones (angular sectors x two bands) seen by C ring cameras."""
+    v, f = cone(n_theta, n_h)
+    ang = torch.atan2(v[:, 1], v[:, 0])
+    a = torch.arange(nb, dtype=torch.float64) * 2 * math.pi / nb
+    d = torch.cdist(torch.stack([ang.cos(), ang.sin()], -1), torch.stack([a.cos(), a.sin()], -1))
+    wa = torch.softmax(-d / 0.3, -1)
+    hw = ((1.0 - v[:, 2]) / 0.5).clamp(0, 1)[:, None]
+    Wt = torch.cat([wa * (1 - hw), wa * hw], -1)
+    centres = (Wt.t() @ v) / Wt.sum(0)[:, None]
+    rig = fit.RigParts.make(v, Wt, centres, f)
+    cams = ring_cameras(n=C, radius=2.0, height=1.0, target=(0, 0, 0.8), focal_px=1.1 * H, image_height=H,
+                        image_width=W)
+    return rig, fit.Views.from_cameras(cams)
+
+
+def pose(rig, g, rot, trans, base=None):
+    B = rig.weights.shape[1]
+    d = torch.cat([rot * torch.randn(B, 3, generator=g, dtype=torch.float64),
+                   trans * torch.randn(B, 3, generator=g, dtype=torch.float64)], -1)
+    G = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone() if base is None else base
+    return fit.apply_increment(G, rig.centres, d)
+
+
+def render(rig, views, G, occluder=None):
+    """Exact cues of the mesh LBS(G): garment mask, face normals; and its fragments."""
+    x = lbs(rig.rest, rig.weights, G)
+    fr = raster.rasterize(x, rig.faces, views.K, views.world_to_cam, views.height, views.width)
+    occ = torch.full(fr.depth.shape, float("inf"), dtype=torch.float64) if occluder is None else occluder
+    fr = raster.occlude(fr, occ)
+    n = raster.render_face_normals(x, rig.faces, views.world_to_cam, fr)
+    return fit.FrameCues(fr.face_id >= 0, n, occ), x, fr
+
+
+def exact_flow(rig, views, x_prev, fr_prev, x_next):
+    """Flow targets that move the previous mesh's visible vertices to their true next positions."""
+    vis = raster.visible_vertices(x_prev, views.K, views.world_to_cam, fr_prev)
+    uv, _ = raster.project_vertices(x_next, views.K, views.world_to_cam)
+    c, v = vis.nonzero(as_tuple=True)
+    return fit.FlowTargets(c, v, uv[c, v])
+
+
+def rmse(a, b):
+    return float(((a - b) ** 2).sum(-1).mean().sqrt())
+
+
+# --------------------------------------------------------------------------------------
+# building blocks
+# --------------------------------------------------------------------------------------
+
+
+def test_skin_and_projection_jacobians_match_autograd():
+    rig, views = toy()
+    g = torch.Generator().manual_seed(0)
+    G = pose(rig, g, 0.3, 0.05)
+    J = fit.skin_jacobian(rig, G)  # (V, 3, P)
+    want = torch.autograd.functional.jacobian(
+        lambda d: lbs(rig.rest, rig.weights, fit.apply_increment(G, rig.centres, d.view(-1, 6))),
+        torch.zeros(rig.weights.shape[1] * 6, dtype=torch.float64))
+    torch.testing.assert_close(J, want)
+    x = lbs(rig.rest, rig.weights, G)
+    uv, P = fit.projection_jacobian(x, views)
+    uv_ref, _ = raster.project_vertices(x, views.K, views.world_to_cam)
+    torch.testing.assert_close(uv, uv_ref)
+    Pref = torch.autograd.functional.jacobian(lambda y: raster.project_vertices(y[None], views.K[:1],
+                                                                              views.world_to_cam[:1])[0][0, 0], x[5])
+    torch.testing.assert_close(P[0, 5], Pref)
+
+
+def test_apply_increment_rotates_about_the_bone_centre():
+    rig, _ = toy()
+    g = torch.Generator().manual_seed(1)
+    G = pose(rig, g, 0.4, 0.1)
+    B = G.shape[0]
+    torch.testing.assert_close(fit.apply_increment(G, rig.centres, torch.zeros(B, 6, dtype=torch.float64)), G)
+    cw = lambda M: torch.einsum("bij,bj->bi", M[:, :3, :3], rig.centres) + M[:, :3, 3]  # noqa: E731
+    rot = torch.zeros(B, 6, dtype=torch.float64)
+    rot[:, :3] = torch.tensor([0.0, 0.0, math.pi])  # a half turn: still finite, centre fixed
+    G2 = fit.apply_increment(G, rig.centres, rot)
+    torch.testing.assert_close(cw(G2), cw(G))
+    R = G2[:, :3, :3]
+    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(B, 3, 3))
+    tr = torch.zeros(B, 6, dtype=torch.float64)
+    tr[:, 3:] = 0.2
+    torch.testing.assert_close(cw(fit.apply_increment(G, rig.centres, tr)), cw(G) + 0.2)
+
+
+def test_gauss_newton_system_is_exact():
+    """g and H of the Levenberg-Marquardt step equal autograd's J^T r and J^T J (float64)."""
+    rig, views = toy(C=3, H=48, W=48, n_theta=20, n_h=6)
+    g = torch.Generator().manual_seed(2)
+    Gt = pose(rig, g, 0.15, 0.03)
+    cues, xt, _ = render(rig, views, Gt)
+    G0 = pose(rig, g, 0.03, 0.01, Gt)
+    uv, _ = raster.project_vertices(xt, views.K, views.world_to_cam)
+    c = torch.randint(0, 3, (40,), generator=g)
+    v = torch.randint(0, rig.rest.shape[0], (40,), generator=g)
+    ft = fit.FlowTargets(c, v, uv[c, v] + 0.3 * torch.randn(40, 2, generator=g, dtype=torch.float64))
+    cfg = fit.FitConfig()
+    pb = fit._make_problem(rig, views, cues, ft, cfg)
+    ev = fit._evaluate(pb, lbs(rig.rest, rig.weights, G0))
+    H, gvec = fit._gauss_newton(pb, ev, G0)
+
+    def residuals(d):  # the weighted residual vector, visibility of ev held fixed
+        x = lbs(rig.rest, rig.weights, fit.apply_increment(G0, rig.centres, d.view(-1, 6)))
+        K, E = views.K, views.world_to_cam
+        s = raster.silhouette(x, rig.faces, K, E, ev.fragments, rig.edges)
+        r1 = (s - cues.mask.double()).reshape(-1) * (cfg.w_mask / pb.n_mask) ** 0.5
+        n = raster.render_face_normals(x, rig.faces, E, ev.fragments)
+        sel = (ev.fragments.face_id >= 0) & pb.normal_ok
+        r2 = (n - pb.normals)[sel].reshape(-1) * (cfg.w_normal / pb.n_normal) ** 0.5
+        u, _ = raster.project_vertices(x, K, E)
+        r3 = (u[ft.cam, ft.vert] - ft.target).reshape(-1) * (cfg.w_flow / pb.n_flow) ** 0.5
+        return torch.cat([r1, r2, r3])
+
+    d0 = torch.zeros(H.shape[0], dtype=torch.float64)
+    r = residuals(d0)
+    J = torch.stack([torch.func.jvp(residuals, (d0,), (e,))[1] for e in torch.eye(d0.numel(), dtype=torch.float64)], 1)
+    assert abs(float(r @ r) - ev.loss) < 1e-10 * ev.loss
+    torch.testing.assert_close(H, J.t() @ J, rtol=1e-6, atol=1e-9 * float(H.abs().max()))
+    torch.testing.assert_close(gvec, J.t() @ r, rtol=1e-6, atol=1e-9 * float(gvec.abs().max()))
+    # and the differentiable loss used by the vertex ablation has the same gradient (2 J^T r)
+    d = d0.clone().requires_grad_(True)
+    x = lbs(rig.rest, rig.weights, fit.apply_increment(G0, rig.centres, d.view(-1, 6)))
+    total, _ = fit.loss_terms(rig, views, cues, x, ft, cfg, fragments=ev.fragments)
+    (grad,) = torch.autograd.grad(total, d)
+    torch.testing.assert_close(grad, 2 * gvec, rtol=1e-6, atol=1e-9 * float(gvec.abs().max()))
+
+
+def test_flow_targets_follow_the_flow_and_skip_invalid_pixels():
+    rig, views = toy(C=2, H=48, W=48)
+    g = torch.Generator().manual_seed(3)
+    G = pose(rig, g, 0.1, 0.02)
+    cues, x, fr = render(rig, views, G)
+    C, H, W = cues.mask.shape
+    flow = torch.zeros(C, H, W, 2, dtype=torch.float64)
+    flow[..., 0] = 1.5
+    flow[..., 1] = -0.5
+    valid = torch.ones(C, H, W, dtype=torch.bool)
+    valid[0, :, : W // 2] = False
+    flow[1, H // 2:, :, 0] = float("nan")
+    ft = fit.flow_targets(x, views, fr, flow, valid, cues.mask)
+    uv, _ = raster.project_vertices(x, views.K, views.world_to_cam)
+    assert ft.cam.numel() > 50 and torch.isfinite(ft.target).all()
+    d = ft.target - uv[ft.cam, ft.vert]
+    assert torch.allclose(d, torch.tensor([1.5, -0.5], dtype=torch.float64).expand_as(d))
+    # no target from invalid or NaN pixels
+    assert not bool(((ft.cam == 0) & (uv[ft.cam, ft.vert][:, 0].round() < W // 2)).any())
+    assert not bool(((ft.cam == 1) & (uv[ft.cam, ft.vert][:, 1].round() >= H // 2)).any())
+    vis = raster.visible_vertices(x, views.K, views.world_to_cam, fr)
+    assert bool(vis[ft.cam, ft.vert].all())
+
+
+# --------------------------------------------------------------------------------------
+# recovery and robustness
+# --------------------------------------------------------------------------------------
+
+
+def test_recovers_known_bone_transforms_from_a_perturbed_start():
+    rig, views = toy(C=4, H=80, W=80)
+    g = torch.Generator().manual_seed(4)
+    Gt = pose(rig, g, 0.15, 0.03)
+    cues, xt, _ = render(rig, views, Gt)
+    G0 = pose(rig, g, 0.06, 0.015, Gt)
+    x0 = lbs(rig.rest, rig.weights, G0)
+    e0 = rmse(x0, xt)
+    # flow targets say where the visible vertices of the start went (as at frame t > 0)
+    fr0 = raster.occlude(raster.rasterize(x0, rig.faces, views.K, views.world_to_cam, 80, 80), cues.occluder)
+    ft = exact_flow(rig, views, x0, fr0, xt)
+    r = fit.fit_frame(rig, views, cues, G0, fit.FitConfig(), flow=ft)
+    assert rmse(r.verts, xt) < 0.1 * e0, (rmse(r.verts, xt), e0)  # binary masks: +-0.5 px per crossing
+    assert r.converged and r.iterations <= fit.FitConfig().max_iters
+    Rerr = (r.transforms[:, :3, :3] @ Gt[:, :3, :3].transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1)
+    assert float(torch.arccos(((Rerr - 1) / 2).clamp(-1, 1)).max()) < 0.02  # bone rotations within ~1 degree
+    # silhouettes + normals alone (the first frame) lower the loss but pin the shape only loosely:
+    # at 2.3 cm per pixel many bone configurations fit 4 binary masks as well as the truth
+    r0 = fit.fit_frame(rig, views, cues, G0, fit.FitConfig(), first=True)
+    start = fit._evaluate(fit._make_problem(rig, views, cues, None, fit.FitConfig()), x0).loss
+    assert r0.loss < 0.7 * start and torch.isfinite(r0.transforms).all()
+    assert rmse(r0.verts, xt) < e0
+
+
+def test_empty_masks_nan_cues_and_missing_flow_give_finite_poses(caplog):
+    rig, views = toy(C=4, H=48, W=48)
+    g = torch.Generator().manual_seed(5)
+    Gs = [pose(rig, g, 0.1, 0.02)]
+    Gs += [pose(rig, g, 0.02, 0.005, Gs[-1]) for _ in range(2)]
+    frames = [render(rig, views, G) for G in Gs]
+
+    def cues_of(t):
+        c, _, _ = frames[t]
+        mask = c.mask.clone()
+        mask[1:3] = False  # empty masks in two views
+        n = c.normals.clone()
+        n[0, :10] = float("nan")  # NaN in a cue
+        return fit.FrameCues(mask, n, c.occluder)
+
+    def flow_of(t):
+        if t == 1:
+            return None  # a frame without flow
+        C, H, W = frames[0][0].mask.shape
+        f = torch.zeros(C, H, W, 2, dtype=torch.float64)
+        f[0, 5:9] = float("nan")
+        return f, None
+
+    start = pose(rig, g, 0.03, 0.01, Gs[0])
+    with caplog.at_level(logging.WARNING, logger="anidress.test"):
+        res = fit.fit_sequence(rig, views, 3, cues_of, flow_of, start, fit.FitConfig(max_iters=5, max_iters_first=5),
+                               progress=False, log=logging.getLogger("anidress.test"))
+    assert len(res) == 3
+    assert "frame 1 has no flow" in caplog.text
+    assert res[1].terms["flow_targets"] == 0 and res[2].terms["flow_targets"] > 0
+    for r in res:
+        assert torch.isfinite(r.transforms).all() and torch.isfinite(r.verts).all() and math.isfinite(r.loss)
+    # all masks empty: still finite (the silhouette pushes the garment out of the views or stays)
+    empty = fit.FrameCues(torch.zeros_like(frames[0][0].mask), None, frames[0][0].occluder)
+    r = fit.fit_frame(rig, views, empty, start, fit.FitConfig(max_iters_first=5), first=True)
+    assert torch.isfinite(r.transforms).all()
+    # a NaN start is refused with a clear error
+    bad = start.clone()
+    bad[0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        fit.fit_frame(rig, views, frames[0][0], bad)
+    with pytest.raises(ValueError, match="mask must be"):
+        fit.fit_frame(rig, views, fit.FrameCues(frames[0][0].mask[:, :10], None, frames[0][0].occluder), start)
+
+
+def test_body_occlusion_is_respected():
+    """A garment pixel hidden by an occluder is not garment: fitting to occluded masks keeps the pose."""
+    rig, views = toy(C=2, H=64, W=64)
+    g = torch.Generator().manual_seed(6)
+    Gt = pose(rig, g, 0.1, 0.02)
+    x = lbs(rig.rest, rig.weights, Gt)
+    fr = raster.rasterize(x, rig.faces, views.K, views.world_to_cam, 64, 64)
+    occ = torch.full_like(fr.depth, float("inf"))
+    occ[:, :, 20:34] = 1.0  # a vertical bar in front of the garment ("an arm")
+    cues, _, _ = render(rig, views, Gt, occluder=occ)
+    assert not bool(cues.mask[:, :, 20:34].any()) and bool(cues.mask.any())
+    pb = fit._make_problem(rig, views, cues, None, fit.FitConfig())
+    ev = fit._evaluate(pb, x)
+    # at the true pose the silhouette residual is only the sub-pixel coverage of crossed pixels
+    assert ev.terms["mask"] < 0.5
+    un = fit._make_problem(rig, views, fit.FrameCues(cues.mask, cues.normals, torch.full_like(occ, float("inf"))),
+                           None, fit.FitConfig())
+    assert fit._evaluate(un, x).terms["mask"] > 5 * ev.terms["mask"]  # ignoring the occluder is much worse
+
+
+def test_ablation_configs_and_vertex_fit():
+    base = fit.FitConfig()
+    assert fit.config_for(base, None) == base and fit.config_for(base, "full") == base
+    assert fit.config_for(base, "no_flow").w_flow == 0 and fit.config_for(base, "no_flow").w_normal == 0.1
+    nf = fit.config_for(base, "no_normal_flow")
+    assert nf.w_flow == 0 and nf.w_normal == 0 and nf.w_mask == 2.0
+    assert fit.config_for(base, "vertex").method == "vertex"
+    with pytest.raises(ValueError):
+        fit.config_for(base, "nope")
+    rig, views = toy(C=3, H=48, W=48, n_theta=20, n_h=6)
+    g = torch.Generator().manual_seed(7)
+    Gt = pose(rig, g, 0.1, 0.02)
+    cues, xt, _ = render(rig, views, Gt)
+    G0 = pose(rig, g, 0.04, 0.01, Gt)
+    r = fit.fit_frame(rig, views, cues, G0, fit.config_for(fit.FitConfig(vertex_max_iters=10), "vertex"))
+    assert torch.equal(r.transforms, G0)  # the vertex method does not move bones
+    assert r.loss < r.curve[0] and torch.isfinite(r.verts).all() and r.iterations <= 10

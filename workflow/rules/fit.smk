@@ -1,0 +1,138 @@
+# Garment dynamics fitting (paper §3.2, DESIGN.md §8) and its evaluation against ground truth:
+#   fit          -> results/{scene}/{seq}/garment_poses.npz            (full method)
+#   fit_ablation -> results/{scene}/{seq}/fit_ablations/{ablation}/garment_poses.npz
+#   fit_eval     -> results/{scene}/{seq}/fit_metrics.csv              (synthetic scenes)
+# Cues: the pipeline's (rules masks / flows / normals in cues.smk, via masks_dir, flows_dir,
+# normals_dir), or with fit/cues: ground_truth the synthetic scene's true masks and flows
+# and its shipped (degraded) normals -- an upper bound for the fitting alone.
+
+FIT_ABLATIONS = ["vertex", "no_normal_flow", "no_flow"]
+
+
+def _fit_sequences(scene):
+    return [s["name"] for s in config["scenes"][scene]["sequences"]]
+
+
+_FIT_SEQUENCES = sorted({s for sc in config["scenes"] for s in _fit_sequences(sc)})
+
+
+def fit_cue_dirs(scene, seq):
+    """{masks, flows, normals (or None), source} folders the fit of one sequence reads."""
+    if config["fit"]["cues"] == "ground_truth":
+        if not config["scenes"][scene]["synthetic"]:
+            raise ValueError(f"fit/cues is 'ground_truth' but scene {scene!r} is not synthetic")
+        normals = None if config["cues"]["normals"] == "off" else f"data/{scene}/{seq}/normals"
+        return {"masks": f"data/{scene}/{seq}/gt/masks", "flows": f"data/{scene}/{seq}/gt/flows",
+                "normals": normals, "source": "ground_truth (gt/masks, gt/flows, shipped normals)"}
+    return {"masks": masks_dir(scene, seq), "flows": flows_dir(scene, seq), "normals": normals_dir(scene, seq),
+            "source": "pipeline (rules masks, flows, normals)"}
+
+
+def fit_inputs(wildcards):
+    """Rig, template, scene and (pipeline cues) the cue rule outputs of one sequence."""
+    scene, seq = wildcards.scene, wildcards.seq
+    if not has_garment(scene):
+        raise ValueError(f"scene {scene!r} has no garment (kind tight): nothing to fit")
+    inp = {"rig": f"results/{scene}/rig.npz", "template": f"results/{scene}/template.npz",
+           "scene": f"data/{scene}"}
+    if config["fit"]["cues"] != "ground_truth":
+        d = fit_cue_dirs(scene, seq)
+        if d["masks"].startswith("results/"):
+            inp["masks"] = d["masks"]
+        inp["flows"] = d["flows"]
+        inp["normals"] = normals_record(scene, seq)
+    return inp
+
+
+def fit_params():
+    """The settings that shape a fit (the ablation list and eval settings excluded: no rerun when they change)."""
+    return {k: v for k, v in config["fit"].items() if k not in ("ablations", "eval", "threads")}
+
+
+def fit_outputs(scene):
+    """Every fit target of a garment scene: poses per sequence (+ ablations) and, if synthetic, the metrics."""
+    if not has_garment(scene):
+        return []
+    out = []
+    for seq in _fit_sequences(scene):
+        out.append(f"results/{scene}/{seq}/garment_poses.npz")
+        out += [f"results/{scene}/{seq}/fit_ablations/{a}/garment_poses.npz" for a in config["fit"]["ablations"]]
+        if config["scenes"][scene]["synthetic"]:
+            out.append(f"results/{scene}/{seq}/fit_metrics.csv")
+    return out
+
+
+rule fit:
+    input:
+        unpack(fit_inputs),
+    output:
+        "results/{scene}/{seq}/garment_poses.npz",
+    log:
+        "logs/{scene}/{seq}/fit.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/fit.tsv"
+    params:
+        fit=fit_params(),
+        cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
+        ablation="full",
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=30,
+        gpu=0,
+    wildcard_constraints:
+        seq="|".join(_FIT_SEQUENCES) or "^$",
+    script:
+        "../scripts/fit.py"
+
+
+rule fit_ablation:
+    input:
+        unpack(fit_inputs),
+    output:
+        "results/{scene}/{seq}/fit_ablations/{ablation}/garment_poses.npz",
+    log:
+        "logs/{scene}/{seq}/fit_ablations/{ablation}.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/fit_ablations/{ablation}.tsv"
+    params:
+        fit=fit_params(),
+        cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
+        ablation=lambda wc: wc.ablation,
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=60,
+        gpu=0,
+    wildcard_constraints:
+        seq="|".join(_FIT_SEQUENCES) or "^$",
+        ablation="|".join(FIT_ABLATIONS),
+    script:
+        "../scripts/fit.py"
+
+
+rule fit_eval:
+    input:
+        scene="data/{scene}",
+        rig="results/{scene}/rig.npz",
+        full="results/{scene}/{seq}/garment_poses.npz",
+        ablations=lambda wc: [f"results/{wc.scene}/{wc.seq}/fit_ablations/{a}/garment_poses.npz"
+                              for a in config["fit"]["ablations"]],
+    output:
+        "results/{scene}/{seq}/fit_metrics.csv",
+    log:
+        "logs/{scene}/{seq}/fit_eval.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/fit_eval.tsv"
+    params:
+        ablations=config["fit"]["ablations"],
+        eval=config["fit"]["eval"],
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=20,
+    wildcard_constraints:
+        seq="|".join(_FIT_SEQUENCES) or "^$",
+        scene="|".join(SYNTHETIC_SCENES) or "^$",
+    script:
+        "../scripts/fit_eval.py"

@@ -1,0 +1,15 @@
+# Rules fit / fit_ablation: garment poses of one sequence from its 2D cues.
+from anidress_core.stages import setup_logging
+from anidress_core.stages.fit import run_fit
+
+log = setup_logging(snakemake.log[0])
+try:
+    cues = snakemake.params.cues
+    params = dict(snakemake.params.fit, threads=snakemake.threads)
+    run_fit(snakemake.input.scene, snakemake.wildcards.seq, snakemake.input.rig, snakemake.input.template,
+            cues["masks"], cues["flows"], cues["normals"], params, snakemake.output[0],
+            ablation=None if snakemake.params.ablation == "full" else snakemake.params.ablation,
+            cue_source=cues["source"])
+except Exception:
+    log.exception("fit failed")
+    raise
