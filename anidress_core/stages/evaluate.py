@@ -1,0 +1,174 @@
+"""Stage `evaluate`: image metrics of the field's renders against the ground truth (DESIGN.md §10).
+
+Reads render folders written by :func:`anidress_core.stages.field.run_render` (their
+``render.json`` lists frames and cameras) and the sequence's ground truth:
+``data/<scene>/<seq>/images/<cam>/<frame>.png`` masked by ``gt/masks`` (labels > 0)
+onto the render's background colour (the field models the subject only, as in the
+Neural Body protocol), and ``gt/meshes.npz`` for the subject box (else the posed body).
+
+Writes ``metrics.csv``, one row per (kind, sequence, camera, frame) with columns
+``kind, sequence, camera, frame, psnr_db, ssim, iou, lpips, dists, lpips_available,
+dists_available, box_source``, and ``metrics_summary.json``: per (kind, sequence) the
+mean of every metric, the image count, and why LPIPS / DISTS are unavailable when
+they are (their columns are then NaN and ``*_available`` is 0 -- never a stand-in).
+Renders of library motions have no ground truth and are not evaluated.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .. import __version__
+from ..camera import load_cameras
+from ..io import files
+from ..metrics import image as M
+from .scene import load_body, load_sequence_motion, read_scene
+
+__all__ = ["run_evaluate", "COLUMNS", "read_metrics_csv"]
+
+log = logging.getLogger("anidress.evaluate")
+
+COLUMNS = ["kind", "sequence", "camera", "frame", "psnr_db", "ssim", "iou", "lpips", "dists", "lpips_available",
+           "dists_available", "box_source"]
+
+
+def _subject_points(scene_dir: Path, seq: str, info: dict, frames: Sequence[int]) -> tuple[dict, str]:
+    """World points of the subject per frame: GT meshes when shipped, else the posed body."""
+    gt = scene_dir / seq / "gt" / "meshes.npz"
+    if gt.is_file():
+        a, _ = files.load_npz(gt, required=("body_vertices",))
+        pts = {}
+        for f in frames:
+            p = [a["body_vertices"][f]]
+            if "garment_vertices" in a:
+                p.append(a["garment_vertices"][f])
+            pts[f] = torch.from_numpy(np.concatenate(p)).float()
+        return pts, "gt/meshes.npz"
+    body = load_body(scene_dir, info)
+    m = load_sequence_motion(scene_dir, seq, info["fps"])
+    idx = torch.tensor(list(frames))
+    v = body.pose(m.poses[idx], m.Rh[idx], m.Th[idx], m.shapes).vertices
+    return {f: v[i] for i, f in enumerate(frames)}, "posed body"
+
+
+def _nan_if_none(x) -> float:
+    return float("nan") if x is None else float(x)
+
+
+def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str, str | os.PathLike]],
+                 out_csv: str | os.PathLike, out_summary: str | os.PathLike, params: dict,
+                 lpips=None, dists=None, progress: bool = True) -> dict:
+    """Evaluate render folders ``renders``: (kind, sequence, folder) each.
+
+    params: the ``metrics`` config section (``box_pad_m``). lpips / dists: loaded
+    models or :class:`anidress_core.metrics.image.Unavailable` (or None: not requested).
+    """
+    t0 = time.perf_counter()
+    scene_dir = Path(scene_dir)
+    info = read_scene(scene_dir)
+    pad = float(params.get("box_pad_m", 0.05))
+    lp_ok, ds_ok = bool(lpips), bool(dists)
+    notes = {"lpips": "available" if lp_ok else getattr(lpips, "reason", "not requested"),
+             "dists": "available" if ds_ok else getattr(dists, "reason", "not requested")}
+    rows = []
+    for kind, seq, folder in renders:
+        folder = Path(folder)
+        rj = files.read_json(folder / "render.json")
+        frames, cams_names = rj["frames"], rj["cameras"]
+        cams = load_cameras(scene_dir / seq / "intri.yml", scene_dir / seq / "extri.yml", names=cams_names)
+        bg = torch.tensor(rj.get("background", [0.0, 0.0, 0.0]), dtype=torch.float32)
+        pts, box_source = _subject_points(scene_dir, seq, info, frames)
+        todo = [(f, ci) for f in frames for ci in range(len(cams_names))]
+        it = todo
+        if progress:
+            from tqdm import tqdm
+            it = tqdm(todo, desc=f"evaluate {kind} {seq}", unit="img")
+        for f, ci in it:
+            cam = cams_names[ci]
+            pred = torch.from_numpy(files.read_image(folder / "rgb" / cam / f"{f:06d}.png"))
+            alpha_u16 = _read_u16(folder / "alpha" / cam / f"{f:06d}.png")
+            alpha = torch.from_numpy(alpha_u16.astype(np.float32) / 65535.0)
+            img = torch.from_numpy(files.read_image(scene_dir / seq / "images" / cam / f"{f:06d}.png"))
+            mask = torch.from_numpy(files.read_mask(scene_dir / seq / "gt" / "masks" / cam / f"{f:06d}.png") > 0)
+            if img.shape != pred.shape:
+                raise files.ArtifactError(f"{folder / 'rgb' / cam / f'{f:06d}.png'}: size {tuple(pred.shape)} differs "
+                                          f"from the ground truth {tuple(img.shape)}")
+            gt = torch.where(mask[..., None], img, bg)
+            H, W = mask.shape
+            box = M.subject_box_mask(pts[f], cams.K[ci], cams.world_to_cam[ci], H, W, pad)
+            y0, y1, x0, x1 = M.box_rect(box)
+            crop_p, crop_g = pred[y0:y1, x0:x1], gt[y0:y1, x0:x1]
+            row = {"kind": kind, "sequence": seq, "camera": cam, "frame": int(f),
+                   "psnr_db": M.psnr(pred, gt, box), "ssim": M.ssim(crop_p, crop_g), "iou": M.iou(alpha, mask),
+                   "lpips": float("nan"), "dists": float("nan"), "lpips_available": int(lp_ok),
+                   "dists_available": int(ds_ok), "box_source": box_source}
+            if (lp_ok or ds_ok) and y1 > y0 and x1 > x0:
+                a = crop_p.permute(2, 0, 1)[None]
+                b = crop_g.permute(2, 0, 1)[None]
+                with torch.no_grad():
+                    if lp_ok:
+                        row["lpips"] = float(lpips(a, b)[0])
+                    if ds_ok:
+                        row["dists"] = float(dists(a, b)[0])
+            rows.append(row)
+    # metrics.csv (atomic)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    files.write_text(out_csv, buf.getvalue())
+    # summary
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["kind"], r["sequence"]), []).append(r)
+    summary = {"metrics": [], "lpips": notes["lpips"], "dists": notes["dists"], "box_pad_m": pad,
+               "code_version": __version__, "wall_s": time.perf_counter() - t0}
+    for (kind, seq), rs in groups.items():
+        ent = {"kind": kind, "sequence": seq, "images": len(rs)}
+        for k in ("psnr_db", "ssim", "iou", "lpips", "dists"):
+            vals = [r[k] for r in rs if not math.isnan(r[k]) and not math.isinf(r[k])]
+            ent[k] = float(np.mean(vals)) if vals else float("nan")
+        summary["metrics"].append(ent)
+        log.info("%s %s: %d images, PSNR %.2f dB, SSIM %.4f, IoU %.4f, LPIPS %s, DISTS %s", kind, seq, len(rs),
+                 ent["psnr_db"], ent["ssim"], ent["iou"], f"{ent['lpips']:.4f}" if lp_ok else "unavailable",
+                 f"{ent['dists']:.4f}" if ds_ok else "unavailable")
+    files.write_text(out_summary, json.dumps(summary, indent=1))
+    return summary
+
+
+def _read_u16(path: Path) -> np.ndarray:
+    import cv2
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: file not found")
+    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if m is None or m.ndim != 2:
+        raise files.ArtifactError(f"{path}: not a single-channel 16-bit alpha PNG")
+    return m
+
+
+def read_metrics_csv(path: str | os.PathLike) -> list[dict]:
+    """Rows of a ``metrics.csv`` with numbers parsed."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: file not found")
+    out = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            for k in ("psnr_db", "ssim", "iou", "lpips", "dists"):
+                r[k] = float(r[k])
+            for k in ("frame", "lpips_available", "dists_available"):
+                r[k] = int(r[k])
+            out.append(r)
+    return out

@@ -1,0 +1,451 @@
+"""Stages `train` and `render`: the pose-driven radiance field (DESIGN.md §4, §9; paper §3.3).
+
+Artifacts (under ``results/<scene>/<seq>/<variant>/``, seq = a training sequence,
+variant = ``full`` | ``body_only``):
+
+* ``field.pt`` (torch.save dict, written atomically): ``format`` ("anidress-field/1"),
+  ``variant``, ``scene``, ``sequence``, ``field_config`` (architecture),
+  ``state_dict`` (canonical field + motion-weight volume incl. its prior and the
+  canonical box), ``num_body_joints`` (24), ``num_bones`` (B; 0 for body_only / tight),
+  ``history`` (loss, batch PSNR, samples per ray per logged step), ``wall_s``,
+  ``steps``, ``lpips`` ("used" or why not), ``sampling`` (occupied fraction, samples
+  per ray kept / considered), ``config_hash``, ``code_version``.
+  While training, ``field.pt.ckpt`` holds the last checkpoint (same config hash ->
+  resumed; removed when training ends).
+* ``renders/<kind>/`` with kind ``novel_view`` (test cameras, training frames),
+  ``novel_pose/<seq>`` (all cameras of a held-out sequence, its own garment poses) or
+  ``library/<motion>`` (a simulated library motion: body motion + the rig's garment
+  poses, paper §4.5): ``rgb/<cam>/<frame:06d>.png`` (composited over the background
+  colour), ``alpha/<cam>/<frame:06d>.png`` (16-bit, opacity x 65535),
+  ``depth/<cam>/<frame:06d>.exr`` (metres along the ray, 0 where empty) and
+  ``render.json`` (frames, cameras, garment-pose source, seconds and samples per image).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .. import __version__
+from ..camera import load_cameras, pixel_rays, project
+from ..field.encoding import HashGridConfig
+from ..field.model import AnimatableField, FieldConfig
+from ..field.sampler import build_occupancy, mask_boxes
+from ..field.subject import BodyRest, GarmentRest, canonical_setup, posed_parts, unified_pose
+from ..field.train import TrainConfig, TrainData, render_view, train_field
+from ..io import files
+from .scene import load_body, load_sequence_motion, read_scene
+
+__all__ = ["run_train", "run_render", "load_field", "field_config_from_params", "train_config_from_params",
+           "LoadedField", "FORMAT"]
+
+log = logging.getLogger("anidress.field")
+
+FORMAT = "anidress-field/1"
+
+
+# --------------------------------------------------------------------------- config
+
+
+def field_config_from_params(p: dict) -> FieldConfig:
+    """``field/model`` config section -> FieldConfig."""
+    m = p.get("model", {})
+    grid = HashGridConfig(levels=int(m.get("hash_levels", 8)), features=int(m.get("hash_features", 2)),
+                          log2_size=int(m.get("hash_log2_size", 17)),
+                          base_resolution=int(m.get("hash_base_resolution", 16)),
+                          max_resolution=int(m.get("hash_max_resolution", 256)))
+    return FieldConfig(grid=grid, width=int(m.get("width", 64)), volume_res=int(m.get("volume_res", 32)))
+
+
+def train_config_from_params(p: dict) -> TrainConfig:
+    """``field/train`` (+ ``field/sampler/step_m``, ``field/render/background``) -> TrainConfig."""
+    t = dict(p.get("train", {}))
+    t.pop("frame_stride", None)
+    t["step_m"] = float(p.get("sampler", {}).get("step_m", 0.01))
+    t["background"] = tuple(float(c) for c in p.get("render", {}).get("background", (0.0, 0.0, 0.0)))
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(set(t) - known)
+    if unknown:
+        raise ValueError(f"field/train: unknown keys {unknown}")
+    return TrainConfig(**t)
+
+
+def _device(device: str | None) -> torch.device:
+    if device in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+@dataclasses.dataclass
+class _Inputs:
+    body: BodyRest
+    garment: GarmentRest | None
+    num_bones: int
+
+
+def _rest_inputs(scene_dir: Path, info: dict, template_npz, rig_npz, variant: str, shapes) -> _Inputs:
+    body_model = load_body(scene_dir, info)
+    v, J = body_model.shaped(shapes[None] if shapes is not None else None)
+    body = BodyRest(v.reshape(-1, 3).float(), body_model.faces, body_model.weights.float(), J.reshape(24, 3).float())
+    if template_npz is None:
+        return _Inputs(body, None, 0)
+    from .template import load_template
+
+    tpl = load_template(template_npz)
+    rig_w = None
+    B = 0
+    if rig_npz is not None and variant == "full":
+        from .rig import load_rig
+
+        rig = load_rig(rig_npz)
+        if rig.model.rest.shape[0] != tpl.verts.shape[0]:
+            raise files.ArtifactError(f"{rig_npz}: rig has {rig.model.rest.shape[0]} vertices but {template_npz} "
+                                      f"has {tpl.verts.shape[0]}")
+        rig_w = rig.model.weights.float()
+        B = rig.model.num_bones if variant == "full" else 0
+    elif variant == "full":
+        raise ValueError(f"variant 'full' needs a rig (rig.npz) for the garment of {scene_dir}")
+    g = GarmentRest(torch.as_tensor(tpl.verts).float(), torch.as_tensor(tpl.faces).long(), rig_w,
+                    torch.as_tensor(tpl.body_weights).float())
+    return _Inputs(body, g, B)
+
+
+def _garment_poses(path, frames: int, bones: int) -> torch.Tensor:
+    a, _ = files.load_npz(path, required=("transforms",))
+    G = torch.as_tensor(a["transforms"]).float()
+    if G.ndim != 4 or G.shape[1:] != (bones, 4, 4):
+        raise files.ArtifactError(f"{path}: transforms must be (T, {bones}, 4, 4) to match the rig, got {tuple(G.shape)}")
+    if G.shape[0] != frames:
+        raise files.ArtifactError(f"{path}: {G.shape[0]} frames of garment poses for a {frames}-frame sequence")
+    if not torch.isfinite(G).all():
+        raise files.ArtifactError(f"{path}: transforms contain NaN or inf")
+    return G
+
+
+def _read_views(seq_dir: Path, cams: Sequence[str], frames: Sequence[int], masks_dir: Path | None,
+                background: Sequence[float]):
+    """Images (T, C, H, W, 3) uint8 masked onto the background and labels (T, C, H, W) uint8."""
+    imgs, labs = [], []
+    bg = np.asarray(background, np.float32)
+    for f in frames:
+        ri, rl = [], []
+        for c in cams:
+            img = files.read_image(seq_dir / "images" / c / f"{f:06d}.png")
+            if masks_dir is not None:
+                lab = files.read_mask(masks_dir / c / f"{f:06d}.png")
+                if lab.shape != img.shape[:2]:
+                    raise files.ArtifactError(f"{masks_dir / c / f'{f:06d}.png'}: mask {lab.shape} does not match "
+                                              f"image {img.shape[:2]}")
+                img = np.where(lab[..., None] > 0, img, bg)
+                rl.append(lab)
+            ri.append(np.clip(img * 255 + 0.5, 0, 255).astype(np.uint8))
+        imgs.append(np.stack(ri))
+        if rl:
+            labs.append(np.stack(rl))
+    return torch.from_numpy(np.stack(imgs)), (torch.from_numpy(np.stack(labs)) if labs else None)
+
+
+def _sampler_params(p: dict) -> dict:
+    s = p.get("sampler", {})
+    return {"res": int(s.get("occupancy_res", 64)), "dilate_m": float(s.get("dilate_m", 0.03)),
+            "body_only_garment_dilate_m": float(s.get("body_only_garment_dilate_m", 0.12)),
+            "max_joints": int(s.get("max_joints", 8)), "min_weight": float(s.get("min_joint_weight", 0.01)),
+            "mask_dilate_px": int(s.get("mask_dilate_px", 8)), "step_m": float(s.get("step_m", 0.01))}
+
+
+# --------------------------------------------------------------------------- train
+
+
+def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: str | os.PathLike, out_pt: str | os.PathLike,
+              params: dict, template_npz: str | os.PathLike | None = None, rig_npz: str | os.PathLike | None = None,
+              garment_poses_npz: str | os.PathLike | None = None, lpips=None, device: str | None = None,
+              progress: bool = True, max_steps: int | None = None) -> dict:
+    """Train the field of ``variant`` on the training cameras of sequence ``seq``.
+
+    masks_dir: ``<dir>/<cam>/<frame:06d>.png`` labels (0 background, else subject) of the
+    training cameras. Garment scenes need template_npz; variant ``full`` also rig_npz and
+    garment_poses_npz (the fitted poses of ``seq``). lpips: a loaded LPIPS (the loss
+    gets 0.2 LPIPS on patches) or an ``Unavailable`` / None (MSE only, logged).
+    ``max_steps``: stop after this many steps *leaving the checkpoint* (to test resuming).
+    Returns the saved dict (without the state_dict).
+    """
+    t_start = time.perf_counter()
+    scene_dir, out_pt, masks_dir = Path(scene_dir), Path(out_pt), Path(masks_dir)
+    dev = _device(device)
+    info = read_scene(scene_dir)
+    cfg_hash = files.config_hash({"params": params, "variant": variant, "seq": seq})
+    sp = _sampler_params(params)
+    tcfg = train_config_from_params(params)
+    fcfg = field_config_from_params(params)
+    stride = int(params.get("train", {}).get("frame_stride", 1))
+    motion = load_sequence_motion(scene_dir, seq, info["fps"])
+    T_all = motion.poses.shape[0]
+    frames = list(range(0, T_all, stride))
+    cams = info["cameras"]["train"]
+    log.info("train %s/%s %s: %d frames (stride %d) x %d cameras, device %s", scene_dir.name, seq, variant,
+             len(frames), stride, len(cams), dev)
+    # 1. the subject: rest body/garment, unified pose of the frames, posed surfaces
+    inp = _rest_inputs(scene_dir, info, template_npz, rig_npz, variant, motion.shapes)
+    body_model = load_body(scene_dir, info)
+    idx = torch.tensor(frames)
+    posed = body_model.pose(motion.poses[idx], motion.Rh[idx], motion.Th[idx], motion.shapes)
+    G = None
+    if variant == "full" and inp.garment is not None:
+        if garment_poses_npz is None:
+            raise ValueError("variant 'full' of a garment scene needs garment poses (garment_poses.npz)")
+        G = _garment_poses(garment_poses_npz, T_all, inp.num_bones)[idx]
+    S = unified_pose(posed.transforms.float(), G, variant)
+    parts = posed_parts(inp.body, posed.vertices.float(), inp.garment, variant, posed.transforms.float(), G,
+                        sp["dilate_m"], sp["body_only_garment_dilate_m"])
+    pr = params.get("priors", {})
+    box, prior = canonical_setup(inp.body, inp.garment, variant, fcfg.volume_res,
+                                 float(pr.get("garment_sigma_m", 0.04)), float(pr.get("box_pad_m", 0.1)),
+                                 float(pr.get("ellipsoid_scale", 1.5)))
+    t0 = time.perf_counter()
+    grid = build_occupancy(parts, (sp["res"],) * 3, sp["max_joints"], sp["min_weight"], progress=progress)
+    log.info("occupancy: %d frames, %.1f%% of grid voxels occupied, %d joints (%d body + %d garment), %.1f s",
+             grid.num_frames, 100 * grid.occupied_fraction(), S.shape[1], 24, S.shape[1] - 24,
+             time.perf_counter() - t0)
+    # 2. the images: training cameras, masked; rays in the dilated mask boxes
+    cameras = load_cameras(scene_dir / seq / "intri.yml", scene_dir / seq / "extri.yml", names=cams).to(
+        dtype=torch.float32)
+    imgs, labels = _read_views(scene_dir / seq, cams, frames, masks_dir, tcfg.background)
+    Tn, C, H, W, _ = imgs.shape
+    boxes = mask_boxes((labels > 0).reshape(Tn * C, H, W), sp["mask_dilate_px"]).reshape(Tn, C, 4)
+    box_frac = float(((boxes[..., 1] - boxes[..., 0]) * (boxes[..., 3] - boxes[..., 2])).sum()) / (Tn * C * H * W)
+    rays = pixel_rays(cameras)
+    data = TrainData(imgs.to(dev), (labels > 0).to(dev), boxes.to(dev), rays.origins[:, 0, 0].to(dev), rays.directions.to(dev),
+                     torch.linalg.inv(S).to(dev), grid.to(dev))
+    # 3. model, resume, train
+    model = AnimatableField(box, prior, fcfg, seed=tcfg.seed).to(dev)
+    ckpt_path = Path(str(out_pt) + ".ckpt")
+    state = None
+    if ckpt_path.is_file():
+        st = torch.load(ckpt_path, map_location=dev, weights_only=False)
+        if st.get("config_hash") == cfg_hash:
+            state = st
+            log.info("resuming from %s at step %d", ckpt_path, int(st["step"]))
+        else:
+            log.info("ignoring %s: made with another configuration", ckpt_path)
+    if lpips:
+        lp = lpips.to(dev)
+        lpips_note = "used"
+    else:
+        lp = None
+        lpips_note = getattr(lpips, "reason", "LPIPS not requested")
+        log.info("LPIPS term off (loss = MSE only): %s", lpips_note)
+
+    def save_ckpt(s: dict) -> None:
+        s["config_hash"] = cfg_hash
+        with files.atomic_path(ckpt_path) as tmp:
+            torch.save(s, tmp)
+
+    res = _train_maybe_partial(model, data, tcfg, state, save_ckpt, lp, progress, max_steps)
+    if res is None:  # stopped early on purpose: the checkpoint stays
+        return {"stopped_at": max_steps}
+    kept = float(np.mean([h["samples_per_ray"] for h in res.history])) if res.history else float("nan")
+    seen = float(np.mean([h["considered_per_ray"] for h in res.history])) if res.history else float("nan")
+    out = {
+        "format": FORMAT, "variant": variant, "scene": scene_dir.name, "sequence": seq,
+        "field_config": dataclasses.asdict(fcfg), "train_config": dataclasses.asdict(tcfg),
+        "num_body_joints": 24, "num_bones": int(S.shape[1] - 24), "history": res.history, "wall_s": res.wall_s,
+        "steps": res.steps, "frames": frames, "cameras": cams, "lpips": lpips_note,
+        "sampling": {"occupied_fraction": grid.occupied_fraction(), "samples_per_ray": kept,
+                     "considered_per_ray": seen, "ray_box_fraction": box_frac,
+                     "occupancy_res": sp["res"], "dilate_m": sp["dilate_m"]},
+        "config_hash": cfg_hash, "code_version": __version__, "device": str(dev),
+        "stage_wall_s": time.perf_counter() - t_start,
+    }
+    with files.atomic_path(out_pt) as tmp:
+        torch.save({**out, "state_dict": {k: v.cpu() for k, v in model.state_dict().items()}}, tmp)
+    if ckpt_path.exists():
+        ckpt_path.unlink()
+    last = res.history[-1] if res.history else {}
+    log.info("trained %s in %.1f s (%d steps): last batch PSNR %.2f dB, %.1f of %.1f samples per ray kept",
+             variant, res.wall_s, res.steps, last.get("psnr_db", float("nan")), kept, seen)
+    return out
+
+
+def _train_maybe_partial(model, data, cfg, state, save_ckpt, lp, progress, max_steps):
+    if max_steps is None or max_steps >= cfg.steps:
+        return train_field(model, data, cfg, state=state, checkpoint=save_ckpt, lpips=lp, progress=progress)
+
+    class _Stop(Exception):
+        pass
+
+    def ckpt_then_stop(s: dict) -> None:
+        save_ckpt(s)
+        if s["step"] >= max_steps:
+            raise _Stop
+
+    try:
+        train_field(model, data, cfg, state=state, checkpoint=ckpt_then_stop, lpips=lp, progress=progress)
+    except _Stop:
+        return None
+    return None
+
+
+# --------------------------------------------------------------------------- load / render
+
+
+@dataclasses.dataclass
+class LoadedField:
+    model: AnimatableField
+    meta: dict
+
+
+def load_field(path: str | os.PathLike, device: str | None = None) -> LoadedField:
+    """Read ``field.pt`` written by :func:`run_train`."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: field checkpoint not found")
+    try:
+        d = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:
+        raise files.ArtifactError(f"{path}: not a readable torch file ({e})") from e
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        raise files.ArtifactError(f"{path}: not an AniDress field ({FORMAT})")
+    fc = d["field_config"]
+    fcfg = FieldConfig(grid=HashGridConfig(**fc["grid"]), **{k: v for k, v in fc.items() if k != "grid"})
+    sd = d["state_dict"]
+    model = AnimatableField(sd["canonical.box"], sd["weights.log_prior"].exp(), fcfg)
+    model.load_state_dict(sd)
+    model.eval()
+    meta = {k: v for k, v in d.items() if k != "state_dict"}
+    return LoadedField(model.to(_device(device)), meta)
+
+
+def _projected_box(grid_lo: torch.Tensor, grid_hi: torch.Tensor, cams, pad_px: int) -> torch.Tensor:
+    """Rect (C, 4) y0, y1, x0, x1 covering the projection of a world box (3,), (3,) in every camera."""
+    corners = torch.stack(torch.meshgrid(*[torch.stack([grid_lo[a], grid_hi[a]]) for a in range(3)], indexing="ij"),
+                          -1).reshape(8, 3)
+    pr = project(corners.to(cams.dtype), cams)
+    uv = pr.uv  # (C, 8, 2)
+    H, W = cams.height, cams.width
+    x0 = (uv[..., 0].min(1).values.floor() - pad_px).clamp(0, W)
+    x1 = (uv[..., 0].max(1).values.ceil() + 1 + pad_px).clamp(0, W)
+    y0 = (uv[..., 1].min(1).values.floor() - pad_px).clamp(0, H)
+    y1 = (uv[..., 1].max(1).values.ceil() + 1 + pad_px).clamp(0, H)
+    behind = (pr.depth <= 0).any(1)
+    box = torch.stack([y0, y1, x0, x1], -1).long()
+    full = torch.tensor([0, H, 0, W])
+    return torch.where(behind[:, None], full, box)
+
+
+def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_dir: str | os.PathLike, params: dict,
+               seq: str | None = None, cameras: Sequence[str] | None = None, template_npz=None, rig_npz=None,
+               garment_poses_npz=None, library_motion_npz=None, library_name: str | None = None,
+               frame_stride: int = 1, device: str | None = None, progress: bool = True,
+               use_occupancy: bool = True, cull_joints: bool = True) -> dict:
+    """Render a sequence with a trained field into ``out_dir`` (layout in the module doc).
+
+    Body motion: the EasyMocap ``smpl/`` of ``seq`` (captured) or ``library_motion_npz``
+    (a motion of the library; then garment poses are ``rig.transforms_of(library_name)``).
+    Garment poses (variant ``full``): ``garment_poses_npz`` for a captured sequence.
+    Cameras: ``cameras`` of ``seq`` (or of the training sequence for a library motion).
+    """
+    from .simulate import load_motion
+
+    t_start = time.perf_counter()
+    scene_dir, out_dir = Path(scene_dir), Path(out_dir)
+    dev = _device(device)
+    lf = load_field(field_pt, device=str(dev))
+    model, meta = lf.model, lf.meta
+    variant = meta["variant"]
+    info = read_scene(scene_dir)
+    sp = _sampler_params(params)
+    bg = torch.tensor(params.get("render", {}).get("background", [0.0, 0.0, 0.0]), dtype=torch.float32, device=dev)
+    cam_seq = seq if library_motion_npz is None else meta["sequence"]
+    if library_motion_npz is not None:
+        motion = load_motion(library_motion_npz)
+        source = f"rig.transforms_of({library_name!r})"
+    else:
+        motion = load_sequence_motion(scene_dir, seq, info["fps"])
+        source = str(garment_poses_npz) if garment_poses_npz else "none"
+    T_all = motion.poses.shape[0]
+    frames = list(range(0, T_all, max(1, int(frame_stride))))
+    inp = _rest_inputs(scene_dir, info, template_npz, rig_npz, variant, motion.shapes)
+    if inp.num_bones != meta["num_bones"]:
+        raise ValueError(f"{field_pt}: trained with {meta['num_bones']} garment bones, the rig has {inp.num_bones}")
+    body_model = load_body(scene_dir, info)
+    idx = torch.tensor(frames)
+    posed = body_model.pose(motion.poses[idx], motion.Rh[idx], motion.Th[idx], motion.shapes)
+    G = None
+    if variant == "full" and inp.garment is not None:
+        if library_motion_npz is not None:
+            from .rig import load_rig
+
+            G = load_rig(rig_npz).transforms_of(library_name).float()
+            if G.shape[0] != T_all:
+                raise files.ArtifactError(f"{rig_npz}: {library_name} has {G.shape[0]} garment-pose frames, the body "
+                                          f"motion {library_motion_npz} {T_all}")
+            G = G[idx]
+        else:
+            if garment_poses_npz is None:
+                raise ValueError("rendering variant 'full' needs the garment poses of the sequence")
+            G = _garment_poses(garment_poses_npz, T_all, inp.num_bones)[idx]
+    S = unified_pose(posed.transforms.float(), G, variant)
+    parts = posed_parts(inp.body, posed.vertices.float(), inp.garment, variant, posed.transforms.float(), G,
+                        sp["dilate_m"], sp["body_only_garment_dilate_m"])
+    grid = build_occupancy(parts, (sp["res"],) * 3, sp["max_joints"], sp["min_weight"], progress=False).to(dev)
+    inv = torch.linalg.inv(S).to(dev)
+    all_cams = load_cameras(scene_dir / cam_seq / "intri.yml", scene_dir / cam_seq / "extri.yml").to(
+        dtype=torch.float32)
+    names = list(cameras) if cameras else all_cams.names
+    cams = all_cams.select(names)
+    rays = pixel_rays(cams)
+    origins, dirs = rays.origins[:, 0, 0].to(dev), rays.directions.to(dev)
+    chunk = int(params.get("render", {}).get("chunk", 8192))
+    with torch.no_grad():
+        volume = model.weights()
+    per_image = []
+    todo = [(i, f, c) for i, f in enumerate(frames) for c in range(len(names))]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(todo), desc=f"render {out_dir.name}", unit="img")
+    for i, f in enumerate(frames):
+        lo, hi = grid.box(torch.tensor([i], device=dev))
+        boxes = _projected_box(lo[0].cpu(), hi[0].cpu(), cams, 2)
+        for c, name in enumerate(names):
+            t0 = time.perf_counter()
+            r = render_view(model, origins[c], dirs[c], boxes[c], i, inv, grid, sp["step_m"], bg, chunk=chunk,
+                            volume=volume, use_occupancy=use_occupancy, cull_joints=cull_joints)
+            dt = time.perf_counter() - t0
+            files.write_png(out_dir / "rgb" / name / f"{f:06d}.png", r.rgb.cpu().numpy())
+            files.write_png(out_dir / "alpha" / name / f"{f:06d}.png",
+                            (r.alpha.clamp(0, 1).cpu().numpy() * 65535 + 0.5).astype(np.uint16))
+            files.write_exr(out_dir / "depth" / name / f"{f:06d}.exr", r.depth.cpu().numpy())
+            per_image.append({"camera": name, "frame": f, "seconds": dt, "rays": r.rays, "samples": r.num_samples,
+                              "considered": r.considered})
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    secs = [p["seconds"] for p in per_image]
+    summary = {
+        "field": str(field_pt), "variant": variant, "sequence": seq if library_motion_npz is None else library_name,
+        "body_motion": str(library_motion_npz) if library_motion_npz is not None else f"{scene_dir / seq / 'smpl'}",
+        "garment_poses": source if variant == "full" and inp.garment is not None else "none (body joints only)",
+        "frames": frames, "cameras": names, "images": len(per_image),
+        "seconds_per_image_median": float(np.median(secs)) if secs else float("nan"),
+        "samples_per_ray": float(sum(p["samples"] for p in per_image) / max(1, sum(p["rays"] for p in per_image))),
+        "considered_per_ray": float(sum(p["considered"] for p in per_image) / max(1, sum(p["rays"] for p in per_image))),
+        "background": bg.cpu().tolist(), "use_occupancy": use_occupancy, "cull_joints": cull_joints,
+        "per_image": per_image,
+        "wall_s": time.perf_counter() - t_start, "code_version": __version__,
+    }
+    files.write_text(out_dir / "render.json", json.dumps(summary, indent=1))
+    log.info("rendered %d images into %s: %.2f s per image (median), %.1f samples per ray", len(per_image), out_dir,
+             summary["seconds_per_image_median"], summary["samples_per_ray"])
+    return summary

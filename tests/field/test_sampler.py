@@ -1,0 +1,70 @@
+"""Sampling that skips what is empty: mask boxes, occupancy from posed meshes, joint candidates, marching."""
+import torch
+
+from anidress_core.field.sampler import SurfacePart, box_pixels, build_occupancy, march, mask_boxes
+
+
+def _tetra_part(T=2, K=3, dilate=0.05):
+    """A small closed tetrahedron per frame, translated, with weights on joints 0 and 1."""
+    v = torch.tensor([[0.0, 0, 0], [0.3, 0, 0], [0, 0.3, 0], [0, 0, 0.3]])
+    f = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    verts = torch.stack([v + torch.tensor([t * 1.0, 0, 0]) for t in range(T)])
+    w = torch.zeros(4, K)
+    w[:, 0] = torch.tensor([1.0, 0.7, 0.5, 0.2])
+    w[:, 1] = 1 - w[:, 0]
+    return SurfacePart(verts, f, w, dilate)
+
+
+def test_mask_boxes_dilate_and_clip():
+    m = torch.zeros(3, 20, 30, dtype=torch.bool)
+    m[0, 5:8, 10:12] = True
+    m[1, 0:2, 28:30] = True
+    b = mask_boxes(m, 2)
+    assert b[0].tolist() == [3, 10, 8, 14]
+    assert b[1].tolist() == [0, 4, 26, 30]
+    assert b[2].tolist() == [0, 0, 0, 0]  # empty mask: no rays
+    ys, xs = box_pixels(b[0])
+    assert ys.numel() == 7 * 6 and m[0, 5, 10] and ((ys == 5) & (xs == 10)).any()
+
+
+def test_occupancy_covers_the_surface_and_lists_its_joints():
+    part = _tetra_part()
+    grid = build_occupancy([part], (32, 32, 32), max_joints=2)
+    assert grid.index.shape == (2, 32 ** 3) and grid.cand.shape[1] == 2
+    for t in range(2):
+        # every surface point is occupied, with joints 0 and 1 as candidates, never joint 2
+        s = torch.rand(300, 2)
+        s = s / s.sum(1, keepdim=True).clamp_min(1) * 0.999
+        pts = torch.cat([part.verts[t], part.verts[t, 0] + s[:, :1] * (part.verts[t, 1] - part.verts[t, 0])
+                         + s[:, 1:] * (part.verts[t, 2] - part.verts[t, 0])])
+        row, inside = grid.lookup(torch.full((pts.shape[0],), t), pts)
+        assert inside.all() and (row >= 0).all()
+        c = grid.cand[row].long()
+        assert ((c == 0) | (c == 1)).all()
+    # far from the surface: empty; most of the grid is empty
+    row, _ = grid.lookup(torch.tensor([0]), torch.tensor([[0.1, 0.1, 0.5]]))
+    assert row.item() == -1
+    assert grid.occupied_fraction() < 0.5
+
+
+def test_march_keeps_occupied_samples_sorted_by_ray_and_depth():
+    part = _tetra_part(T=1)
+    grid = build_occupancy([part], (32, 32, 32), max_joints=2)
+    o = torch.tensor([[0.05, 0.05, -2.0], [0.05, 0.05, -2.0], [5.0, 5.0, -2.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    fr = torch.zeros(3, dtype=torch.long)
+    s = march(o, d, fr, grid, 0.01)
+    assert s.ray.numel() > 0 and (s.ray != 2).all()  # the third ray misses the grid
+    key = s.ray * 100 + s.t
+    assert (key[1:] >= key[:-1]).all()
+    row, _ = grid.lookup(fr[s.ray], s.x)
+    assert (row >= 0).all()
+    # without occupancy every in-box sample is kept (a superset), with all joints for the empty ones
+    s_all = march(o, d, fr, grid, 0.01, use_occupancy=False)
+    assert s_all.ray.numel() > s.ray.numel() and s_all.considered == s.considered
+    assert s_all.cand.shape[1] == grid.num_joints
+    # jittered samples stay inside their step and come from the generator
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    a = march(o, d, fr, grid, 0.01, generator=g1, jitter=True)
+    b = march(o, d, fr, grid, 0.01, generator=g2, jitter=True)
+    assert torch.equal(a.t, b.t)

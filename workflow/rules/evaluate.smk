@@ -1,0 +1,35 @@
+# Image metrics of the field's renders (DESIGN.md §10): per training sequence and variant
+#   evaluate_field -> results/{scene}/{seq}/{variant}/metrics.csv (one row per kind, sequence, camera, frame)
+#                     results/{scene}/{seq}/{variant}/metrics_summary.json (means per kind and sequence)
+# Novel view: the test cameras on the training frames; novel pose: all cameras of every
+# held-out sequence. Library-motion renders have no ground truth and are not evaluated.
+
+
+def field_eval_renders(scene, seq, variant):
+    """(kind, sequence, render folder) of everything evaluated for one trained field."""
+    base = f"results/{scene}/{seq}/{variant}/renders"
+    out = [("novel_view", seq, f"{base}/novel_view")]
+    out += [("novel_pose", p, f"{base}/novel_pose/{p}") for p in field_sequences(scene, "novel_pose")]
+    return out
+
+
+rule evaluate_field:
+    input:
+        scene="data/{scene}",
+        renders=lambda wc: [r[2] for r in field_eval_renders(wc.scene, wc.seq, wc.variant)],
+    output:
+        csv="results/{scene}/{seq,[^/]+}/{variant}/metrics.csv",
+        summary="results/{scene}/{seq,[^/]+}/{variant}/metrics_summary.json",
+    log:
+        "logs/{scene}/{seq}/{variant}/evaluate.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/{variant}/evaluate.tsv"
+    params:
+        metrics=config["metrics"],
+        renders=lambda wc: field_eval_renders(wc.scene, wc.seq, wc.variant),
+    threads: 1
+    resources:
+        mem_mb=3000,
+        runtime=20,
+    script:
+        "../scripts/evaluate.py"

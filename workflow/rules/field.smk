@@ -1,0 +1,171 @@
+# Pose-driven radiance field (paper §3.3, DESIGN.md §9), per training sequence and variant:
+#   train_field       -> results/{scene}/{seq}/{variant}/field.pt
+#   render_novel_view -> results/{scene}/{seq}/{variant}/renders/novel_view/          (test cameras, training frames)
+#   render_novel_pose -> results/{scene}/{seq}/{variant}/renders/novel_pose/{pose_seq}/  (all cameras, held-out sequence)
+#   render_library    -> results/{scene}/{seq}/{variant}/renders/library/{motion}/    (lib-<name>: simulated garment poses)
+# Variants: full (body joints + garment bones) and body_only (the paper's "w/o G"); a
+# tight-clothed scene has no garment and trains `full` only (body joints, no rig).
+
+FIELD_VARIANTS = ["full", "body_only"]
+
+
+wildcard_constraints:
+    variant="|".join(FIELD_VARIANTS),
+
+
+def field_variants(scene):
+    """Variants trained for a scene: the configured ones; only `full` without a garment."""
+    return [v for v in config["field"]["variants"] if has_garment(scene) or v == "full"]
+
+
+def field_sequences(scene, role):
+    return [s["name"] for s in config["scenes"][scene]["sequences"] if s["role"] == role]
+
+
+def field_masks(scene, seq):
+    """Masks the field trains on: masks_dir() of workflow/rules/cues.smk (estimated or shipped)."""
+    if "masks_dir" not in globals():
+        raise WorkflowError("rule train_field needs masks_dir() from workflow/rules/cues.smk (include it in the Snakefile)")
+    return masks_dir(scene, seq)
+
+
+def field_train_inputs(wildcards):
+    """Scene, masks (when a rule makes them), template; rig and fitted garment poses for `full`."""
+    scene, seq, variant = wildcards.scene, wildcards.seq, wildcards.variant
+    inp = {"scene": f"data/{scene}"}
+    m = field_masks(scene, seq)
+    if m.startswith("results/"):
+        inp["masks"] = m
+    if has_garment(scene):
+        inp["template"] = f"results/{scene}/template.npz"
+        if variant == "full":
+            inp["rig"] = f"results/{scene}/rig.npz"
+            inp["poses"] = f"results/{scene}/{seq}/garment_poses.npz"
+    return inp
+
+
+def field_render_inputs(wildcards):
+    """Field, scene, template; for `full` the rig and the garment poses of the rendered sequence."""
+    scene, variant = wildcards.scene, wildcards.variant
+    inp = {"field": f"results/{scene}/{wildcards.seq}/{variant}/field.pt", "scene": f"data/{scene}"}
+    pose_seq = getattr(wildcards, "pose_seq", wildcards.seq)
+    motion = getattr(wildcards, "motion", None)
+    if motion is not None:
+        inp["motion"] = f"results/{scene}/motions/{motion}.npz"
+    if has_garment(scene):
+        inp["template"] = f"results/{scene}/template.npz"
+        if variant == "full":
+            inp["rig"] = f"results/{scene}/rig.npz"
+            if motion is None:
+                inp["poses"] = f"results/{scene}/{pose_seq}/garment_poses.npz"
+    return inp
+
+
+def field_train_params():
+    """The settings that shape a trained field (render-only settings excluded)."""
+    f = config["field"]
+    return {"model": f["model"], "priors": f["priors"], "sampler": f["sampler"], "train": f["train"],
+            "render": {"background": f["render"]["background"]}, "device": f["device"]}
+
+
+def field_render_params():
+    f = config["field"]
+    return {"sampler": f["sampler"], "render": {k: v for k, v in f["render"].items() if k != "library"},
+            "device": f["device"]}
+
+
+def field_outputs(scene):
+    """Every field target of a scene (for rule all): metrics per training sequence and variant,
+    and the library-motion renders (no ground truth: rendered, not evaluated)."""
+    out = []
+    for seq in field_sequences(scene, "train"):
+        for v in field_variants(scene):
+            out.append(f"results/{scene}/{seq}/{v}/metrics.csv")
+            if has_garment(scene):
+                out += [f"results/{scene}/{seq}/{v}/renders/library/lib-{m}" for m in config["field"]["render"]["library"]]
+    return out
+
+
+rule train_field:
+    input:
+        unpack(field_train_inputs),
+    output:
+        "results/{scene}/{seq,[^/]+}/{variant}/field.pt",
+    log:
+        "logs/{scene}/{seq}/{variant}/train.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/{variant}/train.tsv"
+    params:
+        field=field_train_params(),
+        lpips=config["metrics"]["lpips"],
+        masks=lambda wc: field_masks(wc.scene, wc.seq),
+    threads: 1
+    resources:
+        mem_mb=6000,
+        runtime=30,
+        gpu=0,
+    script:
+        "../scripts/train.py"
+
+
+rule render_novel_view:
+    input:
+        unpack(field_render_inputs),
+    output:
+        directory("results/{scene}/{seq,[^/]+}/{variant}/renders/novel_view"),
+    log:
+        "logs/{scene}/{seq}/{variant}/render_novel_view.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/{variant}/render_novel_view.tsv"
+    params:
+        field=field_render_params(),
+        kind="novel_view",
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+        gpu=0,
+    script:
+        "../scripts/render.py"
+
+
+rule render_novel_pose:
+    input:
+        unpack(field_render_inputs),
+    output:
+        directory("results/{scene}/{seq,[^/]+}/{variant}/renders/novel_pose/{pose_seq,[^/]+}"),
+    log:
+        "logs/{scene}/{seq}/{variant}/render_novel_pose_{pose_seq}.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/{variant}/render_novel_pose_{pose_seq}.tsv"
+    params:
+        field=field_render_params(),
+        kind="novel_pose",
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+        gpu=0,
+    script:
+        "../scripts/render.py"
+
+
+rule render_library:
+    input:
+        unpack(field_render_inputs),
+    output:
+        directory("results/{scene}/{seq,[^/]+}/{variant}/renders/library/{motion,lib-[^/]+}"),
+    log:
+        "logs/{scene}/{seq}/{variant}/render_library_{motion}.log",
+    benchmark:
+        "benchmarks/runs/{scene}/{seq}/{variant}/render_library_{motion}.tsv"
+    params:
+        field=field_render_params(),
+        kind="library",
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+        gpu=0,
+    script:
+        "../scripts/render.py"
