@@ -37,6 +37,10 @@ class FieldConfig:
     """Size of the fixed random latent the weight volume is decoded from."""
     decoder_width: int = 64
     """Channels of the 4^3 volume the decoder starts from."""
+    density_bias: float = 3.0
+    """Added to the log-density before the exponential: the field starts at sigma ~ e^3 / m,
+    a haze that becomes opaque within a few centimetres (a start near 0 trains several
+    times slower: the density has to grow through many steps of small gradients)."""
 
 
 class AnimatableField(nn.Module):
@@ -49,7 +53,7 @@ class AnimatableField(nn.Module):
         # seed are identical, and the caller's RNG state is left alone
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(seed))
-            self.canonical = CanonicalField(box, cfg.grid, cfg.width)
+            self.canonical = CanonicalField(box, cfg.grid, cfg.width, density_bias=cfg.density_bias)
             self.weights = MotionWeightVolume(prior, box, cfg.latent, cfg.decoder_width)
 
     @property

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import NamedTuple, Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
@@ -201,14 +202,32 @@ def build_occupancy(parts: Sequence[SurfacePart], res: Sequence[int] = (64, 64, 
             vals = torch.zeros(keys.shape[0], device=dev).scatter_reduce_(0, inv, wv.reshape(-1), reduce="amax",
                                                                           include_self=False)
             sv, sj = keys // K, keys % K  # surface voxel, joint
-            # 2. dilate: every (voxel, joint) entry reaches the voxels within the margin
             r = [max(0, math.ceil(d / float(vox[a]))) for a in range(3)]
-            offs = _ball_offsets(r, [float(vox[a]) for a in range(3)], d, dev)  # (O, 3)
-            doff = (offs[:, 0] * G[1] + offs[:, 1]) * G[2] + offs[:, 2]  # (O,) flat offsets
-            cells = (torch.unique(flat)[:, None] + doff[None]).reshape(-1)
-            occ[cells] = True
-            dkeys = ((sv[:, None] + doff[None]) * K + sj[:, None]).reshape(-1)
-            best.scatter_reduce_(0, dkeys, vals[:, None].expand(-1, doff.shape[0]).reshape(-1), reduce="amax")
+            if max(r) <= 3:
+                # 2a. small margin: every (voxel, joint) entry reaches the voxels of a ball
+                offs = _ball_offsets(r, [float(vox[a]) for a in range(3)], d, dev)  # (O, 3)
+                doff = (offs[:, 0] * G[1] + offs[:, 1]) * G[2] + offs[:, 2]  # (O,) flat offsets
+                cells = (torch.unique(flat)[:, None] + doff[None]).reshape(-1)
+                occ[cells] = True
+                dkeys = ((sv[:, None] + doff[None]) * K + sj[:, None]).reshape(-1)
+                best.scatter_reduce_(0, dkeys, vals[:, None].expand(-1, doff.shape[0]).reshape(-1), reduce="amax")
+            else:
+                # 2b. wide margin: separable max filter (a box of the margin's half-widths) over
+                #     a dense grid of only the joints this part has
+                joints, local = torch.unique(sj, return_inverse=True)
+                dense = torch.zeros(joints.shape[0], nvox, device=dev)
+                dense.view(-1).scatter_reduce_(0, local * nvox + sv, vals, reduce="amax")
+                dense = dense.view(1, -1, *res)
+                for a in range(3):
+                    k = [1, 1, 1]
+                    k[a] = 2 * r[a] + 1
+                    pad = [0, 0, 0]
+                    pad[a] = r[a]
+                    dense = F.max_pool3d(dense, tuple(k), stride=1, padding=tuple(pad))
+                dense = dense.view(joints.shape[0], nvox)
+                occ |= dense.max(0).values > 0
+                bv = best.view(nvox, K)
+                bv[:, joints] = torch.maximum(bv[:, joints], dense.T)
         rows = occ.nonzero()[:, 0]
         wv_, wj_ = torch.topk(best.view(nvox, K)[rows], min(max_joints, K), dim=1)
         cand = torch.where(wv_ >= min_weight, wj_, torch.full_like(wj_, K))  # (n_occ, min(M, K))
@@ -274,7 +293,8 @@ def march(origins: Tensor, dirs: Tensor, frame: Tensor, grid: OccupancyGrid, ste
             continue
         i = torch.arange(nmax, device=dev, dtype=dt)
         shape = (n[sl].shape[0], nmax)
-        u = torch.rand(shape, generator=generator, device=dev, dtype=dt) if jitter \
+        # jitter from the (CPU) generator, then moved: one random stream on any device
+        u = torch.rand(shape, generator=generator, dtype=dt).to(dev) if jitter \
             else torch.full(shape, 0.5, device=dev, dtype=dt)
         t = tmin[sl, None] + (i[None] + u) * step  # (r, nmax)
         keep = (i[None] < n[sl, None]) & (t < tmax[sl, None])

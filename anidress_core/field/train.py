@@ -62,6 +62,10 @@ class TrainConfig:
     """Steps between checkpoints (0: none)."""
     seed: int = 0
     """Seeds the model initialisation and the sampling RNG."""
+    use_occupancy: bool = True
+    """Ablation (benchmark): False samples the whole grid box of each frame."""
+    cull_joints: bool = True
+    """Ablation (benchmark): False evaluates every joint for every sample."""
 
 
 class TrainData(NamedTuple):
@@ -87,8 +91,12 @@ class TrainData(NamedTuple):
 class TrainResult:
     steps: int
     wall_s: float
+    """Wall-clock seconds of the loop (over all sessions when resumed)."""
+    cpu_s: float = float("nan")
+    """CPU seconds of this process in the loop (all threads; over all sessions when resumed).
+    On a shared machine the wall time grows with the load, this much less."""
     history: list = field(default_factory=list)
-    """Per logged step: step, loss, psnr_db (of the batch), samples per ray, wall_s."""
+    """Per logged step: step, loss, psnr_db (of the batch), samples per ray, wall_s, cpu_s."""
 
 
 def psnr(a: Tensor, b: Tensor) -> float:
@@ -114,12 +122,14 @@ def _sample_batch(data: TrainData, valid: Tensor, cfg: TrainConfig, gen: torch.G
     per patch).
     """
     T, C, H, W, _ = data.images.shape
+    dev = data.images.device
     n_img = cfg.images_per_step
     per = max(1, cfg.rays_per_step // n_img)
-    pick = valid[torch.randint(valid.shape[0], (n_img + patches,), generator=gen)]  # (n, 2) frame, cam
+    # random numbers come from the CPU generator (one stream on any device), then move
+    pick = valid[torch.randint(valid.shape[0], (n_img + patches,), generator=gen).to(dev)]  # (n, 2) frame, cam
     b = data.boxes[pick[:, 0], pick[:, 1]]  # (n, 4)
     # 1. random pixels inside the boxes
-    u = torch.rand(n_img, per, 2, generator=gen)
+    u = torch.rand(n_img, per, 2, generator=gen).to(dev)
     ys = b[:n_img, 0, None] + (u[..., 0] * (b[:n_img, 1] - b[:n_img, 0])[:, None]).long()
     xs = b[:n_img, 2, None] + (u[..., 1] * (b[:n_img, 3] - b[:n_img, 2])[:, None]).long()
     fr = pick[:n_img, 0, None].expand(n_img, per)
@@ -133,10 +143,10 @@ def _sample_batch(data: TrainData, valid: Tensor, cfg: TrainConfig, gen: torch.G
         lo_x = pb[:, 2].clamp(max=W - P)
         hi_y = (pb[:, 1] - P).clamp(min=0).maximum(lo_y)
         hi_x = (pb[:, 3] - P).clamp(min=0).maximum(lo_x)
-        v = torch.rand(patches, 2, generator=gen)
-        y0 = lo_y + (v[:, 0] * (hi_y - lo_y + 1)).long().clamp(max=(hi_y - lo_y))
-        x0 = lo_x + (v[:, 1] * (hi_x - lo_x + 1)).long().clamp(max=(hi_x - lo_x))
-        dy, dx = torch.meshgrid(torch.arange(P), torch.arange(P), indexing="ij")
+        v = torch.rand(patches, 2, generator=gen).to(dev)
+        y0 = lo_y + torch.minimum((v[:, 0] * (hi_y - lo_y + 1)).long(), hi_y - lo_y)
+        x0 = lo_x + torch.minimum((v[:, 1] * (hi_x - lo_x + 1)).long(), hi_x - lo_x)
+        dy, dx = torch.meshgrid(torch.arange(P, device=dev), torch.arange(P, device=dev), indexing="ij")
         py = (y0[:, None, None] + dy).reshape(-1)
         px = (x0[:, None, None] + dx).reshape(-1)
         pf = pick[n_img:, 0, None].expand(patches, P * P).reshape(-1)
@@ -146,12 +156,12 @@ def _sample_batch(data: TrainData, valid: Tensor, cfg: TrainConfig, gen: torch.G
     #    and step when ``random_background``)
     n_all = n_img + patches
     if cfg.random_background:
-        bgs = torch.rand(n_all, 3, generator=gen)
+        bgs = torch.rand(n_all, 3, generator=gen).to(dev)
     else:
-        bgs = torch.tensor(cfg.background, dtype=torch.float32).expand(n_all, 3)
-    per_ray = torch.cat([torch.arange(n_img).repeat_interleave(per),
-                         n_img + torch.arange(patches).repeat_interleave(cfg.patch_size ** 2 if patches else 0)])
-    bg = bgs.to(data.images.device)[per_ray.to(data.images.device)]
+        bgs = torch.tensor(cfg.background, dtype=torch.float32, device=dev).expand(n_all, 3)
+    per_ray = torch.cat([torch.arange(n_img, device=dev).repeat_interleave(per),
+                         n_img + torch.arange(patches, device=dev).repeat_interleave(cfg.patch_size ** 2 if patches else 0)])
+    bg = bgs[per_ray]
     m = data.masks[fr, cm, ys, xs][:, None]
     target = torch.where(m, data.images[fr, cm, ys, xs].float() / 255.0, bg)
     return (data.ray_origins[cm], data.ray_dirs[cm, ys, xs], fr, target, bg,
@@ -174,24 +184,26 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: gamma**k)
     gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
     history: list = []
-    start, wall0 = 0, 0.0
+    start, wall0, cpu0 = 0, 0.0, 0.0
     if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
         gen.set_state(state["generator"])
         start, history, wall0 = int(state["step"]), list(state["history"]), float(state.get("wall_s", 0.0))
+        cpu0 = float(state.get("cpu_s", 0.0))
     patches = cfg.patches_per_step if lpips is not None else 0
     steps = range(start, cfg.steps)
     bar = None
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     model.train()
     for k in steps:
         o, d, fr, target, bgr, n_patch = _sample_batch(data, valid, cfg, gen, patches)
-        out = render_rays(model, o, d, fr, data.inv_transforms, data.grid, cfg.step_m, bgr, generator=gen, jitter=True)
+        out = render_rays(model, o, d, fr, data.inv_transforms, data.grid, cfg.step_m, bgr, generator=gen, jitter=True,
+                          use_occupancy=cfg.use_occupancy, cull_joints=cfg.cull_joints)
         n_rand = o.shape[0] - n_patch
         loss = ((out.rgb[:n_rand] - target[:n_rand]) ** 2).mean()
         if n_patch:
@@ -207,7 +219,7 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
             history.append({"step": k + 1, "loss": float(loss.detach()), "psnr_db": psnr(out.rgb.detach(), target),
                             "samples_per_ray": out.num_samples / max(1, o.shape[0]),
                             "considered_per_ray": out.considered / max(1, o.shape[0]),
-                            "wall_s": wall0 + time.perf_counter() - t0})
+                            "wall_s": wall0 + time.perf_counter() - t0, "cpu_s": cpu0 + time.process_time() - c0})
             if bar is not None:
                 bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{history[-1]['psnr_db']:.1f}")
         if bar is not None:
@@ -216,11 +228,13 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
                 and k + 1 < cfg.steps:
             checkpoint({"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                         "generator": gen.get_state(), "step": k + 1, "history": history,
-                        "wall_s": wall0 + time.perf_counter() - t0, "train_config": asdict(cfg)})
+                        "wall_s": wall0 + time.perf_counter() - t0, "cpu_s": cpu0 + time.process_time() - c0,
+                        "train_config": asdict(cfg)})
     if bar is not None:
         bar.close()
     model.eval()
-    return TrainResult(steps=cfg.steps, wall_s=wall0 + time.perf_counter() - t0, history=history)
+    return TrainResult(steps=cfg.steps, wall_s=wall0 + time.perf_counter() - t0,
+                       cpu_s=cpu0 + time.process_time() - c0, history=history)
 
 
 class ViewRender(NamedTuple):

@@ -61,7 +61,8 @@ def field_config_from_params(p: dict) -> FieldConfig:
                           log2_size=int(m.get("hash_log2_size", 17)),
                           base_resolution=int(m.get("hash_base_resolution", 16)),
                           max_resolution=int(m.get("hash_max_resolution", 256)))
-    return FieldConfig(grid=grid, width=int(m.get("width", 64)), volume_res=int(m.get("volume_res", 32)))
+    return FieldConfig(grid=grid, width=int(m.get("width", 64)), volume_res=int(m.get("volume_res", 32)),
+                       density_bias=float(m.get("density_bias", 3.0)))
 
 
 def train_config_from_params(p: dict) -> TrainConfig:
@@ -259,6 +260,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
         "format": FORMAT, "variant": variant, "scene": scene_dir.name, "sequence": seq,
         "field_config": dataclasses.asdict(fcfg), "train_config": dataclasses.asdict(tcfg),
         "num_body_joints": 24, "num_bones": int(S.shape[1] - 24), "history": res.history, "wall_s": res.wall_s,
+        "cpu_s": res.cpu_s,
         "steps": res.steps, "frames": frames, "cameras": cams, "lpips": lpips_note,
         "sampling": {"occupied_fraction": grid.occupied_fraction(), "samples_per_ray": kept,
                      "considered_per_ray": seen, "ray_box_fraction": box_frac,
@@ -271,8 +273,8 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     if ckpt_path.exists():
         ckpt_path.unlink()
     last = res.history[-1] if res.history else {}
-    log.info("trained %s in %.1f s (%d steps): last batch PSNR %.2f dB, %.1f of %.1f samples per ray kept",
-             variant, res.wall_s, res.steps, last.get("psnr_db", float("nan")), kept, seen)
+    log.info("trained %s in %.1f s (%.1f CPU s, %d steps): last batch PSNR %.2f dB, %.1f of %.1f samples per ray kept",
+             variant, res.wall_s, res.cpu_s, res.steps, last.get("psnr_db", float("nan")), kept, seen)
     return out
 
 
@@ -418,15 +420,16 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
         lo, hi = grid.box(torch.tensor([i], device=dev))
         boxes = _projected_box(lo[0].cpu(), hi[0].cpu(), cams, 2)
         for c, name in enumerate(names):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             r = render_view(model, origins[c], dirs[c], boxes[c], i, inv, grid, sp["step_m"], bg, chunk=chunk,
                             volume=volume, use_occupancy=use_occupancy, cull_joints=cull_joints)
-            dt = time.perf_counter() - t0
+            dt, dc = time.perf_counter() - t0, time.process_time() - c0
             files.write_png(out_dir / "rgb" / name / f"{f:06d}.png", r.rgb.cpu().numpy())
             files.write_png(out_dir / "alpha" / name / f"{f:06d}.png",
                             (r.alpha.clamp(0, 1).cpu().numpy() * 65535 + 0.5).astype(np.uint16))
             files.write_exr(out_dir / "depth" / name / f"{f:06d}.exr", r.depth.cpu().numpy())
-            per_image.append({"camera": name, "frame": f, "seconds": dt, "rays": r.rays, "samples": r.num_samples,
+            per_image.append({"camera": name, "frame": f, "seconds": dt, "cpu_seconds": dc, "rays": r.rays,
+                              "samples": r.num_samples,
                               "considered": r.considered})
             if bar is not None:
                 bar.update(1)
@@ -439,6 +442,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
         "garment_poses": source if variant == "full" and inp.garment is not None else "none (body joints only)",
         "frames": frames, "cameras": names, "images": len(per_image),
         "seconds_per_image_median": float(np.median(secs)) if secs else float("nan"),
+        "cpu_seconds_per_image_median": float(np.median([p["cpu_seconds"] for p in per_image])) if secs else float("nan"),
         "samples_per_ray": float(sum(p["samples"] for p in per_image) / max(1, sum(p["rays"] for p in per_image))),
         "considered_per_ray": float(sum(p["considered"] for p in per_image) / max(1, sum(p["rays"] for p in per_image))),
         "background": bg.cpu().tolist(), "use_occupancy": use_occupancy, "cull_joints": cull_joints,

@@ -68,3 +68,16 @@ def test_march_keeps_occupied_samples_sorted_by_ray_and_depth():
     a = march(o, d, fr, grid, 0.01, generator=g1, jitter=True)
     b = march(o, d, fr, grid, 0.01, generator=g2, jitter=True)
     assert torch.equal(a.t, b.t)
+
+
+def test_wide_margin_path_covers_the_margin_with_candidates():
+    """A margin of many voxels uses the separable max filter: same coverage guarantees."""
+    part = _tetra_part(T=1, dilate=0.2)
+    grid = build_occupancy([part], (32, 32, 32), max_joints=2)
+    assert float(part.dilate_m / grid.voxel[0].max()) > 3  # the wide-margin branch
+    v = part.verts[0]
+    pts = torch.cat([v, v + torch.tensor([0.0, 0.0, -0.19]), v + torch.tensor([-0.19, 0.0, 0.0])])
+    row, inside = grid.lookup(torch.zeros(pts.shape[0], dtype=torch.long), pts)
+    assert inside.all() and (row >= 0).all()
+    c = grid.cand[row].long()
+    assert ((c == 0) | (c == 1)).all() and (c[:, 0] == 0).any()

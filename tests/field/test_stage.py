@@ -1,0 +1,100 @@
+"""Stages train / render / evaluate on a tiny scene folder (EasyMocap layout written here)."""
+import json
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from anidress_core.camera import ring_cameras, save_cameras
+from anidress_core.io import files
+from anidress_core.io.motion import write_easymocap_smpl_dir
+from anidress_core.metrics.image import Unavailable
+from anidress_core.raster import render_mesh
+from anidress_core.stages.evaluate import COLUMNS, read_metrics_csv, run_evaluate
+from anidress_core.stages.field import load_field, run_render, run_train
+
+from .conftest import bent_pose
+
+PARAMS = {"model": {"hash_levels": 4, "hash_log2_size": 12, "hash_max_resolution": 64, "width": 32, "volume_res": 16},
+          "priors": {}, "sampler": {"occupancy_res": 32, "step_m": 0.015},
+          "train": {"steps": 12, "rays_per_step": 128, "images_per_step": 2, "checkpoint_every": 4},
+          "render": {"background": [0.0, 0.0, 0.0]}}
+
+
+@pytest.fixture(scope="module")
+def scene_dir(small_body, tmp_path_factory):
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("tinyfield")
+    body = small_body
+    files.save_npz(root / "body_model.npz", {"v_template": body.v_template.numpy(), "faces": body.faces.numpy(),
+                                              "weights": body.weights.numpy(), "joints_rest": body.joints_rest.numpy(),
+                                              "parents": body.parents.numpy()})
+    cams = ring_cameras(4, 3.0, 1.0, (0.0, 0.0, 0.9), focal_px=40, image_height=32, image_width=32)
+    col = 0.5 + 0.4 * torch.sin(8 * body.v_template)
+    poses = {"walk": torch.cat([torch.zeros(1, 72), bent_pose()]), "dance": bent_pose() * 0.5}
+    for seq, P in poses.items():
+        T = P.shape[0]
+        Rh = torch.tensor([[1.5708, 0.0, 0.0]]).expand(T, 3)
+        Th = torch.tensor([[0.0, 0.0, 0.95]]).expand(T, 3)
+        save_cameras(cams, root / seq / "intri.yml", root / seq / "extri.yml")
+        write_easymocap_smpl_dir(root / seq / "smpl", P, Rh, Th, torch.zeros(10))
+        posed = body.pose(P, Rh, Th)
+        for t in range(T):
+            r = render_mesh(posed.vertices[t], body.faces, cams.K, cams.world_to_cam, 32, 32, vertex_colors=col)
+            for c, name in enumerate(cams.names):
+                files.write_png(root / seq / "images" / name / f"{t:06d}.png", r.rgb[c].clamp(0, 1).numpy())
+                files.write_mask(root / seq / "gt" / "masks" / name / f"{t:06d}.png", r.mask[c].numpy().astype(np.uint8))
+    info = {"name": "tiny", "fps": 30, "kind": "tight", "image_size": [32, 32],
+            "cameras": {"train": ["01", "03"], "test": ["02", "04"]},
+            "sequences": [{"name": "walk", "role": "train", "frames": 2}, {"name": "dance", "role": "novel_pose", "frames": 1}],
+            "body_model": {"type": "mannequin", "file": "body_model.npz"}}
+    (root / "scene.yaml").write_text(yaml.safe_dump(info))
+    return root
+
+
+def test_train_resume_render_evaluate(scene_dir, tmp_path):
+    out = tmp_path / "walk" / "full" / "field.pt"
+    masks = scene_dir / "walk" / "gt" / "masks"
+    # 1. interrupted after step 8: the checkpoint stays, no field.pt
+    r = run_train(scene_dir, "walk", "full", masks, out, PARAMS, progress=False, max_steps=8)
+    assert r == {"stopped_at": 8} and not out.exists() and (tmp_path / "walk" / "full" / "field.pt.ckpt").is_file()
+    # 2. rerun: resumes from step 8, finishes, removes the checkpoint
+    meta = run_train(scene_dir, "walk", "full", masks, out, PARAMS, progress=False,
+                     lpips=Unavailable("lpips", "no weights in this test"))
+    assert out.is_file() and not (tmp_path / "walk" / "full" / "field.pt.ckpt").exists()
+    assert meta["steps"] == 12 and meta["num_bones"] == 0 and meta["lpips"] == "no weights in this test"
+    # 3. the same as an uninterrupted run
+    other = tmp_path / "again" / "field.pt"
+    run_train(scene_dir, "walk", "full", masks, other, PARAMS, progress=False)
+    a, b = load_field(out).model.state_dict(), load_field(other).model.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # 4. render the novel view and the novel pose, evaluate
+    nv = run_render(out, scene_dir, tmp_path / "nv", PARAMS, seq="walk", cameras=["02", "04"], progress=False)
+    npz = run_render(out, scene_dir, tmp_path / "np", PARAMS, seq="dance", cameras=["01", "02", "03", "04"],
+                     progress=False)
+    assert nv["images"] == 4 and npz["images"] == 4
+    assert (tmp_path / "nv" / "rgb" / "02" / "000001.png").is_file()
+    assert files.read_exr(tmp_path / "nv" / "depth" / "04" / "000000.exr").shape == (32, 32, 1)
+    rj = json.loads((tmp_path / "np" / "render.json").read_text())
+    assert rj["frames"] == [0] and rj["samples_per_ray"] < rj["considered_per_ray"]
+    summ = run_evaluate(scene_dir, [("novel_view", "walk", tmp_path / "nv"), ("novel_pose", "dance", tmp_path / "np")],
+                        tmp_path / "metrics.csv", tmp_path / "summary.json", {}, progress=False)
+    rows = read_metrics_csv(tmp_path / "metrics.csv")
+    assert len(rows) == 8 and list(rows[0].keys()) == COLUMNS
+    assert all(np.isfinite(r["psnr_db"]) and 0 <= r["iou"] <= 1 and np.isnan(r["lpips"]) and r["lpips_available"] == 0
+               for r in rows)
+    assert {(m["kind"], m["sequence"]) for m in summ["metrics"]} == {("novel_view", "walk"), ("novel_pose", "dance")}
+    assert summ["lpips"] == "not requested"
+
+
+def test_errors_name_the_problem(scene_dir, tmp_path):
+    with pytest.raises(ValueError, match="variant"):
+        run_train(scene_dir, "walk", "w/o G", scene_dir / "walk" / "gt" / "masks", tmp_path / "f.pt", PARAMS,
+                  progress=False)
+    with pytest.raises(FileNotFoundError, match="000000.png"):
+        run_train(scene_dir, "walk", "full", tmp_path / "no_masks", tmp_path / "f.pt", PARAMS, progress=False)
+    bad = tmp_path / "bad.pt"
+    torch.save({"format": "something else"}, bad)
+    with pytest.raises(files.ArtifactError, match="bad.pt"):
+        load_field(bad)
