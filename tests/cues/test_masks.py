@@ -148,3 +148,14 @@ def test_params_are_validated():
         cm.MaskParams(method="schp")
     with pytest.raises(ValueError, match="fg_threshold_low"):
         cm.MaskParams(fg_threshold=0.02, fg_threshold_low=0.05)
+
+
+def test_temporal_median_plate_recovers_the_background():
+    rng = np.random.default_rng(1)
+    bg = rng.random((24, 32, 3)).astype(np.float32)
+    frames = np.repeat(bg[None], 5, 0)
+    for t in range(5):  # a square moving across: each pixel is covered in at most 2 of 5 frames
+        frames[t, 8:16, 6 * t : 6 * t + 8] = 0.5
+    assert np.array_equal(cm.temporal_median_plate(frames), bg)
+    with pytest.raises(ValueError, match="T, H, W, 3"):
+        cm.temporal_median_plate(bg)

@@ -140,3 +140,13 @@ def test_tight_scene_masks_have_no_garment_label(tiny_scene, cues_config, tmp_pa
     sc.run_masks(scene_dir, "walk", tmp_path / "m", cues_config["masks"], None, cameras=["01"], progress=False)
     m = np.stack([files.read_mask(p) for p in sorted((tmp_path / "m" / "01").iterdir())])
     assert set(np.unique(m)) == {0, 1}
+
+
+def test_temporal_median_background_option(tiny_scene, cues_config, tmp_path):
+    scene_dir, tpl = tiny_scene
+    cfg = {**cues_config["masks"], "background": "temporal_median"}
+    st = sc.run_masks(scene_dir, "walk", tmp_path / "m", cfg, tpl, cameras=["01"], progress=False)
+    assert st["frames"] == 4 and len(list((tmp_path / "m" / "01").iterdir())) == 4
+    with pytest.raises(ValueError, match="background"):
+        sc.run_masks(scene_dir, "walk", tmp_path / "m2", {**cfg, "background": "green"}, tpl, progress=False)
+    assert not (tmp_path / "m2").exists()
