@@ -11,12 +11,13 @@ the synthetic scenes ship degraded true normals) and are used as they are.
 from .evaluate import CueErrors, angle_sums, epe_sums, iou_counts
 from .flow import FLOW_METHODS, FlowEstimate, Region, estimate_flow, flow_region, make_estimator, to_gray8
 from .masks import (MASK_METHODS, MaskParams, colour_distance, estimate_masks, fit_colour_model, foreground,
-                    label_colour, label_grabcut, label_prior, prior_distances, render_prior,
+                    label_colour, label_grabcut, label_prior, prior_distances, render_prior, subject_masks,
                     temporal_median_plate)
 
 __all__ = [
     "CueErrors", "angle_sums", "epe_sums", "iou_counts",
     "FLOW_METHODS", "FlowEstimate", "Region", "estimate_flow", "flow_region", "make_estimator", "to_gray8",
     "MASK_METHODS", "MaskParams", "colour_distance", "estimate_masks", "fit_colour_model", "foreground",
-    "label_colour", "label_grabcut", "label_prior", "prior_distances", "render_prior", "temporal_median_plate",
+    "label_colour", "label_grabcut", "label_prior", "prior_distances", "render_prior", "subject_masks",
+    "temporal_median_plate",
 ]

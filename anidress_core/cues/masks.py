@@ -43,6 +43,7 @@ __all__ = [
     "colour_distance",
     "foreground",
     "refine_boundary",
+    "subject_masks",
     "render_prior",
     "prior_distances",
     "fit_colour_model",
@@ -448,17 +449,25 @@ def clean_labels(labels, min_area: int) -> np.ndarray:
     return lab
 
 
+def subject_masks(images, plates, params: MaskParams) -> np.ndarray:
+    """Step 1 complete: foreground (N, H, W) bool with the refined silhouette."""
+    fg = foreground(colour_distance(images, plates, params.blur_px), params)
+    if params.refine_px > 0:
+        fg = refine_boundary(images, plates, fg, params.refine_px)
+    return fg
+
+
 def estimate_masks(images, plates, prior, params: MaskParams, camera: np.ndarray | None = None,
-                   model: Tensor | None = None, has_garment: bool = True) -> np.ndarray:
+                   model: Tensor | None = None, has_garment: bool = True, fg: np.ndarray | None = None) -> np.ndarray:
     """Labels (N, H, W) uint8 (0 background, 1 body, 2 garment) of N images.
 
     images, plates: (N, H, W, 3); prior: (N, H, W) labels from :func:`render_prior`
     (may be None when ``has_garment`` is False or the method needs none); camera
-    (N,) and model (from :func:`fit_colour_model`) for the ``colour`` method.
+    (N,) and model (from :func:`fit_colour_model`) for the ``colour`` method;
+    fg: the :func:`subject_masks` of the images if already computed.
     """
-    fg = foreground(colour_distance(images, plates, params.blur_px), params)
-    if params.refine_px > 0:
-        fg = refine_boundary(images, plates, fg, params.refine_px)
+    if fg is None:
+        fg = subject_masks(images, plates, params)
     if not has_garment:
         return fg.astype(np.uint8) * BODY
     if prior is None:

@@ -241,29 +241,30 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
         def load(frame: int) -> np.ndarray:
             return np.stack(list(pool.map(lambda c: _read_rgb(image_path(seq_dir, c, frame), shape), names)))
 
-        # 1. colour model (method colour) from a few frames spread over the sequence
-        model = None
+        # 1. colour model (method colour) from a few frames spread over the sequence (kept for step 2)
+        model, cache = None, {}
         if has_garment and params.method == "colour":
             n = min(int(cfg.get("colour_frames", 12)), len(frames))
             pick = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, n).round().astype(int))]
-            ims, fgs, pri, cid = [], [], [], []
             for f in pick:
                 im = load(f)
-                ims.append(im)
-                fgs.append(cue_masks.foreground(cue_masks.colour_distance(im, plates, params.blur_px), params))
-                pri.append(prior.labels(f))
-                cid.append(cam_idx)
-            model = cue_masks.fit_colour_model(np.concatenate(ims), np.concatenate(cid), np.concatenate(fgs),
-                                               np.concatenate(pri), len(names), params)
+                cache[f] = (im, cue_masks.subject_masks(im, plates, params), prior.labels(f))
+            model = cue_masks.fit_colour_model(
+                np.concatenate([c[0] for c in cache.values()]), np.tile(cam_idx, len(cache)),
+                np.concatenate([c[1] for c in cache.values()]), np.concatenate([c[2] for c in cache.values()]),
+                len(names), params)
             log.info("colour model: %d frames, %d bins per channel", len(pick), params.hist_bins)
         # 2. every frame, all cameras at once
         with atomic_dir(out_dir) as tmp:
             pending = []
             subject = 0.0
             for f in tqdm(frames, desc=f"masks {seq}", unit="frame", disable=not progress):
-                im = load(f)
-                pr = prior.labels(f) if has_garment else None
-                lab = cue_masks.estimate_masks(im, plates, pr, params, cam_idx, model, has_garment)
+                if f in cache:
+                    im, fg, pr = cache.pop(f)
+                else:
+                    im, fg = load(f), None
+                    pr = prior.labels(f) if has_garment else None
+                lab = cue_masks.estimate_masks(im, plates, pr, params, cam_idx, model, has_garment, fg)
                 subject += float((lab > 0).mean())
                 for c, cam in enumerate(names):
                     pending.append(pool.submit(files.write_mask, tmp / cam / f"{f:06d}.png", lab[c]))
