@@ -11,6 +11,7 @@ leading dimensions.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -141,7 +142,8 @@ def matrix_to_rotation_6d(R: Tensor) -> Tensor:
 
 def make_transform(R: Tensor, t: Tensor) -> Tensor:
     """R (..., 3, 3), t (..., 3) -> (..., 4, 4) rigid transform [[R, t], [0, 1]]."""
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    # (torch.broadcast_shapes imports sympy on first use: seconds; numpy's is instant)
+    batch = np.broadcast_shapes(tuple(R.shape[:-2]), tuple(t.shape[:-1]))
     M = torch.zeros(*batch, 4, 4, dtype=R.dtype, device=R.device)
     M[..., :3, :3] = R
     M[..., :3, 3] = t
