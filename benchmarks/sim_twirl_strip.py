@@ -107,7 +107,7 @@ def main():
         f"- strip: `benchmarks/sim_twirl_strip.png`, front camera, frames {shown}.",
         "",
         "| frame | body yaw (deg) | hem radius mean (m) | hem radius max (m) | swing (m) |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- |",
     ]
     for t in shown + ([g.shape[0] - 1] if shown[-1] != g.shape[0] - 1 else []):
         lines.append(f"| {t} | {yaw[t]:.0f} | {r_sim[t].mean():.3f} | {r_sim[t].max():.3f} | "
