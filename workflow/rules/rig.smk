@@ -1,0 +1,24 @@
+# Garment rigging model: SSDR over every simulated sequence of a scene (DESIGN.md §4,
+# paper §3.1). Only scenes with a garment request it (DESIGN.md §6).
+
+
+rule rig:
+    input:
+        template="results/{scene}/template.npz",
+        sims=lambda wc: expand("results/{scene}/sim/{motion}.npz", scene=wc.scene,
+                               motion=sim_motion_names(wc.scene)),
+    output:
+        "results/{scene}/rig.npz",
+    log:
+        "logs/{scene}/rig.log",
+    benchmark:
+        "benchmarks/runs/{scene}/rig.tsv"
+    params:
+        rig=config["rig"],
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=30,
+        gpu=0,
+    script:
+        "../scripts/rig.py"
