@@ -145,8 +145,13 @@ def main() -> None:
     ap.add_argument("--workdir", default=str(ROOT / "benchmarks" / "runs" / "field"))
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--library", default="twirl", help="library motion rendered with simulated garment poses")
+    ap.add_argument("--render-stride", type=int, default=0, help="override field/render/frame_stride")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     setup_logging()
+    if args.worker:
+        worker(args.worker, Path(args.workdir))
+        return
     torch.set_num_threads(args.threads)
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)
@@ -193,43 +198,36 @@ def main() -> None:
     tpl = ROOT / "results" / scene / "template.npz"
     lp = load_lpips(**cfg["metrics"]["lpips"])
     ds = load_dists(**cfg["metrics"]["dists"])
-    stride = int(params["render"]["frame_stride"])
+    stride = args.render_stride or int(params["render"]["frame_stride"])
+    ctx = {"scene": scene, "train_seq": train_seq, "pose_seq": pose_seq, "masks": str(masks), "rig": str(rig),
+           "poses": {k: str(v) for k, v in poses.items()}, "tpl": str(tpl), "params": params, "stride": stride,
+           "library": args.library, "threads": args.threads}
+    (work / "ctx.json").write_text(json.dumps(ctx))
     rows, results = [], {}
-    # 2. train, render, evaluate both variants
+    # 2. train, render, evaluate both variants: two worker processes side by side (what the
+    #    demo does on 2 cores: one torch thread each)
+    procs = {v: subprocess.Popen([sys.executable, __file__, "--worker", v, "--workdir", str(work)])
+             for v in ("full", "body_only")}
+    for v, pr in procs.items():
+        if pr.wait() != 0:
+            raise SystemExit(f"worker {v} failed (exit {pr.returncode})")
+    loads["variants done"] = load()
     for variant in ("full", "body_only"):
-        vdir = work / variant
-        t0 = time.perf_counter()
-        tr = run_train(data, train_seq, variant, masks, vdir / "field.pt", params, template_npz=tpl, rig_npz=rig,
-                       garment_poses_npz=poses[train_seq], lpips=lp if params["train"]["lpips_weight"] > 0 else None,
-                       progress=False)
-        stage_s = time.perf_counter() - t0
-        loads[f"train {variant}"] = load()
-        nv = run_render(vdir / "field.pt", data, vdir / "novel_view", params, seq=train_seq,
-                        cameras=info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
-                        garment_poses_npz=poses[train_seq], frame_stride=stride, progress=False)
-        npz = run_render(vdir / "field.pt", data, vdir / "novel_pose", params, seq=pose_seq,
-                         cameras=info["cameras"]["train"] + info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
-                         garment_poses_npz=poses[pose_seq], frame_stride=stride, progress=False)
-        lib = run_render(vdir / "field.pt", data, vdir / f"library_lib-{args.library}", params,
-                         cameras=info["cameras"]["test"][:2], template_npz=tpl, rig_npz=rig,
-                         library_motion_npz=ROOT / "results" / scene / "motions" / f"lib-{args.library}.npz",
-                         library_name=f"lib-{args.library}", frame_stride=25, progress=False)
-        loads[f"render {variant}"] = load()
-        summ = run_evaluate(data, [("novel_view", train_seq, vdir / "novel_view"), ("novel_pose", pose_seq,
-                                                                                     vdir / "novel_pose")],
-                            vdir / "metrics.csv", vdir / "metrics_summary.json", cfg["metrics"], lpips=lp, dists=ds,
-                            progress=False)
+        w = json.loads((work / variant / "worker.json").read_text())
+        tr, stage_s, nv, npz, lib, summ = w["train"], w["stage_s"], w["nv"], w["np"], w["lib"], w["summary"]
+        loads.update({f"{k} ({variant})": v for k, v in w["loads"].items()})
         results[variant] = {"train": tr, "stage_s": stage_s, "nv": nv, "np": npz, "lib": lib, "summary": summ}
         for m in summ["metrics"]:
             r = nv if m["kind"] == "novel_view" else npz
             rows.append({"method": variant, "kind": m["kind"], "sequence": m["sequence"], "images": m["images"],
                          "psnr_db": m["psnr_db"], "ssim": m["ssim"], "iou": m["iou"], "lpips": m["lpips"],
-                         "dists": m["dists"], "train_wall_s": tr["wall_s"], "train_stage_wall_s": stage_s,
-                         "train_steps": tr["steps"], "render_s_per_image": r["seconds_per_image_median"],
+                         "dists": m["dists"], "train_wall_s": tr["wall_s"], "train_cpu_s": tr["cpu_s"],
+                         "train_stage_wall_s": stage_s, "train_steps": tr["steps"],
+                         "render_s_per_image": r["seconds_per_image_median"],
+                         "render_cpu_s_per_image": r["cpu_seconds_per_image_median"],
                          "samples_per_ray": r["samples_per_ray"], "considered_per_ray": r["considered_per_ray"],
                          "skipped_fraction": 1 - r["samples_per_ray"] / max(r["considered_per_ray"], 1e-9),
                          "reference": "body_only" if variant == "full" else ""})
-    # 3. what skipping saves: occupancy off / joint culling off (training steps and rendering)
     abl = {}
     for name, extra in (("default", {}), ("occupancy_off", {"use_occupancy": False}),
                         ("joint_culling_off", {"cull_joints": False})):
@@ -241,21 +239,62 @@ def main() -> None:
                         cameras=info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
                         garment_poses_npz=poses[pose_seq], frame_stride=30, progress=False,
                         use_occupancy=extra.get("use_occupancy", True), cull_joints=extra.get("cull_joints", True))
-        abl[name] = {"train_s_per_step": tr["wall_s"] / tr["steps"], "train_samples_per_ray": tr["sampling"]["samples_per_ray"],
-                     "render_s_per_image": rr["seconds_per_image_median"], "render_samples_per_ray": rr["samples_per_ray"],
+        abl[name] = {"train_s_per_step": tr["cpu_s"] / tr["steps"], "train_wall_s_per_step": tr["wall_s"] / tr["steps"],
+                     "train_samples_per_ray": tr["sampling"]["samples_per_ray"],
+                     "render_s_per_image": rr["cpu_seconds_per_image_median"],
+                     "render_wall_s_per_image": rr["seconds_per_image_median"],
+                     "render_samples_per_ray": rr["samples_per_ray"],
                      "render_considered_per_ray": rr["considered_per_ray"], "images": rr["images"]}
         loads[f"ablation {name}"] = load()
     for name, a in abl.items():
         rows.append({"method": f"full/{name}", "kind": "sampling", "sequence": f"{train_seq} (train) / {pose_seq} (render)",
-                     "images": a["images"], "train_wall_s": a["train_s_per_step"] * args.ablation_steps,
-                     "train_steps": args.ablation_steps, "train_s_per_step": a["train_s_per_step"],
-                     "render_s_per_image": a["render_s_per_image"], "samples_per_ray": a["render_samples_per_ray"],
-                     "considered_per_ray": a["render_considered_per_ray"],
-                     "speedup_vs_reference": (a["train_s_per_step"] and abl["default"]["train_s_per_step"]
-                                              and a["train_s_per_step"] / abl["default"]["train_s_per_step"]),
+                     "images": a["images"], "train_steps": args.ablation_steps, "train_cpu_s_per_step": a["train_s_per_step"],
+                     "train_s_per_step": a["train_wall_s_per_step"],
+                     "render_s_per_image": a["render_wall_s_per_image"], "render_cpu_s_per_image": a["render_s_per_image"],
+                     "samples_per_ray": a["render_samples_per_ray"], "considered_per_ray": a["render_considered_per_ray"],
+                     "speedup_vs_reference": a["train_s_per_step"] / abl["default"]["train_s_per_step"],
                      "reference": "" if name == "default" else "full/default"})
     loads["end"] = load()
-    write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose_seq, lp, ds)
+    write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose_seq, lp, ds, stride)
+
+
+def worker(variant: str, work: Path) -> None:
+    """Train, render and evaluate one variant (run in its own process by main)."""
+    ctx = json.loads((work / "ctx.json").read_text())
+    torch.set_num_threads(ctx["threads"])
+    cfg = load_config(ROOT / "config" / "config.yaml")
+    scene, train_seq, pose_seq, params = ctx["scene"], ctx["train_seq"], ctx["pose_seq"], ctx["params"]
+    data = ROOT / "data" / scene
+    info = read_scene(data)
+    masks, rig, tpl, poses, stride = ctx["masks"], ctx["rig"], ctx["tpl"], ctx["poses"], ctx["stride"]
+    lp = load_lpips(**cfg["metrics"]["lpips"])
+    ds = load_dists(**cfg["metrics"]["dists"])
+    loads = {}
+    vdir = work / variant
+    t0 = time.perf_counter()
+    tr = run_train(data, train_seq, variant, masks, vdir / "field.pt", params, template_npz=tpl, rig_npz=rig,
+                   garment_poses_npz=poses[train_seq], lpips=lp if params["train"]["lpips_weight"] > 0 else None,
+                   progress=False)
+    stage_s = time.perf_counter() - t0
+    loads["train"] = load()
+    nv = run_render(vdir / "field.pt", data, vdir / "novel_view", params, seq=train_seq,
+                    cameras=info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
+                    garment_poses_npz=poses[train_seq], frame_stride=stride, progress=False)
+    npz = run_render(vdir / "field.pt", data, vdir / "novel_pose", params, seq=pose_seq,
+                     cameras=info["cameras"]["train"] + info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
+                     garment_poses_npz=poses[pose_seq], frame_stride=stride, progress=False)
+    lib = run_render(vdir / "field.pt", data, vdir / f"library_lib-{ctx['library']}", params,
+                     cameras=info["cameras"]["test"][:2], template_npz=tpl, rig_npz=rig,
+                     library_motion_npz=ROOT / "results" / scene / "motions" / f"lib-{ctx['library']}.npz",
+                     library_name=f"lib-{ctx['library']}", frame_stride=25, progress=False)
+    loads["render"] = load()
+    summ = run_evaluate(data, [("novel_view", train_seq, vdir / "novel_view"), ("novel_pose", pose_seq,
+                                                                                 vdir / "novel_pose")],
+                        vdir / "metrics.csv", vdir / "metrics_summary.json", cfg["metrics"], lpips=lp, dists=ds,
+                        progress=False)
+    strip = lambda r: {k: v for k, v in r.items() if k != "per_image"}  # noqa: E731
+    files.write_json(vdir / "worker.json", {"train": tr, "stage_s": stage_s, "nv": strip(nv), "np": strip(npz),
+                                            "lib": strip(lib), "summary": summ, "loads": loads})
 
 
 def _f(x, nd=2):
@@ -264,10 +303,11 @@ def _f(x, nd=2):
     return f"{x:.{nd}f}"
 
 
-def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose_seq, lp, ds) -> None:
+def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose_seq, lp, ds, stride) -> None:
     cols = ["method", "kind", "sequence", "images", "psnr_db", "ssim", "iou", "lpips", "dists", "train_wall_s",
-            "train_stage_wall_s", "train_steps", "train_s_per_step", "render_s_per_image", "samples_per_ray",
-            "considered_per_ray", "skipped_fraction", "speedup_vs_reference", "reference"]
+            "train_cpu_s", "train_stage_wall_s", "train_steps", "train_s_per_step", "train_cpu_s_per_step",
+            "render_s_per_image", "render_cpu_s_per_image", "samples_per_ray", "considered_per_ray",
+            "skipped_fraction", "speedup_vs_reference", "reference"]
     with files.atomic_path(ROOT / "benchmarks" / "field.csv") as tmp:
         with open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
@@ -280,6 +320,7 @@ def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose
     claim_psnr = fnp["psnr_db"] > bnp["psnr_db"]
     claim_iou = fnp["iou"] > bnp["iou"]
     t_full, t_bo = results["full"]["train"]["wall_s"], results["body_only"]["train"]["wall_s"]
+    c_full, c_bo = results["full"]["train"]["cpu_s"], results["body_only"]["train"]["cpu_s"]
     d, o, c = abl["default"], abl["occupancy_off"], abl["joint_culling_off"]
     skipped_train = 1 - d["train_samples_per_ray"] / max(o["train_samples_per_ray"], 1e-9)
     skipped_render = 1 - d["render_samples_per_ray"] / max(d["render_considered_per_ray"], 1e-9)
@@ -303,20 +344,22 @@ def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose
     L.append(f"- loss: MSE" + (" + 0.2 LPIPS" if lp else f" only -- LPIPS weights unavailable ({lp.reason})"))
     L.append(f"- LPIPS / DISTS columns: " + ("measured" if lp and ds else
                                                f"n/a -- {'' if lp else lp.reason + '; '}{'' if ds else ds.reason}"))
-    L.append(f"- novel view: test cameras {results['full']['nv']['cameras']} on every {params['render']['frame_stride']}-th "
-             f"training frame; novel pose: all 12 cameras on every {params['render']['frame_stride']}-th frame of "
+    L.append(f"- novel view: test cameras {results['full']['nv']['cameras']} on every {stride}-th "
+             f"training frame; novel pose: all 12 cameras on every {stride}-th frame of "
              f"`{pose_seq}`. PSNR inside the projected 3D box of the subject (ground-truth meshes, padded 5 cm), "
              "SSIM on that box's bounding rectangle, IoU of rendered alpha > 0.5 with the true mask; ground truth "
              "masked onto the black background.")
     L.append("")
-    L.append("| variant | kind | images | PSNR (dB) | SSIM | IoU | LPIPS | DISTS | train (s) | render (s/image) | samples/ray |")
-    L.append("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    L.append("| variant | kind | images | PSNR (dB) | SSIM | IoU | LPIPS | DISTS | train wall (s) | train CPU (s) | "
+             "render wall (s/image) | render CPU (s/image) | samples/ray |")
+    L.append("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
         if r["kind"] == "sampling":
             continue
         L.append(f"| {r['method']} | {r['kind']} ({r['sequence']}) | {r['images']} | {_f(r['psnr_db'])} | "
                  f"{_f(r['ssim'], 4)} | {_f(r['iou'], 4)} | {_f(r['lpips'], 4)} | {_f(r['dists'], 4)} | "
-                 f"{_f(r['train_wall_s'], 0)} | {_f(r['render_s_per_image'])} | {_f(r['samples_per_ray'], 1)} |")
+                 f"{_f(r['train_wall_s'], 0)} | {_f(r['train_cpu_s'], 0)} | {_f(r['render_s_per_image'])} | "
+                 f"{_f(r['render_cpu_s_per_image'])} | {_f(r['samples_per_ray'], 1)} |")
     L.append("")
     L.append("## Criteria\n")
     L.append(f"- `full` beats `body_only` on novel-pose PSNR: {_f(fnp['psnr_db'])} vs {_f(bnp['psnr_db'])} dB "
@@ -326,15 +369,19 @@ def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose
     L.append(f"- novel view (for reference): full {_f(fnv['psnr_db'])} dB / IoU {_f(fnv['iou'], 4)}, body_only "
              f"{_f(bnv['psnr_db'])} dB / IoU {_f(bnv['iou'], 4)}")
     ok_t = max(t_full, t_bo) <= 600
-    L.append(f"- training within 10 minutes on this CPU (one thread per variant, training loop): full {t_full:.0f} s, "
-             f"body_only {t_bo:.0f} s (whole stage incl. loading and occupancy: "
+    ok_c = max(c_full, c_bo) <= 600
+    L.append(f"- training within 10 minutes on this CPU (the two variants side by side, one thread each): wall "
+             f"full {t_full:.0f} s, body_only {t_bo:.0f} s (whole stage incl. loading and occupancy: "
              f"{results['full']['stage_s']:.0f} s / {results['body_only']['stage_s']:.0f} s) -- "
-             f"**{'MET' if ok_t else 'NOT MET'}**")
+             f"**{'MET' if ok_t else 'NOT MET'}** on the wall clock at the load above; CPU time of the training "
+             f"loop full {c_full:.0f} s, body_only {c_bo:.0f} s -- {'within' if ok_c else 'over'} 10 minutes, i.e. "
+             f"{'met' if ok_c else 'not met'} on an otherwise idle 2-core machine")
     L.append("")
     L.append("## Sampling: what the occupancy grid and joint culling save\n")
     L.append(f"Measured on `full`: {args.ablation_steps} training steps each, and rendering "
              f"{d['images']} images of `{pose_seq}` (test cameras) with the trained field.\n")
-    L.append("| configuration | train s/step | samples/ray (train) | render s/image | samples/ray (render) | "
+    L.append("CPU seconds (the process's own time: comparable under the shared load; wall times in field.csv).\n")
+    L.append("| configuration | train CPU s/step | samples/ray (train) | render CPU s/image | samples/ray (render) | "
              "train speed-up of the default | render speed-up of the default |")
     L.append("| --- | --- | --- | --- | --- | --- | --- |")
     for name, a in abl.items():

@@ -78,11 +78,14 @@ class RayBatchResult(NamedTuple):
 def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Tensor, inv_transforms: Tensor,
                 grid: OccupancyGrid, step: float, background: Tensor, generator: torch.Generator | None = None,
                 jitter: bool = False, volume: Tensor | None = None, use_occupancy: bool = True,
-                cull_joints: bool = True) -> RayBatchResult:
+                cull_joints: bool = True, early_stop: float = 0.0, round_samples: int = 4) -> RayBatchResult:
     """Render rays (R, 3) of frames (R,) (indices into inv_transforms (T, K, 4, 4) and grid).
 
     ``volume``: the decoded motion-weight volume, when the caller already has it
-    (rendering many chunks of one image decodes it once).
+    (rendering many chunks of one image decodes it once). ``early_stop`` > 0 (inference
+    only): samples are evaluated front to back in rounds of ``round_samples`` per ray and
+    a ray stops once its transmittance falls below ``early_stop`` (what it leaves out
+    weighs less than that).
     """
     R = origins.shape[0]
     # 1. samples where the posed subject can be, with their candidate joints
@@ -90,11 +93,44 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
               cull_joints=cull_joints)
     if volume is None:
         volume = model.weights()
-    # 2. observation -> canonical through the unified pose
-    warp = backward_warp(s.x, frame[s.ray], inv_transforms, s.cand, volume, model.weights.box)
-    # 3. canonical colour and density; density gated by the foreground likelihood (HumanNeRF)
-    rgb, sigma = model.canonical(warp.x_c)
-    sigma = sigma * warp.fg
-    # 4. compositing
-    out = composite(sigma, rgb, s.t, step, s.ray, R, background)
-    return RayBatchResult(out.rgb, out.alpha, out.depth, int(s.ray.shape[0]), s.considered)
+
+    def shade(sel: Tensor | None) -> tuple[Tensor, Tensor]:
+        x, r, c = (s.x, s.ray, s.cand) if sel is None else (s.x[sel], s.ray[sel], s.cand[sel])
+        # 2. observation -> canonical through the unified pose
+        warp = backward_warp(x, frame[r], inv_transforms, c, volume, model.weights.box)
+        # 3. canonical colour and density; density gated by the foreground likelihood (HumanNeRF)
+        rgb, sigma = model.canonical(warp.x_c)
+        return rgb, sigma * warp.fg
+
+    if early_stop <= 0 or torch.is_grad_enabled() or s.ray.numel() == 0:
+        rgb, sigma = shade(None)
+        # 4. compositing
+        out = composite(sigma, rgb, s.t, step, s.ray, R, background)
+        return RayBatchResult(out.rgb, out.alpha, out.depth, int(s.ray.shape[0]), s.considered)
+    # front-to-back rounds with early termination
+    S = s.ray.shape[0]
+    first = torch.ones(S, dtype=torch.bool, device=s.ray.device)
+    first[1:] = s.ray[1:] != s.ray[:-1]
+    idx = torch.arange(S, device=s.ray.device)
+    rank = idx - torch.cummax(torch.where(first, idx, torch.zeros_like(idx)), 0)[0]  # sample's index in its ray
+    tau = origins.new_zeros(R)
+    col = origins.new_zeros(R, 3)
+    acc = origins.new_zeros(R)
+    dep = origins.new_zeros(R)
+    alive = torch.ones(R, dtype=torch.bool, device=origins.device)
+    evaluated = 0
+    for r0 in range(0, int(rank.max()) + 1, round_samples):
+        sel = ((rank >= r0) & (rank < r0 + round_samples) & alive[s.ray]).nonzero()[:, 0]
+        if sel.numel() == 0:
+            break
+        rgb, sigma = shade(sel)
+        evaluated += int(sel.numel())
+        part = composite(sigma, rgb, s.t[sel], step, s.ray[sel], R, torch.zeros(3, dtype=rgb.dtype,
+                                                                                 device=rgb.device), offset=tau)
+        col += part.rgb  # (black background inside the rounds; the real one is added once below)
+        acc += part.alpha
+        dep += part.depth * part.alpha
+        tau += part.optical_depth
+        alive &= torch.exp(-tau) > early_stop
+    rgb = col + (1 - acc)[:, None] * background.to(col.dtype).expand(R, 3)
+    return RayBatchResult(rgb, acc, dep / acc.clamp_min(1e-8), evaluated, s.considered)

@@ -29,13 +29,18 @@ class RenderResult(NamedTuple):
     normalised by alpha (i.e. the depth of what is there, not blended with infinity)."""
     weights: Tensor
     """(S,) compositing weight of every sample."""
+    optical_depth: Tensor
+    """(R,) sum of sigma * delta over each ray's samples (not counting ``offset``)."""
 
 
 def composite(sigma: Tensor, rgb: Tensor, t: Tensor, delta: float | Tensor, ray: Tensor, num_rays: int,
-              background: Tensor) -> RenderResult:
+              background: Tensor, offset: Tensor | None = None) -> RenderResult:
     """Composite packed samples: sigma (S,), rgb (S, 3), t (S,), ray (S,) sorted -> per ray (R,).
 
-    background (3,) colour or (R, 3) per ray. Differentiable w.r.t. sigma and rgb.
+    background (3,) colour or (R, 3) per ray. ``offset`` (R,): optical depth already in
+    front of these samples (rendering in rounds with early ray termination); the
+    returned rgb then holds only these samples' contribution plus the background seen
+    through them. Differentiable w.r.t. sigma and rgb.
     """
     S = sigma.shape[0]
     tau = sigma * delta  # optical depth of each interval
@@ -48,6 +53,8 @@ def composite(sigma: Tensor, rgb: Tensor, t: Tensor, delta: float | Tensor, ray:
         first[1:] = ray[1:] != ray[:-1]
     start_idx = torch.cummax(torch.where(first, torch.arange(S, device=sigma.device), torch.zeros_like(ray)), 0)[0]
     excl = excl - excl[start_idx]
+    if offset is not None:
+        excl = excl + offset[ray]
     # 2. weights w_i = T_i (1 - exp(-tau_i))
     w = torch.exp(-excl) * (1 - torch.exp(-tau))
     # 3. per-ray sums
@@ -56,7 +63,8 @@ def composite(sigma: Tensor, rgb: Tensor, t: Tensor, delta: float | Tensor, ray:
     dep = torch.zeros(num_rays, dtype=sigma.dtype, device=sigma.device).index_add(0, ray, w * t)
     depth = dep / acc.clamp_min(1e-8)
     out = col + (1 - acc)[:, None] * background.to(col.dtype).expand(num_rays, 3)
-    return RenderResult(out, acc, depth, w)
+    total = torch.zeros(num_rays, dtype=sigma.dtype, device=sigma.device).index_add(0, ray, tau)
+    return RenderResult(out, acc, depth, w, total)
 
 
 def composite_reference(sigma: Tensor, rgb: Tensor, t: Tensor, delta: float, ray: Tensor, num_rays: int,
@@ -78,4 +86,5 @@ def composite_reference(sigma: Tensor, rgb: Tensor, t: Tensor, delta: float, ray
         cols.append(c + (1 - a) * background.to(sigma.dtype))
         accs.append(torch.as_tensor(a, dtype=sigma.dtype))
         deps.append(torch.as_tensor(d, dtype=sigma.dtype) / max(float(a), 1e-8))
-    return RenderResult(torch.stack(cols), torch.stack(accs), torch.stack(deps), ws)
+    tot = torch.zeros(num_rays, dtype=sigma.dtype).index_add(0, ray, sigma * delta)
+    return RenderResult(torch.stack(cols), torch.stack(accs), torch.stack(deps), ws, tot)

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from typing import NamedTuple, Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
@@ -34,6 +33,8 @@ __all__ = [
     "march",
     "mask_boxes",
     "box_pixels",
+    "occupancy_pixels",
+    "occupied_centres",
 ]
 
 
@@ -146,15 +147,46 @@ def _ball_offsets(r: Sequence[int], scale: Sequence[float], d: float, device) ->
     return o[near.square().sum(-1) <= d * d + 1e-12]
 
 
+def _box_max(x: Tensor, r: Sequence[int]) -> Tensor:
+    """Separable max filter of half-widths r (3,) over the last 3 axes of x (C, X, Y, Z), zero padded.
+
+    Radius doubling: after k steps every cell holds the max over a forward window of up to
+    2^k cells, so a half-width r costs O(log r) element-wise maxima per axis (x >= 0 assumed).
+    """
+    for a, ra in enumerate(r):
+        if ra <= 0:
+            continue
+        ax = a + 1
+        n = x.shape[ax]
+        pad_shape = list(x.shape)
+        pad_shape[ax] = ra
+        # y[i] = max over the forward window [i, i + w) of x padded with r zeros in front:
+        # at w = 2 r + 1, y[i] is the max of x over [i - r, i + r]
+        y = torch.cat([x.new_zeros(pad_shape), x], ax)
+        m = n + ra
+        w, target = 1, 2 * ra + 1
+        while w < target:
+            step = min(w, target - w)
+            shifted = torch.zeros_like(y)
+            if step < m:
+                shifted.narrow(ax, 0, m - step).copy_(y.narrow(ax, step, m - step))
+            y = torch.maximum(y, shifted)
+            w += step
+        x = y.narrow(ax, 0, n).contiguous()
+    return x
+
+
 def build_occupancy(parts: Sequence[SurfacePart], res: Sequence[int] = (64, 64, 64), max_joints: int = 8,
-                    min_weight: float = 0.01, progress: bool = False) -> OccupancyGrid:
+                    min_weight: float = 0.01, progress: bool = False, max_splat: float = 2e7) -> OccupancyGrid:
     """Occupancy and candidate joints of every frame from posed surfaces.
 
     Every part's surface, sampled densely enough (:func:`surface_points`), is splatted into
     all voxels within its ``dilate_m`` margin, carrying their top-4 skinning weights; a
     voxel keeps, per joint, the largest weight that reached it, and its ``max_joints``
     best joints with weight >= ``min_weight`` become its candidates. The grid of a
-    frame spans the frame's points plus the largest margin plus two voxels.
+    frame spans the frame's points plus the largest margin plus two voxels. A margin whose
+    ball (in voxels) times the splatted entries exceeds ``max_splat`` is dilated with a
+    separable max filter instead (a box: a superset of the ball).
     """
     if not parts:
         raise ValueError("build_occupancy: no surface parts")
@@ -203,28 +235,21 @@ def build_occupancy(parts: Sequence[SurfacePart], res: Sequence[int] = (64, 64, 
                                                                           include_self=False)
             sv, sj = keys // K, keys % K  # surface voxel, joint
             r = [max(0, math.ceil(d / float(vox[a]))) for a in range(3)]
-            if max(r) <= 3:
+            offs = _ball_offsets(r, [float(vox[a]) for a in range(3)], d, dev)  # (O, 3)
+            if offs.shape[0] * sv.shape[0] <= max_splat:
                 # 2a. small margin: every (voxel, joint) entry reaches the voxels of a ball
-                offs = _ball_offsets(r, [float(vox[a]) for a in range(3)], d, dev)  # (O, 3)
                 doff = (offs[:, 0] * G[1] + offs[:, 1]) * G[2] + offs[:, 2]  # (O,) flat offsets
                 cells = (torch.unique(flat)[:, None] + doff[None]).reshape(-1)
                 occ[cells] = True
                 dkeys = ((sv[:, None] + doff[None]) * K + sj[:, None]).reshape(-1)
                 best.scatter_reduce_(0, dkeys, vals[:, None].expand(-1, doff.shape[0]).reshape(-1), reduce="amax")
             else:
-                # 2b. wide margin: separable max filter (a box of the margin's half-widths) over
-                #     a dense grid of only the joints this part has
+                # 2b. wide margin (too many ball offsets x entries): separable max filter (a box
+                #     of the margin's half-widths) over a dense grid of only this part's joints
                 joints, local = torch.unique(sj, return_inverse=True)
                 dense = torch.zeros(joints.shape[0], nvox, device=dev)
                 dense.view(-1).scatter_reduce_(0, local * nvox + sv, vals, reduce="amax")
-                dense = dense.view(1, -1, *res)
-                for a in range(3):
-                    k = [1, 1, 1]
-                    k[a] = 2 * r[a] + 1
-                    pad = [0, 0, 0]
-                    pad[a] = r[a]
-                    dense = F.max_pool3d(dense, tuple(k), stride=1, padding=tuple(pad))
-                dense = dense.view(joints.shape[0], nvox)
+                dense = _box_max(dense.view(-1, *res), r).view(joints.shape[0], nvox)
                 occ |= dense.max(0).values > 0
                 bv = best.view(nvox, K)
                 bv[:, joints] = torch.maximum(bv[:, joints], dense.T)
@@ -353,3 +378,38 @@ def box_pixels(box: Tensor) -> tuple[Tensor, Tensor]:
     y0, y1, x0, x1 = (int(v) for v in box)
     yy, xx = torch.meshgrid(torch.arange(y0, y1), torch.arange(x0, x1), indexing="ij")
     return yy.reshape(-1), xx.reshape(-1)
+
+
+def occupied_centres(grid: OccupancyGrid, frame: int) -> Tensor:
+    """World centres (n, 3) of the occupied voxels of ``frame``."""
+    G = torch.tensor(grid.res, device=grid.index.device)
+    occ = (grid.index[frame] >= 0).nonzero()[:, 0]
+    ijk = torch.stack([occ // (G[1] * G[2]), (occ // G[2]) % G[1], occ % G[2]], -1).to(grid.voxel.dtype)
+    return grid.origin[frame] + (ijk + 0.5) * grid.voxel[frame]
+
+
+def occupancy_pixels(uv: Tensor, depth: Tensor, radius_px: Tensor, height: int, width: int) -> Tensor:
+    """Pixels (C, H, W) bool whose rays can meet an occupied voxel.
+
+    uv (C, n, 2), depth (C, n): the occupied voxel centres projected into C cameras
+    (:func:`occupied_centres`, then the camera model, distortion included);
+    radius_px (C,): a voxel's half-diagonal in pixels at the nearest depth (conservative
+    growth of every hit). A centre behind a camera marks its whole image.
+    """
+    C = uv.shape[0]
+    out = torch.zeros(C, height, width, dtype=torch.bool, device=uv.device)
+    for c in range(C):  # C cameras: a loop over images, not over pixels
+        if uv.shape[1] == 0:
+            continue
+        if (depth[c] <= 1e-6).any():
+            out[c] = True
+            continue
+        r = int(radius_px[c]) + 1
+        px = uv[c].round().long()
+        ok = (px[:, 0] >= -r) & (px[:, 0] < width + r) & (px[:, 1] >= -r) & (px[:, 1] < height + r)
+        px = px[ok]
+        m = torch.zeros(height + 2 * r, width + 2 * r, dtype=torch.float32, device=uv.device)
+        m[px[:, 1] + r, px[:, 0] + r] = 1
+        m = torch.nn.functional.max_pool2d(m[None, None], 2 * r + 1, stride=1, padding=r)[0, 0]
+        out[c] = m[r:r + height, r:r + width] > 0
+    return out

@@ -31,7 +31,7 @@ __all__ = ["TrainConfig", "TrainData", "TrainResult", "train_field", "render_vie
 class TrainConfig:
     """Optimisation settings (the ``field/train`` config section)."""
 
-    steps: int = 1500
+    steps: int = 600
     """Optimiser steps."""
     rays_per_step: int = 2048
     """Random rays per step, spread over ``images_per_step`` (frame, camera) images."""
@@ -253,10 +253,12 @@ class ViewRender(NamedTuple):
 def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tensor, frame: int,
                 inv_transforms: Tensor, grid: OccupancyGrid, step: float, background: Tensor,
                 chunk: int = 8192, volume: Tensor | None = None, use_occupancy: bool = True,
-                cull_joints: bool = True) -> ViewRender:
+                cull_joints: bool = True, early_stop: float = 1e-3, pixels: Tensor | None = None) -> ViewRender:
     """Render one image: origin (3,), dirs (H, W, 3), box (4,) y0, y1, x0, x1 of the rays cast.
 
-    ``frame`` indexes inv_transforms (T, K, 4, 4) and ``grid``.
+    ``frame`` indexes inv_transforms (T, K, 4, 4) and ``grid``. ``early_stop``: rays stop
+    once their transmittance is below it (0: every sample). ``pixels`` (H, W) bool:
+    cast rays only there (inside the box); elsewhere the background.
     """
     H, W, _ = dirs.shape
     dev = dirs.device
@@ -269,6 +271,10 @@ def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tenso
     if volume is None:
         volume = model.weights()
     d = dirs[y0:y1, x0:x1].reshape(-1, 3)
+    keep = None
+    if pixels is not None:
+        keep = pixels[y0:y1, x0:x1].reshape(-1).nonzero()[:, 0]
+        d = d[keep]
     n = d.shape[0]
     cols, alps, deps = [], [], []
     ns = nc = 0
@@ -277,13 +283,25 @@ def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tenso
         o = origin.expand_as(dd)
         fr = torch.full((dd.shape[0],), frame, dtype=torch.long, device=dev)
         out = render_rays(model, o, dd, fr, inv_transforms, grid, step, background, volume=volume,
-                          use_occupancy=use_occupancy, cull_joints=cull_joints)
+                          use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early_stop)
         cols.append(out.rgb)
         alps.append(out.alpha)
         deps.append(out.depth)
         ns += out.num_samples
         nc += out.considered
-    rgb[y0:y1, x0:x1] = torch.cat(cols).view(y1 - y0, x1 - x0, 3)
-    alpha[y0:y1, x0:x1] = torch.cat(alps).view(y1 - y0, x1 - x0)
-    depth[y0:y1, x0:x1] = torch.cat(deps).view(y1 - y0, x1 - x0)
+    if n == 0:
+        return ViewRender(rgb, alpha, depth, 0, 0, 0)
+    hb, wb = y1 - y0, x1 - x0
+    if keep is None:
+        rgb[y0:y1, x0:x1] = torch.cat(cols).view(hb, wb, 3)
+        alpha[y0:y1, x0:x1] = torch.cat(alps).view(hb, wb)
+        depth[y0:y1, x0:x1] = torch.cat(deps).view(hb, wb)
+    else:
+        sub = rgb[y0:y1, x0:x1].reshape(-1, 3).clone()
+        sub[keep] = torch.cat(cols)
+        rgb[y0:y1, x0:x1] = sub.view(hb, wb, 3)
+        for dst, src in ((alpha, alps), (depth, deps)):
+            sub = dst[y0:y1, x0:x1].reshape(-1).clone()
+            sub[keep] = torch.cat(src)
+            dst[y0:y1, x0:x1] = sub.view(hb, wb)
     return ViewRender(rgb, alpha, depth, ns, nc, n)

@@ -37,7 +37,7 @@ from .. import __version__
 from ..camera import load_cameras, pixel_rays, project
 from ..field.encoding import HashGridConfig
 from ..field.model import AnimatableField, FieldConfig
-from ..field.sampler import build_occupancy, mask_boxes
+from ..field.sampler import build_occupancy, mask_boxes, occupancy_pixels, occupied_centres
 from ..field.subject import BodyRest, GarmentRest, canonical_setup, posed_parts, unified_pose
 from ..field.train import TrainConfig, TrainData, render_view, train_field
 from ..io import files
@@ -344,6 +344,16 @@ def _projected_box(grid_lo: torch.Tensor, grid_hi: torch.Tensor, cams, pad_px: i
     return torch.where(behind[:, None], full, box)
 
 
+def _occupancy_pixels(grid, frame: int, cams) -> torch.Tensor:
+    """(C, H, W) pixels whose rays can meet the frame's occupied voxels (camera model incl. distortion)."""
+    centres = occupied_centres(grid, frame).cpu().to(cams.dtype)
+    pr = project(centres, cams)
+    f = torch.maximum(cams.K[:, 0, 0].abs(), cams.K[:, 1, 1].abs())
+    zmin = pr.depth.min(1).values.clamp_min(1e-6) if centres.shape[0] else torch.ones(len(cams))
+    radius = (f * 0.5 * float(grid.voxel[frame].norm()) / zmin).ceil()
+    return occupancy_pixels(pr.uv, pr.depth, radius, cams.height, cams.width).to(grid.index.device)
+
+
 def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_dir: str | os.PathLike, params: dict,
                seq: str | None = None, cameras: Sequence[str] | None = None, template_npz=None, rig_npz=None,
                garment_poses_npz=None, library_motion_npz=None, library_name: str | None = None,
@@ -416,13 +426,18 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=len(todo), desc=f"render {out_dir.name}", unit="img")
+    early = float(params.get("render", {}).get("early_stop", 1e-3))
     for i, f in enumerate(frames):
         lo, hi = grid.box(torch.tensor([i], device=dev))
         boxes = _projected_box(lo[0].cpu(), hi[0].cpu(), cams, 2)
+        # rays only through pixels that can see an occupied voxel (the projected occupancy);
+        # with the occupancy ablation, every pixel of the projected grid box
+        pix = _occupancy_pixels(grid, i, cams) if use_occupancy else None
         for c, name in enumerate(names):
             t0, c0 = time.perf_counter(), time.process_time()
             r = render_view(model, origins[c], dirs[c], boxes[c], i, inv, grid, sp["step_m"], bg, chunk=chunk,
-                            volume=volume, use_occupancy=use_occupancy, cull_joints=cull_joints)
+                            volume=volume, use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early,
+                            pixels=None if pix is None else pix[c])
             dt, dc = time.perf_counter() - t0, time.process_time() - c0
             files.write_png(out_dir / "rgb" / name / f"{f:06d}.png", r.rgb.cpu().numpy())
             files.write_png(out_dir / "alpha" / name / f"{f:06d}.png",
@@ -446,6 +461,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
         "samples_per_ray": float(sum(p["samples"] for p in per_image) / max(1, sum(p["rays"] for p in per_image))),
         "considered_per_ray": float(sum(p["considered"] for p in per_image) / max(1, sum(p["rays"] for p in per_image))),
         "background": bg.cpu().tolist(), "use_occupancy": use_occupancy, "cull_joints": cull_joints,
+        "early_stop": early,
         "per_image": per_image,
         "wall_s": time.perf_counter() - t_start, "code_version": __version__,
     }

@@ -33,13 +33,19 @@ def _train_psnr(model, data) -> float:
     return sum(vals) / len(vals)
 
 
-def test_tiny_scene_overfits(scene):
+@pytest.fixture(scope="module")
+def trained(scene):
+    """The tiny scene trained for 300 steps (shared by the tests that need a trained field)."""
     data, box, prior = scene
     model = new_model(box, prior)
     before = _train_psnr(model, data)
     cfg = TrainConfig(steps=300, rays_per_step=256, images_per_step=4, step_m=0.01, checkpoint_every=0)
     res = train_field(model, data, cfg, progress=False, log_every=50)
-    after = _train_psnr(model, data)
+    return model, before, _train_psnr(model, data), res
+
+
+def test_tiny_scene_overfits(trained):
+    model, before, after, res = trained
     assert after > before + 6 and after > 22, (before, after)
     assert res.history[-1]["psnr_db"] > res.history[0]["psnr_db"]
     assert 0 < res.history[-1]["samples_per_ray"] < res.history[-1]["considered_per_ray"]
@@ -71,3 +77,29 @@ def test_resume_from_checkpoint_equals_uninterrupted_run(scene):
     assert a.keys() == b.keys()
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+def test_early_termination_and_projected_occupancy_change_nothing_visible(scene, trained):
+    """Rendering shortcuts: rays stop below transmittance 1e-3, rays only through pixels
+    that see occupied voxels -- the image equals the exhaustive one within 2e-3."""
+    from anidress_core.camera import ring_cameras
+    from anidress_core.camera import project
+    from anidress_core.field.sampler import occupancy_pixels, occupied_centres
+
+    data = scene[0]
+    model = trained[0]
+    H, W = data.images.shape[2:4]
+    cams = ring_cameras(4, 3.0, 1.0, (0.0, 0.0, 0.9), focal_px=H * 1.2, image_height=H, image_width=W)
+    pr = project(occupied_centres(data.grid, 1), cams)
+    radius = 1.2 * H * 0.5 * data.grid.voxel[1].norm() / pr.depth.min(1).values
+    pix = occupancy_pixels(pr.uv, pr.depth, radius.ceil(), H, W)
+    full_box = torch.tensor([0, H, 0, W])
+    vol = model.weights()
+    for c in range(4):
+        ref = render_view(model, data.ray_origins[c], data.ray_dirs[c], full_box, 1, data.inv_transforms, data.grid,
+                          0.01, torch.zeros(3), early_stop=0.0, volume=vol)
+        fast = render_view(model, data.ray_origins[c], data.ray_dirs[c], full_box, 1, data.inv_transforms, data.grid,
+                           0.01, torch.zeros(3), early_stop=1e-3, pixels=pix[c], volume=vol)
+        assert fast.num_samples < ref.num_samples and fast.rays < ref.rays
+        assert (fast.rgb - ref.rgb).abs().max() < 2e-3 and (fast.alpha - ref.alpha).abs().max() < 2e-3
+        assert not pix[c].all() and (ref.alpha[~pix[c]] == 0).all()
