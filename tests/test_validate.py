@@ -1,0 +1,348 @@
+"""Scene validation (issue 8, bad input): one clear error per malformed scene, nothing written.
+
+A tiny valid skirt scene is synthesised once per module; each test copies it, breaks
+ONE thing and checks the error type, that the message names the file and the
+problem, and that no results file was written.
+"""
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from anidress_core.cli import main as cli_main
+from anidress_core.config import default_schema_path, validate_config
+from anidress_core.io import easymocap, files
+from anidress_core.io.files import SceneError
+from anidress_core.io.mesh import read_mesh, write_obj
+from anidress_core.stages.validate import (SELF_INTERSECTION_TOLERANCE, image_size_from_header, mesh_defects,
+                                           run_validate, unit_guess, validate_scene)
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = {
+    "kind": "skirt", "image_size": [32, 32], "cameras": {"count": 4, "train": 3}, "body": {"vertices": 1500},
+    "sequences": [{"name": "walk", "motion": "walk", "frames": 3}],
+    "garment": {"vertices": 300, "cloth": {"settle_frames": 2}},
+    "render": {"texture_size": 64, "supersample": 1},
+}
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    from anidress_core.stages.synth import run_synth
+
+    torch.set_num_threads(1)
+    cfg = validate_config({"run_scenes": ["t"], "scenes": {"t": TINY}},
+                          yaml.safe_load(default_schema_path().read_text()))["scenes"]["t"]
+    return run_synth(cfg, "t", tmp_path_factory.mktemp("valid") / "data" / "t", threads=1, progress=False)
+
+
+@pytest.fixture
+def scene(tiny_scene, tmp_path):
+    """A fresh copy of the valid scene: tmp/data/t (break one thing in it)."""
+    dst = tmp_path / "data" / "t"
+    shutil.copytree(tiny_scene, dst)
+    return dst
+
+
+def _fails(scene: Path, path: Path, *words: str) -> str:
+    """Validate, expect one SceneError naming ``path`` and ``words``; no results written."""
+    out = scene.parent.parent / "results" / "t" / "scene_check.json"
+    with pytest.raises(SceneError) as e:
+        run_validate(scene, out)
+    msg = str(e.value)
+    assert "\n" not in msg
+    assert str(path) in msg, msg
+    for w in words:
+        assert w in msg, msg
+    assert not (scene.parent.parent / "results").exists()
+    return msg
+
+
+# --------------------------------------------------------------------------- the valid scene
+
+
+def test_valid_scene_passes_and_writes_the_summary(scene, tmp_path):
+    out = tmp_path / "results" / "t" / "scene_check.json"
+    s = run_validate(scene, out)
+    assert json.loads(out.read_text()) == s
+    assert s["sequences"]["walk"]["frames"] == 3 and s["sequences"]["walk"]["cameras"] == 4
+    assert s["sequences"]["walk"]["images_decoded"] == 8  # first and last frame of 4 cameras
+    assert s["garment"] and s["garment_template"]["self_intersecting_faces"] == 0
+    assert s["image_size"] == [32, 32] and s["cameras"]["train"] and s["cameras"]["test"]
+    assert "garment self-intersections" in s["checks"] and "cameras see the body (same world frame and units)" in s["checks"]
+    assert validate_scene(scene, images="all")["sequences"]["walk"]["images_decoded"] == 12
+
+
+def test_cli_prints_the_summary_or_the_error(scene, capsys):
+    assert cli_main(["validate", str(scene)]) == 0
+    assert f"{scene}: OK" in capsys.readouterr().out
+    (scene / "walk" / "intri.yml").unlink()
+    assert cli_main(["validate", str(scene)]) == 2
+    assert f"{scene / 'walk' / 'intri.yml'}: camera file missing" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- cameras
+
+
+@pytest.mark.parametrize("name", ["intri.yml", "extri.yml"])
+def test_missing_camera_file(scene, name):
+    (scene / "walk" / name).unlink()
+    _fails(scene, scene / "walk" / name, "camera file missing")
+
+
+def test_camera_missing_from_extri(scene):
+    p = scene / "walk" / "extri.yml"
+    cams = easymocap.read_extri(p)
+    del cams["03"]
+    easymocap.write_extri(p, cams)
+    _fails(scene, p, "camera '03' listed in intri.yml has no extrinsics")
+
+
+def test_scene_camera_missing_from_both_files(scene):
+    for name, rd, wr in (("intri.yml", easymocap.read_intri, easymocap.write_intri),
+                         ("extri.yml", easymocap.read_extri, easymocap.write_extri)):
+        cams = rd(scene / "walk" / name)
+        del cams["02"]
+        wr(scene / "walk" / name, cams)
+    _fails(scene, scene / "walk" / "intri.yml", "camera '02' of scene.yaml cameras/", "is not listed")
+
+
+def test_extrinsics_in_millimetres(scene):
+    p = scene / "walk" / "extri.yml"
+    cams = easymocap.read_extri(p)
+    easymocap.write_extri(p, {c: {"R": v["R"], "T": 1000.0 * v["T"]} for c, v in cams.items()})
+    _fails(scene, p, "looks like millimetres")
+
+
+# --------------------------------------------------------------------------- frames and images
+
+
+def test_frame_counts_differ_between_cameras(scene):
+    (scene / "walk" / "images" / "02" / "000001.png").unlink()
+    _fails(scene, scene / "walk" / "images" / "02", "camera '02' has 2 frames but camera '01' has 3",
+           "missing 000001.png")
+
+
+def test_image_with_garbage_bytes(scene):
+    p = scene / "walk" / "images" / "03" / "000001.png"  # a middle frame: caught by the header check
+    p.write_bytes(np.random.default_rng(0).integers(0, 256, 500, dtype=np.uint8).tobytes())
+    _fails(scene, p, "unreadable image", "not a PNG or JPEG")
+
+
+def test_truncated_image(scene):
+    p = scene / "walk" / "images" / "04" / "000001.png"
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    _fails(scene, p, "truncated")
+
+
+def test_image_of_the_wrong_size(scene):
+    p = scene / "walk" / "images" / "01" / "000002.png"
+    files.write_png(p, np.zeros((32, 40, 3)))
+    _fails(scene, p, "image is 40x32 (WxH), expected 32x32")
+
+
+def test_scene_yaml_frames_disagree_with_the_images(scene):
+    p = scene / "scene.yaml"
+    info = yaml.safe_load(p.read_text())
+    info["sequences"][0]["frames"] = 4
+    p.write_text(yaml.safe_dump(info))
+    _fails(scene, p, "sequence 'walk' has frames: 4", "holds 3 per camera")
+
+
+def test_shipped_normals_miss_a_frame(scene):
+    (scene / "walk" / "normals" / "01" / "000002.exr").unlink()
+    _fails(scene, scene / "walk" / "normals" / "01", "2 normals for 3 image frames", "missing 000002.exr")
+
+
+# --------------------------------------------------------------------------- body parameters
+
+
+@pytest.mark.parametrize("key,value", [("Th", math.nan), ("poses", math.inf)])
+def test_non_finite_body_params(scene, key, value):
+    p = scene / "walk" / "smpl" / "000001.json"
+    data = json.loads(p.read_text())
+    data[0][key][0][1] = value
+    p.write_text(json.dumps(data))  # Python's json writes NaN / Infinity, as numpy-based exporters do
+    _fails(scene, p, f"'{key}' contains NaN or inf")
+
+
+def test_body_params_missing_a_frame(scene):
+    (scene / "walk" / "smpl" / "000002.json").unlink()
+    _fails(scene, scene / "walk" / "smpl", "2 body parameter files for 3 image frames", "missing 000002.json")
+
+
+def test_body_translation_in_millimetres(scene):
+    for p in (scene / "walk" / "smpl").glob("*.json"):
+        data = json.loads(p.read_text())
+        data[0]["Th"] = [[1000.0 * x for x in data[0]["Th"][0]]]
+        p.write_text(json.dumps(data))
+    _fails(scene, scene / "walk" / "smpl" / "000000.json", "'Th'", "looks like millimetres")
+
+
+# --------------------------------------------------------------------------- body model units
+
+
+@pytest.mark.parametrize("factor,unit", [(1000.0, "millimetres"), (0.001, "kilometres")])
+def test_body_model_in_wrong_units(scene, factor, unit):
+    p = scene / "body_model.npz"
+    arrays, header = files.load_npz(p)
+    arrays["v_template"] = arrays["v_template"] * factor
+    arrays["joints_rest"] = arrays["joints_rest"] * factor
+    files.save_npz(p, arrays, meta=header.get("meta"))
+    _fails(scene, p, "'v_template' spans", f"looks like {unit}", "metres")
+
+
+def test_body_joints_alone_in_wrong_units(scene):
+    p = scene / "body_model.npz"
+    arrays, header = files.load_npz(p)
+    arrays["joints_rest"] = arrays["joints_rest"] * 1000.0
+    files.save_npz(p, arrays, meta=header.get("meta"))
+    _fails(scene, p, "'joints_rest' spans", "looks like millimetres")
+
+
+# --------------------------------------------------------------------------- garment template
+
+
+def _template(scene):
+    p = scene / "garment" / "template.obj"
+    v, f, uv = read_mesh(p)
+    return p, v, f, uv
+
+
+@pytest.mark.parametrize("factor,unit", [(1000.0, "millimetres"), (0.001, "kilometres")])
+def test_template_in_wrong_units(scene, factor, unit):
+    p, v, f, uv = _template(scene)
+    write_obj(p, v * factor, f, uv)
+    _fails(scene, p, "wrong units", f"looks like {unit}")
+
+
+def test_non_manifold_template(scene):
+    p, v, f, _ = _template(scene)
+    # a new face on an interior edge (already shared by two faces): three faces share it
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    edges, cnt = np.unique(e, axis=0, return_counts=True)
+    a, b = edges[cnt == 2][0]
+    tip = 0.5 * (v[a] + v[b]) + np.array([0.0, 0.0, 0.02])
+    write_obj(p, np.vstack([v, tip]), np.vstack([f, [[a, b, len(v)]]]))
+    _fails(scene, p, "non-manifold", "shared by more than two faces", f"between vertices {a + 1} and {b + 1}")
+
+
+def test_self_intersecting_template(scene):
+    p, v, f, _ = _template(scene)
+    # a sheet through the skirt's axis: it cuts the surface in front and behind
+    y = float(v[:, 1].mean())
+    tri = np.array([[0.0, y - 0.08, -0.6], [0.0, y - 0.08, 0.6], [0.0, y + 0.08, 0.0]])
+    n = len(v)
+    write_obj(p, np.vstack([v, tri]), np.vstack([f, [[n, n + 1, n + 2]]]))
+    msg = _fails(scene, p, "self-intersecting", "passes through itself")
+    assert int(msg.split("self-intersecting: ")[1].split(" ")[0]) > SELF_INTERSECTION_TOLERANCE
+
+
+def test_template_with_a_few_duplicate_faces_passes_with_a_warning(scene, tmp_path):
+    p, v, f, _ = _template(scene)
+    write_obj(p, v, np.vstack([f, f[:3]]))  # cleaning removes duplicates: repairable
+    s = run_validate(scene, tmp_path / "results" / "t" / "scene_check.json")
+    assert s["garment_template"]["duplicate_faces"] == 3
+    assert any("3 duplicate faces" in w for w in s["warnings"])
+
+
+def test_template_mostly_degenerate_is_refused(scene):
+    p, v, f, _ = _template(scene)
+    bad = np.repeat(f[:, :1], 3, axis=1)[: len(f) // 5]  # faces (a, a, a): 20% degenerate
+    write_obj(p, v, np.vstack([f, bad]))
+    _fails(scene, p, "degenerate", "not a usable garment surface")
+
+
+# --------------------------------------------------------------------------- scene.yaml
+
+
+def test_scene_yaml_in_millimetres(scene):
+    p = scene / "scene.yaml"
+    info = yaml.safe_load(p.read_text())
+    info["units"] = "millimetres"
+    p.write_text(yaml.safe_dump(info))
+    _fails(scene, p, "'units' is 'millimetres'")
+
+
+def test_scene_yaml_unquoted_camera_names(scene):
+    p = scene / "scene.yaml"
+    p.write_text(p.read_text().replace("- '01'", "- 01"))
+    _fails(scene, p, "is not a string", "quote camera names")
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+def test_mesh_defects_counts_each_kind():
+    # two triangles of a unit square, one vertex duplicated (merged), one duplicate face,
+    # one degenerate face, then a third face on the shared diagonal
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [1, 1, 0], [0.5, 0.5, 1.0]], float)
+    f = np.array([[0, 1, 2], [0, 4, 3], [2, 1, 0], [0, 1, 1]])
+    d = mesh_defects(v, f)
+    assert d.merged_vertices == 1
+    assert d.duplicate_faces.tolist() == [2] and d.degenerate_faces.tolist() == [3]
+    assert len(d.non_manifold_edges) == 0 and len(d.self_intersecting_faces) == 0
+    d = mesh_defects(v, np.vstack([f, [[0, 2, 5]]]))
+    assert d.non_manifold_edges.tolist() == [[0, 2]] and d.non_manifold_counts.tolist() == [3]
+
+
+def test_mesh_defects_finds_a_crossing_triangle():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, -0.5], [0.3, 0.2, 0.5], [0.2, 0.3, 0.5]], float)
+    d = mesh_defects(v, np.array([[0, 1, 2], [3, 4, 5]]))
+    assert sorted(d.self_intersecting_faces.tolist()) == [0, 1]
+    v[3:, 2] += 1.0  # lifted clear of the first triangle
+    assert len(mesh_defects(v, np.array([[0, 1, 2], [3, 4, 5]])).self_intersecting_faces) == 0
+
+
+def test_image_headers(tmp_path):
+    img = (np.random.default_rng(1).random((20, 30, 3)) * 255).astype(np.uint8)
+    for ext in (".png", ".jpg"):
+        p = tmp_path / f"a{ext}"
+        cv2.imwrite(str(p), img)
+        assert image_size_from_header(p) == (20, 30)
+    p = tmp_path / "b.jpg"
+    p.write_bytes((tmp_path / "a.jpg").read_bytes()[:-100])
+    with pytest.raises(SceneError, match="truncated JPEG"):
+        image_size_from_header(p)
+    (tmp_path / "e.png").write_bytes(b"")
+    with pytest.raises(SceneError, match="empty"):
+        image_size_from_header(tmp_path / "e.png")
+
+
+def test_unit_guess():
+    assert unit_guess(1000.0) == "millimetres" and unit_guess(0.001) == "kilometres"
+    assert unit_guess(95.0) == "centimetres"
+
+
+# --------------------------------------------------------------------------- the rule
+
+
+def test_snakemake_stops_at_validate_scene(scene):
+    wd = scene.parent.parent
+    p = scene / "walk" / "extri.yml"
+    cams = easymocap.read_extri(p)
+    del cams["03"]
+    easymocap.write_extri(p, cams)
+    cfg = {"run_scenes": ["t"], "scenes": {"t": {"synthetic": False, "kind": "skirt",
+                                                  "sequences": [{"name": "walk", "motion": "walk", "frames": 3}]}}}
+    (wd / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(wd),
+           "--configfile", str(wd / "cfg.yaml"), "--cores", "1", "results/t/scene_check.json"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    assert res.returncode != 0, res.stdout[-2000:] + res.stderr[-2000:]
+    assert "validate_scene" in res.stdout + res.stderr
+    log_text = (wd / "logs" / "t" / "validate_scene.log").read_text()
+    # the rule runs in the work directory: the message names the scene's relative path
+    assert "data/t/walk/extri.yml: camera '03' listed in intri.yml has no extrinsics" in log_text, log_text
+    left = [q for q in (wd / "results").rglob("*") if q.is_file()] if (wd / "results").exists() else []
+    assert left == []
