@@ -147,6 +147,8 @@ def main() -> None:
     ap.add_argument("--library", default="twirl", help="library motion rendered with simulated garment poses")
     ap.add_argument("--render-stride", type=int, default=0, help="override field/render/frame_stride")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--finish", action="store_true",
+                    help="workers already running (a previous invocation): wait for their results")
     args = ap.parse_args()
     setup_logging()
     if args.worker:
@@ -206,11 +208,48 @@ def main() -> None:
     rows, results = [], {}
     # 2. train, render, evaluate both variants: two worker processes side by side (what the
     #    demo does on 2 cores: one torch thread each)
-    procs = {v: subprocess.Popen([sys.executable, __file__, "--worker", v, "--workdir", str(work)])
-             for v in ("full", "body_only")}
-    for v, pr in procs.items():
-        if pr.wait() != 0:
-            raise SystemExit(f"worker {v} failed (exit {pr.returncode})")
+    procs = {}
+    if not args.finish:
+        procs = {v: subprocess.Popen([sys.executable, __file__, "--worker", v, "--workdir", str(work)])
+                 for v in ("full", "body_only")}
+
+    def wait_for(v: str) -> None:
+        """Worker v done: its process exits 0 (or, with --finish, its worker.json appears)."""
+        if v in procs:
+            if procs[v].wait() != 0:
+                raise SystemExit(f"worker {v} failed (exit {procs[v].returncode})")
+        else:
+            while not (work / v / "worker.json").is_file():
+                time.sleep(10)
+
+    # 3. what skipping saves: occupancy off / joint culling off. The training steps run while
+    #    the workers train; the renders use the trained `full` field.
+    abl = {}
+    ablation_train = {}
+    variants_abl = (("default", {}), ("occupancy_off", {"use_occupancy": False}),
+                    ("joint_culling_off", {"cull_joints": False}))
+    for name, extra in variants_abl:
+        p = json.loads(json.dumps(params))
+        p["train"].update({"steps": args.ablation_steps, **extra})
+        ablation_train[name] = run_train(data, train_seq, "full", masks, work / "ablation" / name / "field.pt", p,
+                                         template_npz=tpl, rig_npz=rig, garment_poses_npz=poses[train_seq],
+                                         progress=False)
+        loads[f"ablation train {name}"] = load()
+    wait_for("full")
+    for name, extra in variants_abl:
+        tr = ablation_train[name]
+        rr = run_render(work / "full" / "field.pt", data, work / "ablation" / name / "render", params, seq=pose_seq,
+                        cameras=info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
+                        garment_poses_npz=poses[pose_seq], frame_stride=30, progress=False,
+                        use_occupancy=extra.get("use_occupancy", True), cull_joints=extra.get("cull_joints", True))
+        abl[name] = {"train_s_per_step": tr["cpu_s"] / tr["steps"], "train_wall_s_per_step": tr["wall_s"] / tr["steps"],
+                     "train_samples_per_ray": tr["sampling"]["samples_per_ray"],
+                     "render_s_per_image": rr["cpu_seconds_per_image_median"],
+                     "render_wall_s_per_image": rr["seconds_per_image_median"],
+                     "render_samples_per_ray": rr["samples_per_ray"],
+                     "render_considered_per_ray": rr["considered_per_ray"], "images": rr["images"]}
+        loads[f"ablation render {name}"] = load()
+    wait_for("body_only")
     loads["variants done"] = load()
     for variant in ("full", "body_only"):
         w = json.loads((work / variant / "worker.json").read_text())
@@ -228,24 +267,6 @@ def main() -> None:
                          "samples_per_ray": r["samples_per_ray"], "considered_per_ray": r["considered_per_ray"],
                          "skipped_fraction": 1 - r["samples_per_ray"] / max(r["considered_per_ray"], 1e-9),
                          "reference": "body_only" if variant == "full" else ""})
-    abl = {}
-    for name, extra in (("default", {}), ("occupancy_off", {"use_occupancy": False}),
-                        ("joint_culling_off", {"cull_joints": False})):
-        p = json.loads(json.dumps(params))
-        p["train"].update({"steps": args.ablation_steps, **extra})
-        tr = run_train(data, train_seq, "full", masks, work / "ablation" / name / "field.pt", p, template_npz=tpl,
-                       rig_npz=rig, garment_poses_npz=poses[train_seq], progress=False)
-        rr = run_render(work / "full" / "field.pt", data, work / "ablation" / name / "render", params, seq=pose_seq,
-                        cameras=info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
-                        garment_poses_npz=poses[pose_seq], frame_stride=30, progress=False,
-                        use_occupancy=extra.get("use_occupancy", True), cull_joints=extra.get("cull_joints", True))
-        abl[name] = {"train_s_per_step": tr["cpu_s"] / tr["steps"], "train_wall_s_per_step": tr["wall_s"] / tr["steps"],
-                     "train_samples_per_ray": tr["sampling"]["samples_per_ray"],
-                     "render_s_per_image": rr["cpu_seconds_per_image_median"],
-                     "render_wall_s_per_image": rr["seconds_per_image_median"],
-                     "render_samples_per_ray": rr["samples_per_ray"],
-                     "render_considered_per_ray": rr["considered_per_ray"], "images": rr["images"]}
-        loads[f"ablation {name}"] = load()
     for name, a in abl.items():
         rows.append({"method": f"full/{name}", "kind": "sampling", "sequence": f"{train_seq} (train) / {pose_seq} (render)",
                      "images": a["images"], "train_steps": args.ablation_steps, "train_cpu_s_per_step": a["train_s_per_step"],
@@ -328,8 +349,11 @@ def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose
     L = []
     L.append("# Pose-driven radiance field benchmark (`anidress_core.field`): full vs body_only\n")
     L.append(f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}")
-    L.append(f"- command: `.venv/bin/python benchmarks/bench_field.py --scene {args.scene}"
-             + (f" --steps {args.steps}" if args.steps else "") + f"` (git {git_rev()})")
+    cmd = " ".join(a for a in sys.argv[1:] if a != "--finish")
+    L.append(f"- command: `.venv/bin/python benchmarks/bench_field.py {cmd}` (git {git_rev()})"
+             + (" -- this table was written by a second invocation with `--finish`, which waited for the two "
+                "variant workers the first one had started and ran the sampling ablations meanwhile" if args.finish
+                else ""))
     L.append(f"- machine: {machine()}")
     L.append("- load average (1/5/15 min) -- the machine is shared with other jobs, timings scale with it: "
              + "; ".join(f"{k} {v}" for k, v in loads.items()))
