@@ -68,10 +68,12 @@ def field_train_params():
             "render": {"background": f["render"]["background"]}, "device": f["device"]}
 
 
-def field_render_params():
+def field_render_params(kind):
+    """Settings that shape the renders of one kind (the library list and stride only for library renders)."""
     f = config["field"]
-    return {"sampler": f["sampler"], "render": {k: v for k, v in f["render"].items() if k != "library"},
-            "device": f["device"]}
+    lib = ("library", "library_frame_stride")
+    render = {k: v for k, v in f["render"].items() if kind == "library" or k not in lib}
+    return {"sampler": f["sampler"], "render": render, "device": f["device"]}
 
 
 def field_outputs(scene):
@@ -118,7 +120,7 @@ rule render_novel_view:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/{variant}/render_novel_view.tsv"
     params:
-        field=field_render_params(),
+        field=field_render_params("novel_view"),
         kind="novel_view",
     threads: 1
     resources:
@@ -139,7 +141,7 @@ rule render_novel_pose:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/{variant}/render_novel_pose_{pose_seq}.tsv"
     params:
-        field=field_render_params(),
+        field=field_render_params("novel_pose"),
         kind="novel_pose",
     threads: 1
     resources:
@@ -160,7 +162,7 @@ rule render_library:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/{variant}/render_library_{motion}.tsv"
     params:
-        field=field_render_params(),
+        field=field_render_params("library"),
         kind="library",
     threads: 1
     resources:

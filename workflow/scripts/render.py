@@ -21,6 +21,7 @@ try:
         run_render(inp.field, inp.scene, snakemake.output[0], p.field, seq=wc.pose_seq, cameras=cams,
                    garment_poses_npz=inp.get("poses"), **common)
     else:
+        common["frame_stride"] = p.field["render"]["library_frame_stride"]
         run_render(inp.field, inp.scene, snakemake.output[0], p.field, cameras=info["cameras"]["test"],
                    library_motion_npz=inp.motion, library_name=wc.motion, **common)
 except Exception:
