@@ -425,15 +425,15 @@ def _check_garment(scene_dir: Path, info: dict, body, checks: list[str], warning
     if len(d.non_manifold_edges):
         a, b = (int(x) + 1 for x in d.non_manifold_edges[0])
         _fail(path, f"non-manifold: {len(d.non_manifold_edges)} edge(s) shared by more than two faces "
-                    f"(e.g. the edge between vertices {a} and {b}, OBJ numbering, has "
+                    f"(e.g. the edge between vertices {a} and {b}, 1-based as in OBJ, has "
                     f"{int(d.non_manifold_counts[0])} faces); a garment must be a manifold surface "
                     "(cleaning would delete the faces around such edges)")
     checks.append("garment manifold edges")
     n_int = len(d.self_intersecting_faces)
     if n_int > SELF_INTERSECTION_TOLERANCE:
         eg = ", ".join(str(int(i) + 1) for i in d.self_intersecting_faces[:5])
-        _fail(path, f"self-intersecting: {n_int} of {F} faces cross other faces of the garment (e.g. faces {eg}, "
-                    f"OBJ numbering; at most {SELF_INTERSECTION_TOLERANCE} are tolerated): the surface passes "
+        _fail(path, f"self-intersecting: {n_int} of {F} triangles cross other triangles of the garment (e.g. triangles {eg}, "
+                    f"1-based in file order; at most {SELF_INTERSECTION_TOLERANCE} are tolerated): the surface passes "
                     "through itself")
     if n_int:
         warnings.append(f"{path}: {n_int} self-intersecting faces (tolerated: at most {SELF_INTERSECTION_TOLERANCE})")
