@@ -79,6 +79,8 @@ __all__ = [
     "occluder_depth",
     "fit_frame",
     "downsample",
+    "crop_window",
+    "crop_frame",
     "fit_sequence",
     "loss_terms",
     "apply_increment",
@@ -129,8 +131,22 @@ class FitConfig:
     """Most Adam iterations per frame of the vertex ablation (first frame: 3x)."""
     vertex_patience: int = 10
     """Vertex ablation: stop when the best loss improved by less than rel_tol in this many iterations."""
+    w_prior_first: float = 0.0
+    """First frame only: weight of a proximal term w * mean_v |x_v - x_v(start)|^2 (metres^2)
+    towards the start pose. Silhouettes and normals do not observe sliding of a nearly
+    rotationally symmetric garment about the body; without flow (frame 0) nothing else
+    does. 0 = off (the paper's loss)."""
+    crop_margin: int = 12
+    """Render only a window per view around the mask and the start pose, grown by this many
+    pixels (the same loss while the garment stays inside; faster); -1 = whole images."""
+    normalisation: str = "paper"
+    """'paper': each term is the paper's sum (over pixels, flow targets), all divided by one
+    common constant, the number of garment pixels of the masks; 'per_term': each term is a
+    mean (mask: per contour pixel pair, normals: per mask pixel, flow: per target)."""
 
     def __post_init__(self):
+        if self.normalisation not in ("paper", "per_term"):
+            raise ValueError(f"FitConfig.normalisation must be 'paper' or 'per_term', got {self.normalisation!r}")
         if self.method not in ("rig", "vertex"):
             raise ValueError(f"FitConfig.method must be 'rig' or 'vertex', got {self.method!r}")
         for k in ("w_mask", "w_normal", "w_flow"):
@@ -252,7 +268,10 @@ class FrameCues(NamedTuple):
 
     mask: Tensor  # (C, H, W) bool garment pixels (label 2), or float garment coverage in [0, 1]
     normals: Tensor | None  # (C, H, W, 3) camera-space unit normals; non-finite / zero = none
-    occluder: Tensor  # (C, H, W) camera z of the body (+inf where none), see occluder_depth
+    occluder: Tensor | None  # (C, H, W) camera z of the body (+inf where none), see occluder_depth
+    occluder_mesh: tuple | None = None
+    """(verts (Vb, 3), faces (Fb, 3)) of the occluder (the posed body), rasterised by
+    :func:`fit_frame` in its render windows when ``occluder`` is None (cheaper)."""
 
 
 class FlowTargets(NamedTuple):
@@ -299,7 +318,7 @@ def contour_length(mask: Tensor) -> Tensor:
 def occluder_depth(verts: Tensor, faces: Tensor, views: Views) -> Tensor:
     """(C, H, W) camera z of an occluding mesh (the posed body), +inf where it is absent."""
     return raster.rasterize(verts, faces, views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype),
-                            views.height, views.width).depth
+                            views.height, views.width, with_bary=False).depth
 
 
 def _sanitize_normals(normals: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
@@ -420,6 +439,8 @@ class _Problem(NamedTuple):
     flow: FlowTargets | None
     n_flow: float
     cfg: FitConfig
+    prior: Tensor | None = None  # (V, 3) start mesh of the first frame (proximal term), or None
+    w_prior: float = 0.0  # its weight per vertex: w_prior_first / V
 
 
 class _Eval(NamedTuple):
@@ -448,30 +469,130 @@ class _NormalData(NamedTuple):
     mean_target: Tensor  # (U, 3)
 
 
-def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig) -> _Problem:
+def _occluder_or_inf(cues: FrameCues, views: Views) -> Tensor:
+    """(C, H, W) float64 occluder depth of the cues (rasterised from occluder_mesh if needed; +inf: none)."""
+    if cues.occluder is not None:
+        occ = cues.occluder.double()
+        return torch.where(torch.isnan(occ), torch.full_like(occ, float("inf")), occ)
+    if cues.occluder_mesh is not None:
+        v, f = cues.occluder_mesh
+        return occluder_depth(v.double(), f, views).double()
+    return torch.full(cues.mask.shape, float("inf"), dtype=torch.float64, device=cues.mask.device)
+
+
+def _check_cues(views: Views, cues: FrameCues) -> None:
     C, H, W = views.K.shape[0], views.height, views.width
     if cues.mask.shape != (C, H, W):
         raise ValueError(f"fit: mask must be ({C}, {H}, {W}), got {tuple(cues.mask.shape)}")
-    if cues.occluder.shape != (C, H, W):
+    if cues.occluder is not None and cues.occluder.shape != (C, H, W):
         raise ValueError(f"fit: occluder depth must be ({C}, {H}, {W}), got {tuple(cues.occluder.shape)}")
     if cues.normals is not None and cues.normals.shape != (C, H, W, 3):
         raise ValueError(f"fit: normals must be ({C}, {H}, {W}, 3), got {tuple(cues.normals.shape)}")
+
+
+def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig,
+                  prior: Tensor | None = None) -> _Problem:
+    _check_cues(views, cues)
     soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
     soft = torch.where(torch.isfinite(soft), soft.clamp(0, 1), torch.zeros_like(soft))
     mask = soft > 0.5
     normals, nok = _sanitize_normals(cues.normals if cfg.w_normal > 0 else None)
     if nok is not None:
         nok = nok & (soft >= 1)
-    occ = cues.occluder.double()
-    occ = torch.where(torch.isnan(occ), torch.full_like(occ, float("inf")), occ)
+    occ = _occluder_or_inf(cues, views)
     if flow is not None and (cfg.w_flow == 0 or flow.cam.numel() == 0):
         flow = None
+    if cfg.normalisation == "paper":  # the paper's sums over pixels / targets, one common scale
+        n_px = float(max(float(soft.sum()), 1.0))
+        n_mask = n_normal = n_flow = n_px
+    else:  # every term a mean: per contour pixel, per normal pixel, per flow target
+        n_mask = float(max(int(contour_length(mask).sum()), 1))
+        n_normal = float(max(int(nok.sum()), 1)) if nok is not None else 1.0
+        n_flow = float(max(flow.cam.numel(), 1)) if flow is not None else 1.0
     return _Problem(
-        rig=rig, views=views, mask=mask, mask_flat=soft.reshape(-1),
-        n_mask=float(max(int(contour_length(mask).sum()), 1)),
-        normals=normals, normal_ok=nok, n_normal=float(max(int(nok.sum()), 1)) if nok is not None else 1.0,
-        occluder=occ, flow=flow, n_flow=float(max(flow.cam.numel(), 1)) if flow is not None else 1.0, cfg=cfg,
+        rig=rig, views=views, mask=mask, mask_flat=soft.reshape(-1), n_mask=n_mask,
+        normals=normals, normal_ok=nok, n_normal=n_normal,
+        occluder=occ, flow=flow, n_flow=n_flow, cfg=cfg,
+        prior=None if prior is None or cfg.w_prior_first == 0 else prior.detach().double(),
+        w_prior=cfg.w_prior_first / rig.rest.shape[0],
     )
+
+
+class Crop(NamedTuple):
+    """Per-camera windows (x0, y0) (C,) int64 of a common size height x width."""
+
+    x0: Tensor
+    y0: Tensor
+    height: int
+    width: int
+
+
+def crop_window(views: Views, mask: Tensor, verts: Tensor, margin: int) -> Crop:
+    """The smallest common window size holding, in every view, the mask's garment pixels
+    and the projection of ``verts`` (V, 3), grown by ``margin`` pixels, clamped to the image."""
+    C, H, W = mask.shape
+    uv, z = raster.project_vertices(verts.detach(), views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype))
+    ok = torch.isfinite(uv).all(-1) & (z > 0)
+    big = torch.tensor(1e9, dtype=uv.dtype, device=uv.device)
+    lo = torch.where(ok[..., None], uv, big).amin(1).floor()  # (C, 2)
+    hi = torch.where(ok[..., None], uv, -big).amax(1).ceil()
+    m = mask.bool() if not mask.is_floating_point() else mask > 0
+    rows, cols = m.any(2), m.any(1)  # (C, H), (C, W)
+    ar_h = torch.arange(H, device=mask.device, dtype=uv.dtype)
+    ar_w = torch.arange(W, device=mask.device, dtype=uv.dtype)
+    lo_x = torch.minimum(lo[:, 0], torch.where(cols, ar_w, big).amin(1))
+    hi_x = torch.maximum(hi[:, 0], torch.where(cols, ar_w, -big).amax(1))
+    lo_y = torch.minimum(lo[:, 1], torch.where(rows, ar_h, big).amin(1))
+    hi_y = torch.maximum(hi[:, 1], torch.where(rows, ar_h, -big).amax(1))
+    lo_x, lo_y = (lo_x - margin).clamp(0, W - 1), (lo_y - margin).clamp(0, H - 1)
+    hi_x, hi_y = (hi_x + margin).clamp(0, W - 1), (hi_y + margin).clamp(0, H - 1)
+    empty = hi_x < lo_x
+    lo_x, hi_x = torch.where(empty, torch.zeros_like(lo_x), lo_x), torch.where(empty, torch.zeros_like(hi_x), hi_x)
+    empty = hi_y < lo_y
+    lo_y, hi_y = torch.where(empty, torch.zeros_like(lo_y), lo_y), torch.where(empty, torch.zeros_like(hi_y), hi_y)
+    cw = int((hi_x - lo_x).max()) + 1
+    ch = int((hi_y - lo_y).max()) + 1
+    x0 = lo_x.long().clamp(max=W - cw)
+    y0 = lo_y.long().clamp(max=H - ch)
+    return Crop(x0, y0, ch, cw)
+
+
+def crop_frame(views: Views, cues: FrameCues, flow: FlowTargets | None, c: Crop
+               ) -> tuple[Views, FrameCues, FlowTargets | None]:
+    """The frame seen through the windows ``c``: principal points shifted, cue maps cut out."""
+    C = cues.mask.shape[0]
+    K = views.K.clone()
+    K[:, 0, 2] -= c.x0.to(K.dtype)
+    K[:, 1, 2] -= c.y0.to(K.dtype)
+    dev = cues.mask.device
+    rr = c.y0[:, None] + torch.arange(c.height, device=dev)[None]  # (C, h)
+    cc = c.x0[:, None] + torch.arange(c.width, device=dev)[None]  # (C, w)
+    ci = torch.arange(C, device=dev)[:, None, None]
+
+    def cut(x):
+        return None if x is None else x[ci, rr[:, :, None], cc[:, None, :]]
+
+    fl = None
+    if flow is not None:
+        off = torch.stack([c.x0, c.y0], -1).to(flow.target.dtype)[flow.cam]
+        fl = FlowTargets(flow.cam, flow.vert, flow.target - off)
+    return (Views(K, views.world_to_cam, c.height, c.width),
+            FrameCues(cut(cues.mask), cut(cues.normals), cut(cues.occluder), cues.occluder_mesh), fl)
+
+
+def uncrop_fragments(frags: raster.Fragments, c: Crop, height: int, width: int,
+                     occluder: Tensor) -> raster.Fragments:
+    """Paste windowed fragments back into full (C, H, W) images (outside: occluder depth, face -1)."""
+    C = frags.face_id.shape[0]
+    dev = frags.face_id.device
+    fid = torch.full((C, height, width), -1, dtype=frags.face_id.dtype, device=dev)
+    depth = occluder.to(frags.depth.dtype).clone()
+    rr = c.y0[:, None] + torch.arange(c.height, device=dev)[None]
+    cc = c.x0[:, None] + torch.arange(c.width, device=dev)[None]
+    ci = torch.arange(C, device=dev)[:, None, None]
+    fid[ci, rr[:, :, None], cc[:, None, :]] = frags.face_id
+    depth[ci, rr[:, :, None], cc[:, None, :]] = frags.depth
+    return raster.Fragments(fid, None, depth)  # type: ignore[arg-type]
 
 
 def downsample(views: Views, cues: FrameCues, flow: FlowTargets | None, factor: int
@@ -510,7 +631,7 @@ def downsample(views: Views, cues: FrameCues, flow: FlowTargets | None, factor: 
         full = pool(okf[:, None])[:, 0] >= 1
         ns = ns / ns.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         normals = torch.where(full[..., None], ns, torch.zeros_like(ns))
-    occ = -Fnn.max_pool2d(-crop(cues.occluder.double())[:, None], f)[:, 0]
+    occ = -Fnn.max_pool2d(-crop(_occluder_or_inf(cues, views))[:, None], f)[:, 0]
     fl = None
     if flow is not None:
         fl = FlowTargets(flow.cam, flow.vert, (flow.target - (f - 1) / 2) / f)
@@ -522,9 +643,10 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
     v = pb.views
     K, E = v.K, v.world_to_cam
     uv, z = raster.project_vertices(verts, K, E)
-    frags = raster.occlude(raster.rasterize(verts, pb.rig.faces, K, E, v.height, v.width), pb.occluder)
+    frags = raster.occlude(raster.rasterize(verts, pb.rig.faces, K, E, v.height, v.width, with_bary=False),
+                           pb.occluder)
     cfg = pb.cfg
-    terms = {"mask": 0.0, "normal": 0.0, "flow": 0.0}
+    terms = {"mask": 0.0, "normal": 0.0, "flow": 0.0, "prior": 0.0}
     # 1. silhouette (raster.silhouette): hard coverage + (t - 1/2) where each edge crosses
     hard = (frags.face_id >= 0).reshape(-1).double()
     cr = raster.silhouette_crossings(uv, z, pb.rig.faces, frags, pb.rig.edges)
@@ -549,7 +671,7 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
         tsum = torch.zeros(key.shape[0], 3, dtype=tgt.dtype, device=tgt.device).index_add(0, inv, tgt)
         tsq = torch.zeros(key.shape[0], dtype=tgt.dtype, device=tgt.device).index_add(0, inv, (tgt * tgt).sum(-1))
         nrm = _NormalData(key // F, key % F, cnt.to(tgt.dtype), tsum / cnt[:, None].to(tgt.dtype))
-        n = raster.face_normals_cam(verts, pb.rig.faces, E)[nrm.cam, nrm.face]  # (U, 3)
+        n = _visible_face_normals(verts, pb.rig.faces, E, nrm.cam, nrm.face)  # (U, 3)
         # sum_p |n_f - t_p|^2 = cnt |n_f|^2 - 2 n_f . sum t + sum |t|^2
         val = cnt * (n * n).sum(-1) - 2 * (n * tsum).sum(-1) + tsq
         terms["normal"] = float(val.sum()) / pb.n_normal
@@ -557,8 +679,23 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
     if pb.flow is not None:
         d = uv[pb.flow.cam, pb.flow.vert] - pb.flow.target
         terms["flow"] = float((d * d).sum()) / pb.n_flow
+    # 4. first frame: proximal term towards the start (see FitConfig.w_prior_first)
+    if pb.prior is not None:
+        terms["prior"] = float(((verts - pb.prior) ** 2).sum()) / verts.shape[0]
     loss = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
+    loss += cfg.w_prior_first * terms["prior"]
     return _Eval(loss, terms, verts, frags, uv, sil, nrm)
+
+
+def _visible_face_normals(verts: Tensor, faces: Tensor, world_to_cam: Tensor, cam: Tensor, face: Tensor) -> Tensor:
+    """Camera-space unit normals (U, 3) of the (camera, face) pairs, turned towards the camera
+    (:func:`raster.face_normals_cam` for the listed pairs only)."""
+    E = world_to_cam[cam].to(verts.dtype)  # (U, 4, 4)
+    tri = torch.einsum("uij,ukj->uki", E[:, :3, :3], verts[faces[face]]) + E[:, None, :3, 3]  # (U, 3, 3)
+    n = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny ** 0.5)
+    away = (n * tri.sum(1)).sum(-1) > 0
+    return torch.where(away[:, None], -n, n)
 
 
 def _normal_corner_jacobian(tri: Tensor, R: Tensor, flip: Tensor) -> tuple[Tensor, Tensor]:
@@ -657,6 +794,11 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
         blocks.index_add_(0, lay.diag[fl.vert], w * Pf.transpose(1, 2) @ Pf)
         gx.index_add_(0, fl.vert, w * torch.einsum("nij,ni->nj", Pf, r))
         any_vertex_term = True
+    # 4. proximal term: residual sqrt(w / V) (x - x_start), identity Jacobian on each vertex
+    if pb.prior is not None:
+        blocks.index_add_(0, lay.diag, pb.w_prior * torch.eye(3, dtype=blocks.dtype, device=blocks.device).expand(V, 3, 3))
+        gx += pb.w_prior * (verts - pb.prior)
+        any_vertex_term = True
     if any_vertex_term:
         Hx = lay.matrix(blocks.to(jdtype))
         H += (Jx.t() @ (Hx @ Jx)).double()
@@ -665,7 +807,8 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
 
 
 def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow: FlowTargets | None = None,
-               cfg: FitConfig = FitConfig(), fragments: raster.Fragments | None = None) -> tuple[Tensor, dict]:
+               cfg: FitConfig = FitConfig(), fragments: raster.Fragments | None = None,
+               prior: Tensor | None = None) -> tuple[Tensor, dict]:
     """Differentiable (autograd) total loss of a mesh ``verts`` (V, 3) and its unweighted terms.
 
     The same loss :func:`fit_frame` minimises, built from :func:`raster.silhouette`,
@@ -673,14 +816,15 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
     vertex ablation and to check the Gauss-Newton gradients. ``fragments``: visibility
     to hold fixed (default: rasterise ``verts``).
     """
-    pb = _make_problem(rig, views, cues, flow, cfg)
+    pb = _make_problem(rig, views, cues, flow, cfg, prior)
     K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
     if fragments is None:
-        fragments = raster.occlude(raster.rasterize(verts.detach(), rig.faces, K, E, views.height, views.width),
+        fragments = raster.occlude(raster.rasterize(verts.detach(), rig.faces, K, E, views.height, views.width,
+                                                    with_bary=False),
                                    pb.occluder)
     s = raster.silhouette(verts, rig.faces, K, E, fragments, rig.edges)
     lm = ((s - pb.mask.to(s.dtype)) ** 2).sum() / pb.n_mask
-    terms = {"mask": lm, "normal": lm.new_zeros(()), "flow": lm.new_zeros(())}
+    terms = {"mask": lm, "normal": lm.new_zeros(()), "flow": lm.new_zeros(()), "prior": lm.new_zeros(())}
     if pb.normals is not None:
         n = raster.render_face_normals(verts, rig.faces, E, fragments)
         sel = (fragments.face_id >= 0) & pb.normal_ok
@@ -689,7 +833,10 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
         uv, _ = raster.project_vertices(verts, K, E)
         d = uv[pb.flow.cam, pb.flow.vert] - pb.flow.target.to(uv.dtype)
         terms["flow"] = (d * d).sum() / pb.n_flow
+    if pb.prior is not None:
+        terms["prior"] = ((verts - pb.prior.to(verts.dtype)) ** 2).sum() / verts.shape[0]
     total = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
+    total = total + cfg.w_prior_first * terms["prior"]
     return total, terms
 
 
@@ -758,7 +905,7 @@ def _vertex_adam(pb: _Problem, cues: FrameCues, start_verts: Tensor, transforms:
     it, converged = 0, False
     for it in range(1, max_iters + 1):
         opt.zero_grad()
-        total, terms = loss_terms(rig, views, cues, x, pb.flow, cfg)
+        total, terms = loss_terms(rig, views, cues, x, pb.flow, cfg, prior=pb.prior)
         val = float(total)
         if not math.isfinite(val):
             break
@@ -795,18 +942,32 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         raise ValueError(f"fit_frame: init must be ({rig.weights.shape[1]}, 4, 4), got {tuple(init.shape)}")
     if not bool(torch.isfinite(init).all()):
         raise ValueError("fit_frame: the starting transforms contain NaN or inf")
+    _check_cues(views, cues)
     flow = None if first else flow
+    full_hw = (views.height, views.width)
     if cfg.method == "vertex":
-        pb = _make_problem(rig, views, cues, flow, cfg)
         x0 = lbs(rig.rest, rig.weights, init) if init_verts is None else init_verts.double()
+        pb = _make_problem(rig, views, cues, flow, cfg, x0 if first else None)
         n = cfg.vertex_max_iters * (3 if first else 1)
         return _vertex_adam(pb, cues, x0, init, n)
     G, spent = init, 0
+    x_start = lbs(rig.rest, rig.weights, init)
+    prior = x_start if first else None
+    window = None
+    if cfg.crop_margin >= 0:  # render only the windows that can hold the garment
+        window = crop_window(views, cues.mask, x_start, cfg.crop_margin)
+        views, cues, flow = crop_frame(views, cues, flow, window)
+    if cues.occluder is None:  # the body's depth, in the windows only
+        cues = cues._replace(occluder=_occluder_or_inf(cues, views), occluder_mesh=None)
     for f in cfg.levels_first if first else cfg.levels:
-        pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg)
+        pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg, prior)
         res = _lm(pb, G, cfg.max_iters_first if first else cfg.max_iters)
         G, spent = res.transforms, spent + res.iterations
     res.iterations = spent  # the curve and terms are those of the full resolution
+    if window is not None:  # visibility in whole images (outside the windows: no garment)
+        res.fragments = uncrop_fragments(res.fragments, window, full_hw[0], full_hw[1],
+                                         torch.full((views.K.shape[0], *full_hw), float("inf"), dtype=torch.float64,
+                                                    device=views.K.device))
     return res
 
 

@@ -106,7 +106,7 @@ class Fragments(NamedTuple):
 
     face_id: (C, H, W) int64, index into ``faces`` of the visible face, -1 = background.
     bary: (C, H, W, 3) perspective-correct barycentrics of the pixel centre in that face
-        (0 on background).
+        (0 on background); None from ``rasterize(..., with_bary=False)``.
     depth: (C, H, W) camera-space z of the visible surface (+inf on background).
     """
 
@@ -495,6 +495,7 @@ def rasterize(
     cull_backfaces: bool = False,
     faces_per_chunk: int = 1 << 14,
     pixels_per_chunk: int = 1 << 18,
+    with_bary: bool = True,
 ) -> Fragments:
     """Z-buffer rasterisation of a triangle mesh into C cameras (no gradients).
 
@@ -509,6 +510,10 @@ def rasterize(
 
     Returns :class:`Fragments` (C, H, W): face id (-1 background), perspective-correct
     barycentrics, camera z (+inf background). See the module docstring for the method.
+    with_bary=False (visibility only, e.g. silhouettes while fitting): ``bary`` is None and
+    ``depth`` is the depth-test value decoded from its key (1/z of the plane through the
+    1/256-pixel-snapped vertices, quantised to 62 - log2(F) bits: relative error ~1e-4,
+    from the snapping), which skips the per-pixel barycentric pass.
     """
     faces = _check_faces("rasterize", faces)
     K, world_to_cam, verts = _check_cameras("rasterize", K, world_to_cam, verts)
@@ -530,6 +535,12 @@ def rasterize(
     fbits = max(1, int(faces.shape[0] - 1).bit_length())
     fg = keys != _KEY_BG
     face_id = torch.where(fg, keys & ((1 << fbits) - 1), torch.full_like(keys, -1))
+    if not with_bary:
+        # q = (1/near - 1/z) * zscale, zscale = 2**(62 - fbits) * near (see _raster_keys)
+        q = (keys >> fbits).to(torch.float64)
+        inv_z = 1.0 / near - q / (float(2 ** (62 - fbits)) * near)
+        depth = torch.where(fg, 1.0 / inv_z.clamp_min(1e-300), torch.full_like(q, float("inf")))
+        return Fragments(face_id, None, depth.to(z.dtype))  # type: ignore[arg-type]
     bary, depth = _bary_from_projection(uv, z, faces, face_id)
     return Fragments(face_id, bary, depth)
 
@@ -1182,9 +1193,11 @@ def occlude(fragments: Fragments, occluder_depth: Tensor) -> Fragments:
         raise ValueError(f"occlude: occluder_depth must be ({C}, {H}, {W}), got {tuple(occluder_depth.shape)}")
     od = occluder_depth.to(fragments.depth.dtype)
     hidden = od < fragments.depth
+    bary = fragments.bary
+    if bary is not None:
+        bary = torch.where(hidden[..., None], torch.zeros_like(bary), bary)
     return Fragments(
-        torch.where(hidden, torch.full_like(fragments.face_id, -1), fragments.face_id),
-        torch.where(hidden[..., None], torch.zeros_like(fragments.bary), fragments.bary),
+        torch.where(hidden, torch.full_like(fragments.face_id, -1), fragments.face_id), bary,
         torch.minimum(fragments.depth, od),
     )
 

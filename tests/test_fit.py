@@ -383,3 +383,31 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     with pytest.raises(FileNotFoundError, match="mask"):
         run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "nope", None, None, params,
                 res / "walk" / "x.npz", progress=False)
+
+
+def test_crop_windows_and_pyramid_keep_the_loss():
+    """Rendering windows around the garment gives the loss of the whole images; a reduced
+    level's soft masks are the block means."""
+    rig, views = toy(C=3, H=64, W=72)
+    g = torch.Generator().manual_seed(8)
+    Gt = pose(rig, g, 0.1, 0.02)
+    cues, xt, fr = render(rig, views, Gt)
+    x = lbs(rig.rest, rig.weights, pose(rig, g, 0.03, 0.01, Gt))
+    uv, _ = raster.project_vertices(xt, views.K, views.world_to_cam)
+    ft = fit.FlowTargets(torch.tensor([0, 1, 2]), torch.tensor([3, 40, 100]), uv[[0, 1, 2], [3, 40, 100]])
+    cfg = fit.FitConfig()
+    whole = fit._evaluate(fit._make_problem(rig, views, cues, ft, cfg), x)
+    win = fit.crop_window(views, cues.mask, x, 4)
+    assert win.height < 64 and win.width < 72
+    v2, c2, f2 = fit.crop_frame(views, cues, ft, win)
+    part = fit._evaluate(fit._make_problem(rig, v2, c2, f2, cfg), x)
+    assert abs(part.loss - whole.loss) < 1e-9 * whole.loss
+    back = fit.uncrop_fragments(part.fragments, win, 64, 72, cues.occluder)
+    assert torch.equal(back.face_id, whole.fragments.face_id)
+    v4, c4, f4 = fit.downsample(views, cues, ft, 4)
+    assert (v4.height, v4.width) == (16, 18) and c4.mask.dtype == torch.float64
+    torch.testing.assert_close(c4.mask[0, 3, 5], cues.mask[0, 12:16, 20:24].double().mean())
+    # a pixel centre maps to the centre of its block: fine (u, v) -> ((u - 1.5) / 4, (v - 1.5) / 4)
+    uv4, _ = raster.project_vertices(xt, v4.K, v4.world_to_cam)
+    torch.testing.assert_close(uv4, (uv - 1.5) / 4)
+    torch.testing.assert_close(f4.target, (ft.target - 1.5) / 4)

@@ -225,3 +225,15 @@ def test_empty_and_degenerate_inputs_are_finite():
     assert not raster.visible_vertices(far, K[:1], E[:1], fr).any()
     with pytest.raises(ValueError):
         raster.occlude(fr, torch.zeros(2, H, W))
+
+
+def test_rasterize_without_barycentrics_decodes_the_depth():
+    v, f, K, E, H, W = scene(C=2)
+    full = raster.rasterize(v, f, K, E, H, W)
+    lite = raster.rasterize(v, f, K, E, H, W, with_bary=False)
+    assert lite.bary is None and torch.equal(lite.face_id, full.face_id)
+    fg = full.face_id >= 0
+    assert torch.all(torch.isinf(lite.depth[~fg]))
+    torch.testing.assert_close(lite.depth[fg], full.depth[fg], rtol=1e-3, atol=0)  # snapped vertices
+    occ = torch.full_like(full.depth, float("inf"))
+    assert raster.occlude(lite, occ).bary is None

@@ -87,14 +87,32 @@ def _frame_file(folder: Path, cam: str, t: int, ext: str) -> Path:
 
 
 class _CueReader:
-    """Reads one frame's cues for the selected cameras (the only file access of the fit)."""
+    """Reads one frame's cues for the selected cameras (the only file access of the fit).
 
-    def __init__(self, cams, masks_dir, normals_dir, flows_dir, body_verts, body_faces, views, device):
+    The files of frame t + 1 are read by a helper thread while frame t is fitted.
+    """
+
+    def __init__(self, cams, masks_dir, normals_dir, flows_dir, body_verts, body_faces, views, device,
+                 num_frames: int | None = None):
+        from concurrent.futures import ThreadPoolExecutor
+
         self.cams, self.views, self.device = cams, views, device
         self.masks_dir, self.normals_dir, self.flows_dir = Path(masks_dir), normals_dir, flows_dir
         self.body_verts, self.body_faces = body_verts, body_faces
         self.H, self.W = cams.height, cams.width
         self.bad_values = 0
+        self.num_frames = num_frames
+        self._pool = ThreadPoolExecutor(max_workers=1)
+        self._ahead_cues: dict = {}
+        self._ahead_flow: dict = {}
+
+    def _prefetch(self, t: int):
+        if self.num_frames is not None and 0 <= t < self.num_frames and t not in self._ahead_cues:
+            self._ahead_cues[t] = self._pool.submit(self._read_cues, t)
+            self._ahead_flow[t] = self._pool.submit(self._read_flow, t)
+
+    def close(self):
+        self._pool.shutdown(wait=True)
 
     def _check(self, path: Path, arr: np.ndarray, channels: int | None) -> np.ndarray:
         if arr.shape[:2] != (self.H, self.W) or (channels is not None and (arr.ndim != 3 or arr.shape[2] < channels)):
@@ -103,6 +121,23 @@ class _CueReader:
         return arr
 
     def cues(self, t: int) -> FIT.FrameCues:
+        job = self._ahead_cues.pop(t, None)
+        masks, nrm = job.result() if job is not None else self._read_cues(t)
+        self._prefetch(t + 1)
+        dev = self.device
+        return FIT.FrameCues(torch.as_tensor(masks, device=dev), None if nrm is None else
+                             torch.as_tensor(nrm, device=dev).double(), None,
+                             (self.body_verts[t].to(dev), self.body_faces.to(dev)))
+
+    def flow(self, t: int):
+        job = self._ahead_flow.pop(t, None)
+        res = job.result() if job is not None else self._read_flow(t)
+        if res is None:
+            return None
+        dev = self.device
+        return torch.as_tensor(res[0], device=dev).double(), torch.as_tensor(res[1], device=dev)
+
+    def _read_cues(self, t: int):
         masks, normals = [], []
         for cam in self.cams.names:
             p = _frame_file(self.masks_dir, cam, t, "png")
@@ -115,14 +150,10 @@ class _CueReader:
                     self.bad_values += int(bad.sum())
                     log.warning("%s: %d pixels with NaN/inf normals ignored", p, int(bad.sum()))
                 normals.append(n)
-        dev = self.device
-        mask = torch.as_tensor(np.stack(masks), device=dev)
-        nrm = torch.as_tensor(np.stack(normals), device=dev).double() if normals else None
-        occ = FIT.occluder_depth(self.body_verts[t].to(dev), self.body_faces.to(dev), self.views)
-        return FIT.FrameCues(mask, nrm, occ)
+        return np.stack(masks), (np.stack(normals) if normals else None)
 
-    def flow(self, t: int):
-        if self.flows_dir is None:
+    def _read_flow(self, t: int):
+        if self.flows_dir is None or t == 0:
             return None
         paths = [_frame_file(Path(self.flows_dir), cam, t, "exr") for cam in self.cams.names]
         missing = [str(p) for p in paths if not p.is_file()]
@@ -141,8 +172,7 @@ class _CueReader:
                 v = v & ~bad
             fl.append(f)
             va.append(v)
-        dev = self.device
-        return torch.as_tensor(np.stack(fl), device=dev).double(), torch.as_tensor(np.stack(va), device=dev)
+        return np.stack(fl), np.stack(va)
 
 
 def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, template_npz: str | os.PathLike,
@@ -216,15 +246,21 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         log.info("fit: no normal maps for %s; the normal loss is off (weight 0)", seq)
         cfg = dataclasses.replace(cfg, w_normal=0.0)
     reader = _CueReader(cams, masks_dir, None if cfg.w_normal == 0 else normals_dir,
-                        None if cfg.w_flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device)
+                        None if cfg.w_flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device,
+                        num_frames=T)
     for cam in names:  # fail early, naming the file
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():
             raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
     # 5. fit
     t_fit = time.perf_counter()
-    res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log)
+    c_fit = time.process_time()
+    try:
+        res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log)
+    finally:
+        reader.close()
     wall_fit = time.perf_counter() - t_fit
+    cpu_fit = time.process_time() - c_fit
     L = max(len(r.curve) for r in res)
     curve = np.full((T, L), np.nan)
     for t, r in enumerate(res):
@@ -244,6 +280,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         else str(normals_dir), "flows_dir": None if flows_dir is None else str(flows_dir), "cue_source": cue_source,
         "first_frame_start": start_used, "rig": str(rig_npz), "frames": T, "device": str(device),
         "wall_fit_s": wall_fit, "wall_total_s": time.perf_counter() - t_start, "fps": T / wall_fit,
+        "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
         "transforms_note": "vertex ablation: rig transforms fitted to the fitted vertices" if cfg.method == "vertex"
         else "fitted bone transforms",
