@@ -172,30 +172,32 @@ def _simplex_project(v: Tensor, mask: Tensor | None = None) -> Tensor:
 
 
 class _Data(NamedTuple):
-    """The fixed products of a decomposition, computed once.
+    """The fixed arrays of a decomposition, laid out once for the two products per iteration.
 
-    P (V, 3) rest, Ph (V, 4) homogeneous rest, X (T, V, 3) frames and
-    XP (V, T * 12): XP[i, (t, j, k)] = x_tij p~_ik, so that both the bone moments
-    Q = XP^T W and the weights' right-hand sides h = XP M are single matrix products.
+    P (V, 3) rest, Ph (V, 4) homogeneous rest, X (T, V, 3) frames, Xt (3T, V) and
+    Xv (V, 3T) the frames as matrices (rows (t, j) / columns (t, j)): the bone moments are
+    Q = Xt A with A = W (x) p~ and the weights' right-hand sides come from Xv M.
     """
 
     P: Tensor
     Ph: Tensor
     X: Tensor
-    XP: Tensor
+    Xt: Tensor
+    Xv: Tensor
 
 
 def _data(P: Tensor, X: Tensor) -> _Data:
     T, V = X.shape[:2]
-    Ph = _homogeneous(P)
-    XP = (X.permute(1, 0, 2)[:, :, :, None] * Ph[:, None, None, :]).reshape(V, T * 12)
-    return _Data(P, Ph, X, XP)
+    Xt = X.transpose(1, 2).reshape(T * 3, V).contiguous()
+    Xv = X.permute(1, 0, 2).reshape(V, T * 3).contiguous()
+    return _Data(P, _homogeneous(P), X, Xt, Xv)
 
 
-def _mflat(M: Tensor) -> Tensor:
-    """(T, B, 3, 4) -> (T * 12, B) with rows (t, j, k), matching the columns of ``XP``."""
+def _xm(D: _Data, M: Tensor) -> Tensor:
+    """sum_t x_ti . M_tb p~_i for every vertex and bone, (V, B)."""
     T, B = M.shape[:2]
-    return M.permute(0, 2, 3, 1).reshape(T * 12, B)
+    Mf = M.transpose(1, 2).reshape(T * 3, B * 4)  # Mf[(t, j), (b, k)] = M[t, b, j, k]
+    return ((D.Xv @ Mf).reshape(-1, B, 4) * D.Ph[:, None, :]).sum(-1)
 
 
 def _moments(D: _Data, W: Tensor) -> tuple[Tensor, Tensor]:
@@ -205,8 +207,8 @@ def _moments(D: _Data, W: Tensor) -> tuple[Tensor, Tensor]:
     """
     T = D.X.shape[0]
     V, B = W.shape
-    Q = (D.XP.T @ W).reshape(T, 3, 4, B).permute(0, 3, 1, 2)
     A = (W[:, :, None] * D.Ph[:, None, :]).reshape(V, 4 * B)  # A[i, (b, k)] = W_ib p~_ik
+    Q = (D.Xt @ A).reshape(T, 3, B, 4).transpose(1, 2)  # Q[t, b, j, k] = sum_i x_tij A[i, (b, k)]
     U = (A.T @ A).reshape(B, 4, B, 4).transpose(1, 2)  # U[b, c, k, l]
     return Q, U
 
@@ -367,15 +369,19 @@ def _update_transforms(D: _Data, W: Tensor, M: Tensor, sweeps: int) -> Tensor:
         idx = overlap[b].nonzero()[:, 0]
         nbr[b, : idx.numel()] = idx.to(torch.int32)
     dev = M.device
-    q64 = Q.to(torch.float64).contiguous()
+    q44 = torch.zeros(T, B, 4, 4, dtype=torch.float64, device=dev)
+    q44[:, :, :3] = Q
+    m44 = torch.zeros(T, B, 4, 4, dtype=torch.float64, device=dev)
+    m44[:, :, :3] = M
+    m44[:, :, 3, 3] = 1
     u64 = U.to(torch.float64).contiguous()
-    m64 = M.to(torch.float64).contiguous().clone()
     wp.init()
     wdev = "cpu" if dev.type == "cpu" else str(dev)
-    wp.launch(kernels.bone_sweeps, T, inputs=[wp.from_torch(q64), wp.from_torch(u64), wp.from_torch(nbr.to(dev)),
-                                              wp.from_torch(deg.to(torch.int32).to(dev)), int(sweeps),
-                                              wp.from_torch(m64)], device=wdev)
-    return m64.to(M.dtype)
+    m44w = wp.from_torch(m44, dtype=wp.mat44d)
+    wp.launch(kernels.bone_sweeps, T, inputs=[wp.from_torch(q44, dtype=wp.mat44d), wp.from_torch(u64, dtype=wp.mat44d),
+                                              wp.from_torch(nbr.to(dev)), wp.from_torch(deg.to(torch.int32).to(dev)),
+                                              int(sweeps), m44w], device=wdev)
+    return m44[:, :, :3].to(M.dtype)
 
 
 def _update_transforms_torch(D: _Data, W: Tensor, M: Tensor, sweeps: int) -> Tensor:
@@ -405,22 +411,37 @@ def _update_transforms_torch(D: _Data, W: Tensor, M: Tensor, sweeps: int) -> Ten
 # --------------------------------------------------------------------------- weights
 
 
-def _normal_equations(D: _Data, M: Tensor) -> tuple[Tensor, Tensor]:
-    """Per-vertex normal equations of the weights problem.
+class _NormalEq(NamedTuple):
+    """Normal equations of the weights problem, G_i = A_i^T A_i and h_i = A_i^T x_i, where
+    column b of A_i (3T, B) stacks M_tb p~_i over frames; G is kept factored:
+    G[i, b, c] = pp[i] . MM[b, c] (never materialised as (V, B, B))."""
 
-    With A_i (3T, B), column b = stacked M_tb p~_i over frames:
-    G[i] = A_i^T A_i (V, B, B) and h[i] = A_i^T x_i (V, B).
-    """
+    pp: Tensor  # (V, 16) p~_i p~_i^T flattened
+    MM: Tensor  # (B, B, 16) MM[b, c, (k, l)] = sum_t sum_j M_tbjk M_tcjl
+    h: Tensor  # (V, B)
+    diag: Tensor  # (V, B) G[i, b, b]
+
+
+def _normal_equations(D: _Data, M: Tensor) -> _NormalEq:
+    """Per-vertex normal equations of the weights problem for transforms M (T, B, 3, 4)."""
     T, B = M.shape[:2]
     V = D.P.shape[0]
     Mf = M.transpose(1, 2).reshape(T * 3, B * 4)  # Mf[(t, j), (b, k)] = M[t, b, j, k]
-    # MM[(b,k),(c,l)] = sum_t sum_j M_tbjk M_tcjl ; G[i,b,c] = p~_i^T MM[b,c] p~_i
-    MM = (Mf.T @ Mf).reshape(B, 4, B, 4).permute(1, 3, 0, 2).reshape(16, B * B)
+    MM = (Mf.T @ Mf).reshape(B, 4, B, 4).permute(0, 2, 1, 3).reshape(B, B, 16)
     pp = (D.Ph[:, :, None] * D.Ph[:, None, :]).reshape(V, 16)
-    G = (pp @ MM).reshape(V, B, B)
-    # h[i, b] = sum_t x_ti . M_tb p~_i = sum_(t,j,k) XP[i, (t,j,k)] M[t, b, j, k]
-    h = D.XP @ _mflat(M)
-    return G, h
+    ar = torch.arange(B, device=M.device)
+    diag = pp @ MM[ar, ar].T  # (V, B)
+    h = _xm(D, M)  # h[i, b] = sum_t x_ti . M_tb p~_i
+    return _NormalEq(pp, MM, h, diag)
+
+
+def _gram(ne: _NormalEq, idx: Tensor) -> Tensor:
+    """G restricted to each row's bones ``idx`` (V, k) -> (V, k, k)."""
+    V, k = idx.shape
+    B = ne.MM.shape[0]
+    flat = (idx[:, :, None] * B + idx[:, None, :]).reshape(-1)
+    MMk = ne.MM.reshape(B * B, 16).index_select(0, flat).reshape(V, k * k, 16)
+    return (MMk @ ne.pp[:, :, None]).reshape(V, k, k)
 
 
 def _neighbour_mean(edges: Tensor | None, V: int, dtype, device) -> Tensor | None:
@@ -456,13 +477,13 @@ def _smooth_target(W: Tensor, nbr: Tensor | None, steps: int = 10) -> Tensor:
     return ws
 
 
-def _candidates(ws: Tensor, G: Tensor, h: Tensor, k: int) -> Tensor:
+def _candidates(ws: Tensor, ne: _NormalEq, k: int) -> Tensor:
     """(V, k) candidate bones per vertex.
 
     First the bones with positive smoothed weight ``ws`` (largest first, as Dem Bones),
     then the bones whose single-bone fit error ``G_bb - 2 h_b`` is smallest.
     """
-    e = torch.diagonal(G, dim1=-2, dim2=-1) - 2 * h  # (V, B) single-bone error (up to a constant)
+    e = ne.diag - 2 * ne.h  # (V, B) single-bone error (up to a constant)
     lo, hi = e.amin(-1, keepdim=True), e.amax(-1, keepdim=True)
     fit = (hi - e) / (hi - lo).clamp_min(torch.finfo(e.dtype).tiny)  # 1 best .. 0 worst
     pos = ws > 1e-12
@@ -569,47 +590,41 @@ def _simplex_qp_torch(G: Tensor, h: Tensor, w0: Tensor, max_iters: int | None = 
     return torch.where(better0[:, None], w0, w)
 
 
-def _update_weights(D: _Data, M, W, nbr, nnz, smooth, iters) -> tuple[Tensor, Tensor, Tensor]:
+def _update_weights(D: _Data, M, W, nbr, nnz, smooth, iters) -> tuple[Tensor, float]:
     """SSDR weights update (Le & Deng 2012, Sec. 3.3) with Dem Bones' regularisation.
 
     Per vertex: min |A_i w - x_i|^2 / T + smooth |w - ws_i|^2 on the simplex with at most
     nnz non-zeros (coordinates are normalised to unit model size, so T is Dem Bones'
-    ``reg_scale = modelSize^2 nF``). Returns the weights and the normal equations (G, h)
-    of the transforms used (for the error).
+    ``reg_scale = modelSize^2 nF``). Returns the weights and sum_i |A_i w_i - x_i|^2 - |x_i|^2
+    for them (the reconstruction energy up to the constant sum |x|^2, float64).
     """
     T, B = D.X.shape[0], W.shape[1]
-    G, h = _normal_equations(D, M)
-    Gn, hn = G / T, h / T
+    ne = _normal_equations(D, M)
     k = min(nnz, B)
-    V = W.shape[0]
-    eyek = torch.eye(k, dtype=G.dtype, device=G.device)
+    eyek = torch.eye(k, dtype=W.dtype, device=W.device)
+    e = 0.0
     for _ in range(iters):
         ws = _smooth_target(W, nbr)
-        idx = _candidates(ws, G, h, k)  # (V, k)
-        Gk = Gn.reshape(V, B * B).gather(1, (idx[:, :, None] * B + idx[:, None, :]).reshape(V, k * k))
-        Gk = Gk.reshape(V, k, k) + smooth * eyek
-        hk = hn.gather(1, idx) + smooth * ws.gather(1, idx)
-        w0 = W.gather(1, idx)
-        wk = _simplex_qp(Gk, hk, w0)
+        idx = _candidates(ws, ne, k)  # (V, k)
+        Gk = _gram(ne, idx)  # (V, k, k), unnormalised
+        hk = ne.h.gather(1, idx)
+        wk = _simplex_qp(Gk / T + smooth * eyek, hk / T + smooth * ws.gather(1, idx), W.gather(1, idx))
         W = torch.zeros_like(W).scatter_(1, idx, wk)
-    return W, G, h
+        e = float(((wk * (Gk @ wk[..., None])[..., 0]).sum(-1) - 2 * (hk * wk).sum(-1)).double().sum())
+    return W, e
 
 
-def _energy(G: Tensor, h: Tensor, c: Tensor, W: Tensor) -> float:
-    """sum_i |A_i w_i - x_i|^2 = sum_i w^T G w - 2 h.w + c, summed in float64.
-
-    Evaluated on the support of each row (at most nnz bones), in the working dtype: in
-    float32 the cancellation against c leaves ~0.1 % of the residual energy, fine for the
-    iteration history (the final RMSE is measured on the reconstruction).
-    """
-    k = int((W > 0).sum(-1).max()) if W.numel() else 0
-    if k == 0:
-        return float(c.double().clamp_min(0).sum())
-    V, B = W.shape
+def _energy(D: _Data, M: Tensor, W: Tensor) -> float:
+    """sum_i |A_i w_i - x_i|^2 for transforms M and weights W, from the normal equations
+    (float64 sum; in float32 the cancellation against sum |x|^2 leaves ~0.1 % of the
+    residual energy, fine for the iteration history; the final RMSE is measured on the
+    reconstruction)."""
+    ne = _normal_equations(D, M)
+    k = max(1, int((W > 0).sum(-1).max()))
     wk, idx = W.topk(k, dim=-1)
-    Gk = G.reshape(V, B * B).gather(1, (idx[:, :, None] * B + idx[:, None, :]).reshape(V, k * k)).reshape(V, k, k)
-    e = (wk * (Gk @ wk[..., None])[..., 0]).sum(-1) - 2 * (h.gather(1, idx) * wk).sum(-1) + c
-    return float(e.double().clamp_min(0).sum())
+    Gk = _gram(ne, idx)
+    e = (wk * (Gk @ wk[..., None])[..., 0]).sum(-1) - 2 * (ne.h.gather(1, idx) * wk).sum(-1)
+    return float(e.double().sum() + (D.X * D.X).double().sum())
 
 
 # --------------------------------------------------------------------------- initialisation
@@ -619,7 +634,8 @@ def _label_transforms(D: _Data, labels: Tensor, nb: int) -> Tensor:
     """Per-cluster, per-frame Kabsch: labels (V,) -> (T, nb, 3, 4)."""
     T, V = D.X.shape[:2]
     W = torch.nn.functional.one_hot(labels, nb).to(D.P.dtype)
-    Q = (D.XP.T @ W).reshape(T, 3, 4, nb).permute(0, 3, 1, 2)  # as in _moments
+    A = (W[:, :, None] * D.Ph[:, None, :]).reshape(V, 4 * nb)
+    Q = (D.Xt @ A).reshape(T, 3, nb, 4).transpose(1, 2)  # as in _moments
     pp = (D.Ph[:, :, None] * D.Ph[:, None, :]).reshape(V, 16)
     Ubb = (W.T @ pp).reshape(nb, 4, 4)  # U[b, b] = sum_{i in b} p~ p~^T (one-hot: no cross terms)
     eye = torch.eye(3, 4, dtype=D.P.dtype, device=D.P.device).expand(T, nb, 3, 4)
@@ -634,7 +650,7 @@ def _own_bone_error(D: _Data, M: Tensor, labels: Tensor) -> Tensor:
 
 def _assign_labels(D: _Data, M: Tensor) -> Tensor:
     """Label of each vertex = argmin_b sum_t |M_tb p~_i - x_ti|^2, (V,)."""
-    cross = D.XP @ _mflat(M)  # sum_t x_ti . M_tb p~_i
+    cross = _xm(D, M)  # sum_t x_ti . M_tb p~_i
     # sum_t |M_tb p~|^2 = p~^T (sum_t M_tb^T M_tb) p~
     MtM = torch.einsum("tbjk,tbjl->bkl", M, M)  # (B, 4, 4)
     own = torch.einsum("vk,bkl,vl->vb", D.Ph, MtM, D.Ph)
@@ -828,9 +844,12 @@ def ssdr(
         M = _label_transforms(D, labels, nb)
         W = torch.nn.functional.one_hot(labels, nb).to(P.dtype)
         nbr = _neighbour_mean(edges, V, P.dtype, P.device)
-        c_i = (X * X).sum((0, 2))  # (V,) sum_t |x_ti|^2
-        G, h = _normal_equations(D, M)
-        history = [float(s) * math.sqrt(_energy(G, h, c_i, W) / (T * V))]
+        c_all = float((X * X).double().sum())  # sum |x|^2: the energies below are relative to it
+
+        def rmse_of(e: float) -> float:
+            return float(s) * math.sqrt(max(e + c_all, 0.0) / (T * V))
+
+        history = [rmse_of(_energy(D, M, W) - c_all)]
         it = range(iters)
         if progress:
             from tqdm import tqdm
@@ -840,13 +859,13 @@ def ssdr(
             # (b) bone transforms: weighted Procrustes on residual targets
             M = _update_transforms(D, W, M, trans_iters)
             # (c) weights: convex, <= nnz non-zeros, Laplacian smoothness
-            W, G, h = _update_weights(D, M, W, nbr, nnz, smooth, weights_iters)
+            W, e = _update_weights(D, M, W, nbr, nnz, smooth, weights_iters)
             # (d) drop bones that lost all their vertices
             alive = W.max(0).values > 0
             if not alive.all():
-                W, M, G, h = W[:, alive], M[:, alive], G[:, alive][:, :, alive], h[:, alive]
+                W, M = W[:, alive], M[:, alive]
                 W = W / W.sum(-1, keepdim=True)
-            history.append(float(s) * math.sqrt(_energy(G, h, c_i, W) / (T * V)))
+            history.append(rmse_of(e))
             if progress:
                 it.set_postfix(rmse_mm=f"{1e3 * history[-1]:.3f}", bones=W.shape[1])
         if W.shape[1] < num_bones:

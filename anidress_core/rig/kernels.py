@@ -119,12 +119,12 @@ def procrustes(
 
 @wp.kernel
 def bone_sweeps(
-    Q: wp.array4d(dtype=f64),  # (T, B, 3, 4) sum_i W_ib x_ti p~_i^T
-    U: wp.array4d(dtype=f64),  # (B, B, 4, 4) sum_i W_ib W_ic p~_i p~_i^T
+    Q: wp.array2d(dtype=wp.mat44d),  # (T, B) rows 0-2: sum_i W_ib x_ti p~_i^T; row 3: 0
+    U: wp.array2d(dtype=wp.mat44d),  # (B, B) sum_i W_ib W_ic p~_i p~_i^T
     nbr: wp.array2d(dtype=wp.int32),  # (B, D) bones sharing a vertex with b (c != b), padded
     nnbr: wp.array(dtype=wp.int32),  # (B,) number of entries of nbr[b]
     sweeps: int,
-    M: wp.array4d(dtype=f64),  # (T, B, 3, 4) in: current transforms, out: updated
+    M: wp.array2d(dtype=wp.mat44d),  # (T, B) in: current transforms [R t; 0 1], out: updated
 ):
     """Gauss-Seidel SSDR bone update for one frame (thread t), bones in order, ``sweeps`` times.
 
@@ -136,41 +136,29 @@ def bone_sweeps(
     B = Q.shape[1]
     for _s in range(sweeps):
         for b in range(B):
-            S = U[b, b, 3, 3]
+            Ub = U[b, b]
+            S = Ub[3, 3]
             if S > f64(1.0e-280):
-                # 1. K = Q[t, b] - sum_c M[t, c] U[c, b]  (3 x 4: KA | kt)
-                KA = wp.mat33d()
-                kt = wp.vec3d()
-                for i in range(3):
-                    for j in range(3):
-                        KA[i, j] = Q[t, b, i, j]
-                    kt[i] = Q[t, b, i, 3]
+                # 1. K = Q[t, b] - sum_c M[t, c] U[c, b] (rows 0-2 used)
+                K = Q[t, b]
                 for q in range(nnbr[b]):
                     c = nbr[b, q]
-                    for i in range(3):
-                        for l in range(4):
-                            acc = f64(0.0)
-                            for k in range(4):
-                                acc += M[t, c, i, k] * U[c, b, k, l]
-                            if l < 3:
-                                KA[i, l] = KA[i, l] - acc
-                            else:
-                                kt[i] = kt[i] - acc
+                    K = K - M[t, c] * U[c, b]
                 # 2. centroids and centred covariance
-                pbar = wp.vec3d(U[b, b, 0, 3], U[b, b, 1, 3], U[b, b, 2, 3]) / S
-                ybar = kt / S
+                pbar = wp.vec3d(Ub[0, 3], Ub[1, 3], Ub[2, 3]) / S
+                ybar = wp.vec3d(K[0, 3], K[1, 3], K[2, 3]) / S
                 H = wp.mat33d()
                 for i in range(3):
                     for j in range(3):
-                        H[i, j] = KA[i, j] - S * ybar[i] * pbar[j]
+                        H[i, j] = K[i, j] - S * ybar[i] * pbar[j]
                 # 3. rotation and translation
                 R = kabsch(H)
                 tr = ybar - R * pbar
                 if wp.isfinite(R) and wp.isfinite(tr):
-                    for i in range(3):
-                        for j in range(3):
-                            M[t, b, i, j] = R[i, j]
-                        M[t, b, i, 3] = tr[i]
+                    M[t, b] = wp.mat44d(R[0, 0], R[0, 1], R[0, 2], tr[0],
+                                        R[1, 0], R[1, 1], R[1, 2], tr[1],
+                                        R[2, 0], R[2, 1], R[2, 2], tr[2],
+                                        f64(0.0), f64(0.0), f64(0.0), f64(1.0))
 
 
 KMAX = 16  # largest candidate set (nnz) the weights kernel handles; larger goes to torch
