@@ -149,8 +149,13 @@ def main() -> None:
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--finish", action="store_true",
                     help="workers already running (a previous invocation): wait for their results")
+    ap.add_argument("--collect", action="store_true",
+                    help="write field.md/.csv from what the runs left on disk (a run cut short)")
     args = ap.parse_args()
     setup_logging()
+    if args.collect:
+        collect(args)
+        return
     if args.worker:
         worker(args.worker, Path(args.workdir))
         return
@@ -428,6 +433,128 @@ def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose
     L.append(f"- library motion `lib-{args.library}` rendered with the rig's simulated garment poses (paper §4.5): "
              f"{results['full']['lib']['images']} images, {_f(results['full']['lib']['seconds_per_image_median'])} "
              f"s/image (full); no ground truth, not scored.")
+    with files.atomic_path(ROOT / "benchmarks" / "field.md") as tmp:
+        tmp.write_text("\n".join(L) + "\n")
+    print("\n".join(L))
+
+
+
+def collect(args) -> None:
+    """``--collect``: write field.md / field.csv from whatever the runs left on disk (a run cut
+    short by the session's time: what was not measured says so)."""
+    work = Path(args.workdir)
+    ctx = json.loads((work / "ctx.json").read_text())
+    params = ctx["params"]
+    rows, L = [], []
+    L.append("# Pose-driven radiance field benchmark (`anidress_core.field`): full vs body_only\n")
+    L.append(f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}")
+    L.append(f"- command: `.venv/bin/python benchmarks/bench_field.py --render-stride {ctx['stride']} --ablation-steps "
+             f"{args.ablation_steps}` (git {git_rev()}); this file was written by `--collect` from the artifacts the run "
+             "had produced when the session's time ran out -- **a partial benchmark**: what is missing is marked "
+             "NOT MEASURED")
+    L.append(f"- machine: {machine()}; load average now {load()} (the machine was shared with other jobs at a load "
+             "of 8-13 on 2 cores during the run: wall times are ~5x what an idle machine gives; CPU times are the "
+             "processes' own)")
+    L.append(f"- scene `{ctx['scene']}`: 256x256, 8 training cameras, 60 training frames of `{ctx['train_seq']}`, "
+             f"novel pose `{ctx['pose_seq']}`; {params['train']['steps']} steps x {params['train']['rays_per_step']} "
+             f"rays; masks `{ctx['masks']}`; rig `{ctx['rig']}`; garment poses {ctx['poses']}")
+    L.append("- garment poses: **stand-in** (`anidress_core.rig.fit_transforms` of the rig to the ground-truth garment "
+             "meshes mapped to the template; the fitting stage's output did not exist); masks: **stand-in** ground "
+             "truth (the pipeline's masks were not built); loss MSE only (LPIPS weights unavailable)")
+    L.append(f"- novel view: 4 test cameras on every {ctx['stride']}-th training frame; novel pose: 12 cameras on "
+             f"every {ctx['stride']}-th frame of `{ctx['pose_seq']}`")
+    L.append("")
+    L.append("| variant | kind | images | PSNR (dB) | SSIM | IoU | train wall (s) | train CPU (s) | render wall (s/image) "
+             "| render CPU (s/image) | samples/ray kept | samples/ray in grid box |")
+    L.append("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    res = {}
+    for v in ("full", "body_only"):
+        wj = work / v / "worker.json"
+        if wj.is_file():
+            w = json.loads(wj.read_text())
+            res[v] = w
+            for m in w["summary"]["metrics"]:
+                r = w["nv"] if m["kind"] == "novel_view" else w["np"]
+                row = {"method": v, "kind": m["kind"], "sequence": m["sequence"], "images": m["images"],
+                       "psnr_db": m["psnr_db"], "ssim": m["ssim"], "iou": m["iou"], "lpips": m["lpips"],
+                       "dists": m["dists"], "train_wall_s": w["train"]["wall_s"], "train_cpu_s": w["train"]["cpu_s"],
+                       "train_steps": w["train"]["steps"], "render_s_per_image": r["seconds_per_image_median"],
+                       "render_cpu_s_per_image": r["cpu_seconds_per_image_median"],
+                       "samples_per_ray": r["samples_per_ray"], "considered_per_ray": r["considered_per_ray"],
+                       "reference": "body_only" if v == "full" else ""}
+                rows.append(row)
+                L.append(f"| {v} | {m['kind']} ({m['sequence']}) | {m['images']} | {_f(m['psnr_db'])} | "
+                         f"{_f(m['ssim'], 4)} | {_f(m['iou'], 4)} | {_f(row['train_wall_s'], 0)} | "
+                         f"{_f(row['train_cpu_s'], 0)} | {_f(row['render_s_per_image'])} | "
+                         f"{_f(row['render_cpu_s_per_image'])} | {_f(row['samples_per_ray'], 1)} | "
+                         f"{_f(row['considered_per_ray'], 1)} |")
+        else:
+            fp = work / v / "field.pt"
+            state = "trained, not rendered/evaluated" if fp.is_file() else "training not finished"
+            L.append(f"| {v} | -- | -- | NOT MEASURED ({state}) | | | | | | | | |")
+    L.append("")
+    L.append("## Criteria\n")
+    if "full" in res and "body_only" in res:
+        g = {(r["method"], r["kind"]): r for r in rows}
+        f_, b_ = g[("full", "novel_pose")], g[("body_only", "novel_pose")]
+        L.append(f"- full beats body_only on novel-pose PSNR: {_f(f_['psnr_db'])} vs {_f(b_['psnr_db'])} dB -- "
+                 f"**{'MET' if f_['psnr_db'] > b_['psnr_db'] else 'NOT MET'}**")
+        L.append(f"- full beats body_only on novel-pose IoU: {_f(f_['iou'], 4)} vs {_f(b_['iou'], 4)} -- "
+                 f"**{'MET' if f_['iou'] > b_['iou'] else 'NOT MET'}**")
+    else:
+        L.append("- full vs body_only on novel pose: **NOT MEASURED in this run** (see the table)")
+    for v, w in res.items():
+        L.append(f"- {v}: training loop {w['train']['wall_s']:.0f} s wall / {w['train']['cpu_s']:.0f} s CPU "
+                 f"(10-minute criterion: wall {'MET' if w['train']['wall_s'] <= 600 else 'NOT MET'} at this load, "
+                 f"CPU {'within' if w['train']['cpu_s'] <= 600 else 'over'} 600 s)")
+    L.append("")
+    L.append("## Sampling: what the occupancy grid and joint culling save (variant full)\n")
+    L.append("| configuration | train steps | train CPU s/step | samples/ray kept (train) | samples/ray in grid box (train) "
+             "| render CPU s/image | samples/ray (render) |")
+    L.append("| --- | --- | --- | --- | --- | --- | --- |")
+    abl = {}
+    for name in ("default", "occupancy_off", "joint_culling_off"):
+        fp = work / "ablation" / name / "field.pt"
+        rj = work / "ablation" / name / "render" / "render.json"
+        a = {}
+        if fp.is_file():
+            d = torch.load(fp, map_location="cpu", weights_only=False)
+            a.update(steps=d["steps"], cpu=d["cpu_s"] / d["steps"], kept=d["sampling"]["samples_per_ray"],
+                     seen=d["sampling"]["considered_per_ray"])
+        if rj.is_file():
+            r = json.loads(rj.read_text())
+            a.update(rcpu=r["cpu_seconds_per_image_median"], rspr=r["samples_per_ray"], rseen=r["considered_per_ray"])
+        abl[name] = a
+        L.append(f"| {name} | {a.get('steps', 'NOT MEASURED')} | {_f(a.get('cpu'), 3)} | {_f(a.get('kept'), 1)} | "
+                 f"{_f(a.get('seen'), 1)} | {_f(a.get('rcpu'))} | {_f(a.get('rspr'), 1)} |")
+        rows.append({"method": f"full/{name}", "kind": "sampling", "train_steps": a.get("steps"),
+                     "train_cpu_s_per_step": a.get("cpu"), "samples_per_ray": a.get("kept"),
+                     "considered_per_ray": a.get("seen"), "render_cpu_s_per_image": a.get("rcpu"),
+                     "reference": "" if name == "default" else "full/default"})
+    d0, o0, c0 = abl["default"], abl["occupancy_off"], abl["joint_culling_off"]
+    L.append("")
+    if "kept" in d0 and "seen" in d0:
+        L.append(f"- fraction of samples skipped by the occupancy grid while training: "
+                 f"{100 * (1 - d0['kept'] / d0['seen']):.1f}% ({d0['kept']:.1f} of {d0['seen']:.1f} samples per ray "
+                 "inside the frame's grid box are kept)")
+    if "cpu" in d0 and "cpu" in o0:
+        L.append(f"- speed-up of the occupancy grid, measured by turning it off: {o0['cpu'] / d0['cpu']:.2f}x CPU time "
+                 "per training step")
+    else:
+        L.append("- speed-up of the occupancy grid (turned off): training step NOT MEASURED in this run")
+    if "rcpu" in d0 and "rcpu" in o0:
+        L.append(f"- ... per rendered image: {o0['rcpu'] / d0['rcpu']:.2f}x")
+    if "cpu" in d0 and "cpu" in c0:
+        L.append(f"- joint culling turned off: {c0['cpu'] / d0['cpu']:.2f}x CPU time per training step")
+    cols = ["method", "kind", "sequence", "images", "psnr_db", "ssim", "iou", "lpips", "dists", "train_wall_s",
+            "train_cpu_s", "train_steps", "train_cpu_s_per_step", "render_s_per_image", "render_cpu_s_per_image",
+            "samples_per_ray", "considered_per_ray", "reference"]
+    with files.atomic_path(ROOT / "benchmarks" / "field.csv") as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
+            w.writeheader()
+            for r in rows:
+                w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else ("" if v is None else v)) for k, v in r.items()})
     with files.atomic_path(ROOT / "benchmarks" / "field.md") as tmp:
         tmp.write_text("\n".join(L) + "\n")
     print("\n".join(L))
