@@ -52,13 +52,22 @@ import struct
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any, NamedTuple, NoReturn
+from typing import NamedTuple, NoReturn
 
+import cv2
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
-from .. import __version__
+from .. import __version__, garment
+from ..garment import KINDS
 from ..io import files
+from ..io.easymocap import read_extri, read_intri
 from ..io.files import SceneError
+from ..io.mesh import read_mesh
+from ..io.motion import read_easymocap_smpl_dir
+from .scene import load_body, read_scene
 
 __all__ = [
     "SceneError",
@@ -161,10 +170,6 @@ class MeshDefects(NamedTuple):
 
 def _merge_map(verts: np.ndarray, tol: float) -> np.ndarray:
     """(V,) representative of each vertex: the smallest index within ``tol`` (transitively)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
     V = len(verts)
     pairs = cKDTree(verts).query_pairs(tol, output_type="ndarray")
     if len(pairs) == 0:
@@ -308,9 +313,6 @@ def _check_exr_magic(path: Path) -> None:
 
 # =========================================================================== scene.yaml
 def _check_scene_yaml(scene_dir: Path, checks: list[str]) -> dict:
-    from ..garment import KINDS
-    from .scene import read_scene
-
     if not scene_dir.is_dir():
         _fail(scene_dir, "scene folder not found")
     path = scene_dir / "scene.yaml"
@@ -370,8 +372,6 @@ def _check_scene_yaml(scene_dir: Path, checks: list[str]) -> dict:
 
 # =========================================================================== body model
 def _check_body(scene_dir: Path, info: dict, checks: list[str]):
-    from .scene import load_body
-
     spec = info["body_model"]
     path = scene_dir / spec["file"]
     if not path.is_file():
@@ -396,9 +396,6 @@ def _check_body(scene_dir: Path, info: dict, checks: list[str]):
 
 # =========================================================================== garment
 def _check_garment(scene_dir: Path, info: dict, body, checks: list[str], warnings: list[str]) -> dict | None:
-    from .. import garment
-    from ..io.mesh import read_mesh
-
     rel = info.get("garment_template")
     if not rel:
         return None
@@ -448,10 +445,6 @@ def _check_garment(scene_dir: Path, info: dict, body, checks: list[str], warning
 # =========================================================================== cameras
 def _check_cameras(sdir: Path, info: dict, checks: list[str]) -> tuple[list[str], dict, tuple | None]:
     """-> (cameras used, {cam: K, dist, R, T}, expected (H, W) or None)."""
-    import cv2
-
-    from ..io.easymocap import read_extri, read_intri
-
     intri_p, extri_p = sdir / "intri.yml", sdir / "extri.yml"
     for p, what in ((intri_p, "intrinsics"), (extri_p, "extrinsics")):
         if not p.is_file():
@@ -635,8 +628,6 @@ def _check_optional(sdir: Path, sub: str, used: list[str], train: list[str], fra
 
 # =========================================================================== body parameters
 def _check_smpl(sdir: Path, frames: list[int], checks: list[str]) -> dict:
-    from ..io.motion import read_easymocap_smpl_dir
-
     d = sdir / "smpl"
     if not d.is_dir():
         _fail(d, "body parameter folder not found (EasyMocap smpl/<frame>.json)")
@@ -655,8 +646,6 @@ def _check_smpl(sdir: Path, frames: list[int], checks: list[str]) -> dict:
 def _check_body_in_view(sdir: Path, params: dict, body, raw: dict, used: list[str], size: tuple,
                         checks: list[str]) -> dict:
     """The body root (R(Rh) J_0 + Th, EasyMocap's world placement) seen by the cameras at 0.2-200 m."""
-    import cv2
-
     H, W = size
     J0 = body.joints_rest[0].detach().double().numpy()
     T = len(params["frames"])
