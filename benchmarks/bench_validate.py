@@ -44,6 +44,7 @@ def main() -> None:
     cv2.setNumThreads(1)
     from anidress_core.stages.validate import validate_scene
 
+    load_start = os.getloadavg()[0]
     rows = []
     for scene in args.scenes.split(","):
         d = ROOT / "data" / scene
@@ -95,7 +96,8 @@ def main() -> None:
         "",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
         f"- machine: {platform.node()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs "
-        "(shared with other jobs), one thread",
+        f"(shared with other jobs; load average {load_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end), "
+        "one thread",
         f"- command: `.venv/bin/python benchmarks/bench_validate.py --scenes {args.scenes} --repeats {args.repeats}`",
         f"- git revision: {rev}{' (validate.py modified)' if dirty else ''}",
         "- methods: `ends_cli` = `python -m anidress_core.cli validate data/<scene>` in a fresh process (imports "
