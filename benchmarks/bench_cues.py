@@ -1,7 +1,7 @@
 """Benchmark of the 2D cues (anidress_core.cues) against the synthetic ground truth.
 
-Run: .venv/bin/python benchmarks/bench_cues.py [--scenes skirt,dress] [--seqs walk] [--frames 60]
-     [--flow-methods all] [--mask-methods all]
+Run: .venv/bin/python benchmarks/bench_cues.py [--scenes skirt,dress] [--seqs all] [--frames 60]
+     [--flow-methods all] [--mask-methods all] [--max-ms-per-pair 500]
 Writes benchmarks/cues.md and benchmarks/cues.csv. Not a test.
 
 For each scene and sequence, on the scene's training cameras (the cues the fitting
@@ -144,7 +144,7 @@ def interleaved_timing(scene_dir: Path, seq: str, names: list[str], frames: list
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="skirt")
-    ap.add_argument("--seqs", default="", help="sequences (default: the first of each scene)")
+    ap.add_argument("--seqs", default="", help="sequences: names, 'all', or (default) the first of each scene")
     ap.add_argument("--frames", type=int, default=0, help="first N frames only (default: all)")
     ap.add_argument("--mask-methods", default="all")
     ap.add_argument("--flow-methods", default="all")
@@ -170,7 +170,10 @@ def main() -> None:
         for scene in args.scenes.split(","):
             scene_dir = Path(args.data) / scene
             info = read_scene(scene_dir)
-            seqs = args.seqs.split(",") if args.seqs else [info["sequences"][0]["name"]]
+            if args.seqs == "all":
+                seqs = [q["name"] for q in info["sequences"]]
+            else:
+                seqs = args.seqs.split(",") if args.seqs else [info["sequences"][0]["name"]]
             tpl, tpl_note = template_for(scene, Path(args.data), tmp)
             notes_md.append(f"- `{scene}`: shape prior template {tpl_note}.")
             for seq in seqs:
@@ -267,8 +270,28 @@ def main() -> None:
                     rows.append({**base, "cue": "normals", "method": "ground truth", "reference": "gt/normals",
                                  "normal_subject_mean_deg": 0.0, "normal_garment_mean_deg": 0.0, "notes": "by definition"})
                     print(f"  normals: {_fmt_row(rows[-2])}", flush=True)
+    notes_md += overall_masks(rows, cfg["masks"]["method"])
     notes_md += overall_choice(rows, cfg["flows"]["method"])
     write(rows, args, started, load_before, notes_md)
+
+
+def overall_masks(rows: list[dict], configured: str) -> list[str]:
+    """Mask methods ranked by the mean of garment and body IoU over every benchmarked sequence."""
+    ms = [r for r in rows if r["cue"] == "masks" and r["method"] in MASK_METHODS]
+    if not ms:
+        return []
+    score = {m: float(np.mean([(r["iou_garment"] + r["iou_body"]) / 2 for r in ms if r["method"] == m]))
+             for m in {r["method"] for r in ms}}
+    best = max(score, key=score.get)
+    n = len({(r["scene"], r["sequence"]) for r in ms})
+    lines = ["", f"Mask methods over all {n} benchmarked sequences (mean of garment and body IoU):", ""]
+    for m, v in sorted(score.items(), key=lambda kv: -kv[1]):
+        lines.append(f"- `{m}`: {v:.4f}" + (" **<- best**" if m == best else ""))
+    lines.append("")
+    lines.append(f"The config default `cues/masks/method` is `{configured}`"
+                 + (": the best by this measure." if configured == best else
+                    f"; this run finds `{best}` better by this measure."))
+    return lines
 
 
 def overall_choice(rows: list[dict], configured: str) -> list[str]:
@@ -410,4 +433,8 @@ def write(rows: list[dict], args, started: str, load_before: str, notes_md: list
 
 
 if __name__ == "__main__":
+    import signal
+
+    # a terminated run still removes its temporary folder (TemporaryDirectory's cleanup)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     main()

@@ -13,11 +13,13 @@ so the masks are estimated with classical tools and measured against ground trut
    garment template skinned with the body (linear blend skinning, its body weights),
    rasterised into every camera: labels 1 body / 2 garment (:func:`render_prior`);
 3. garment vs body inside the foreground, one of
-   * ``prior``: the label of the nearest prior pixel of either class;
+   * ``prior`` (default): the label of the nearest prior pixel of either class;
    * ``colour``: a per-camera colour histogram Bayes classifier (garment vs body),
      learned on the pixels where the prior is confident, plus a spatial log-odds
      term from the distances to the prior's garment and body pixels, smoothed and
-     thresholded (a cheap stand-in for a graph cut);
+     thresholded (a cheap stand-in for a graph cut); better than ``prior`` when the
+     garment's colours differ from the body's, wrong where body clothing is of the
+     garment's fabric (benchmarks/cues.md);
    * ``grabcut``: OpenCV GrabCut (Rother, Kolmogorov, Blake, "GrabCut", SIGGRAPH
      2004) initialised with the prior as probable garment / probable body inside the
      foreground and sure background outside it;
@@ -64,8 +66,10 @@ BACKGROUND, BODY, GARMENT = 0, 1, 2
 class MaskParams:
     """Settings of mask estimation (config section ``cues/masks``)."""
 
-    method: str = "colour"
-    """Garment vs body: ``prior`` | ``colour`` | ``grabcut`` (module docstring)."""
+    method: str = "prior"
+    """Garment vs body: ``prior`` | ``colour`` | ``grabcut`` (module docstring). ``prior`` is the
+    default: colour models cannot tell a garment from body clothing of the same fabric (the
+    dress scene's plaid dress over a plaid shirt), see benchmarks/cues.md."""
     fg_threshold: float = 0.08
     """Colour distance to the plate (RGB in [0, 1], Euclidean) above which a pixel is surely subject."""
     fg_threshold_low: float = 0.03
