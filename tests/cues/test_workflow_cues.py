@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import copy
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -11,21 +12,16 @@ import numpy as np
 import pytest
 import yaml
 
+from .conftest import TINY_SKIRT
+
 REPO = Path(__file__).resolve().parents[2]
 
 CFG = {
     "run_scenes": ["tinyskirt"],
     "scenes": {
-        "tinyskirt": {
-            "synthetic": True,
-            "kind": "skirt",
-            "image_size": [48, 48],
-            "cameras": {"count": 4, "train": 2},
-            "body": {"vertices": 2000},
-            "sequences": [{"name": "walk", "motion": "walk", "frames": 3, "role": "train"}],
-            "garment": {"vertices": 600, "cloth": {"settle_frames": 3}},
-            "render": {"texture_size": 128},
-        },
+        # the session's tiny scene (tests/cues/conftest.py), copied in: the rules under test
+        # are the cue rules, not synth/template (tests/workflow covers those)
+        "tinyskirt": {"synthetic": True, **TINY_SKIRT},
         # a user capture (not synthetic): ships masks, no normals
         "cap": {"synthetic": False, "kind": "skirt", "sequences": [{"name": "walk", "motion": "walk", "frames": 3}]},
     },
@@ -57,9 +53,13 @@ def _jobs(wd: Path, cfg: dict, *targets: str) -> dict:
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
+def run(tmp_path_factory, tiny_scene):
     wd = tmp_path_factory.mktemp("cues_wf")
     (wd / "cfg.yaml").write_text(yaml.safe_dump(CFG))
+    shutil.copytree(tiny_scene[0], wd / "data" / "tinyskirt")
+    (wd / "results" / "tinyskirt").mkdir(parents=True)
+    for ext in ("npz", "ply"):
+        shutil.copy(tiny_scene[1].with_suffix("." + ext), wd / "results" / "tinyskirt" / f"template.{ext}")
     cap = wd / "data" / "cap"
     (cap / "walk" / "masks" / "01").mkdir(parents=True)
     (cap / "scene.yaml").write_text(yaml.safe_dump({"fps": 30, "sequences": [{"name": "walk"}],
@@ -76,10 +76,10 @@ def test_rules_write_the_contract_layout(run):
     scene = yaml.safe_load((run / "data" / "tinyskirt" / "scene.yaml").read_text())
     res = run / "results" / "tinyskirt" / "walk"
     for cam in scene["cameras"]["train"]:
-        assert sorted(p.name for p in (res / "masks" / cam).iterdir()) == ["000000.png", "000001.png", "000002.png"]
-        assert sorted(p.name for p in (res / "flows" / cam).iterdir()) == ["000001.exr", "000002.exr"]
+        assert sorted(p.name for p in (res / "masks" / cam).iterdir()) == [f"{i:06d}.png" for i in range(4)]
+        assert sorted(p.name for p in (res / "flows" / cam).iterdir()) == [f"{i:06d}.exr" for i in range(1, 4)]
         assert set(np.unique(read_mask(res / "masks" / cam / "000002.png"))) <= {0, 1, 2}
-        assert read_exr(res / "flows" / cam / "000002.exr").shape == (48, 48, 3)
+        assert read_exr(res / "flows" / cam / "000002.exr").shape == (64, 64, 3)
     # (Snakemake puts a hidden .snakemake_timestamp into directory outputs)
     assert sorted(p.name for p in (res / "masks").iterdir() if not p.name.startswith(".")) == \
         sorted(scene["cameras"]["train"])
