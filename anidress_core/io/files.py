@@ -21,6 +21,7 @@ from .. import __version__
 
 __all__ = [
     "ArtifactError",
+    "SceneError",
     "atomic_path",
     "write_text",
     "write_exr",
@@ -45,6 +46,14 @@ os.umask(_UMASK)
 
 class ArtifactError(ValueError):
     """A file exists but cannot be used (corrupt, wrong shape, wrong contents)."""
+
+
+class SceneError(ValueError):
+    """An input scene folder is malformed (a file missing, unreadable or inconsistent).
+
+    Raised by :func:`anidress_core.stages.validate.validate_scene` with one message that
+    names the file and the problem, before any long computation starts.
+    """
 
 
 @contextlib.contextmanager
