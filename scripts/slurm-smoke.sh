@@ -37,7 +37,7 @@ SLURMD_PORT=${SLURM_SMOKE_SLURMD_PORT:-16818}
 KEEP=0 STOP_ONLY=0 INSTALL=1 REFERENCE=1
 REPORT=$REPO/benchmarks/slurm
 TARGETS=()
-COMMAND="scripts/slurm-smoke.sh $*"
+COMMAND="scripts/slurm-smoke.sh${*:+ $*}"
 
 while [[ $# -gt 0 ]]; do
     case $1 in
