@@ -25,8 +25,21 @@ test: venv
 bench: venv
 	$(BIN)/python benchmarks/bench_raster.py
 
+# Numerical stress tests alone (they also run in `make test`): extreme motions, degenerate
+# meshes and sequences, wrong scales, float32 vs float64 (tests/stress).
+.PHONY: stress
+stress: venv
+	$(BIN)/pytest tests/stress
+
 dag: venv
 	$(SNAKEMAKE) -n --quiet rules
+
+# SLURM smoke test (root; installs Debian SLURM + envs/requirements-slurm.txt, starts a
+# single-node cluster, runs the tiny scene with config/profiles/slurm, stops it again);
+# writes benchmarks/slurm.{md,csv}. SLURM_SMOKE_ARGS: e.g. --keep, --no-reference.
+.PHONY: slurm-smoke
+slurm-smoke: venv
+	bash scripts/slurm-smoke.sh $(SLURM_SMOKE_ARGS)
 
 clean-results:
 	rm -rf results logs benchmarks/runs .snakemake

@@ -1,7 +1,13 @@
 # AniDress pipeline. Stages live in workflow/rules/*.smk; see README.md and DESIGN.md.
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"
+include: "workflow/rules/validate.smk"
 include: "workflow/rules/sim.smk"
+include: "workflow/rules/rig.smk"
+include: "workflow/rules/cues.smk"
+include: "workflow/rules/fit.smk"
+include: "workflow/rules/field.smk"
+include: "workflow/rules/evaluate.smk"
 
 
 rule all:

@@ -59,6 +59,183 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
     print(args.out)
 
 
+def _cues_cfg(args: argparse.Namespace) -> dict:
+    from .config import load_config
+
+    return load_config(args.config)["cues"]
+
+
+def _cmd_rig(args: argparse.Namespace) -> None:
+    from .config import load_config
+    from .stages.rig import run_rig
+
+    params = load_config(args.config)["rig"]
+    for key in ("bones", "iters", "nnz"):
+        if getattr(args, key) is not None:
+            params[key] = getattr(args, key)
+    run_rig(args.template, args.sims, params, args.out)
+    print(args.out)
+
+
+def _cmd_rig_decompose(args: argparse.Namespace) -> None:
+    from .stages.rig import run_rig_decompose
+
+    model = run_rig_decompose(args.seq, args.out, bones=args.bones, iters=args.iters, nnz=args.nnz,
+                              smooth=args.smooth, seed=args.seed)
+    print(f"{args.out}: {model.num_bones} bones, RMSE {model.rmse:.6g}")
+
+
+def _cmd_masks(args: argparse.Namespace) -> None:
+    from .stages.cues import run_masks
+
+    cfg = dict(_cues_cfg(args)["masks"])
+    if args.method:
+        cfg["method"] = args.method
+    run_masks(args.scene_dir, args.seq, args.out, cfg, template_npz=args.template, cameras=args.cameras,
+              threads=args.threads, progress=not args.quiet)
+    print(args.out)
+
+
+def _cmd_flows(args: argparse.Namespace) -> None:
+    from .stages.cues import run_flows
+
+    cfg = dict(_cues_cfg(args)["flows"])
+    if args.method:
+        cfg["method"] = args.method
+    run_flows(args.scene_dir, args.seq, args.masks, args.out, cfg, cameras=args.cameras, threads=args.threads,
+              progress=not args.quiet)
+    print(args.out)
+
+
+def _cmd_normals(args: argparse.Namespace) -> None:
+    from .stages.cues import run_normals
+
+    run_normals(args.scene_dir, args.seq, args.normals, args.out, cameras=args.cameras)
+    print(args.out)
+
+
+def _cmd_cues_eval(args: argparse.Namespace) -> None:
+    from .io.files import write_text
+    from .stages.cues import evaluate_cues, format_table
+
+    res = evaluate_cues(args.scene_dir, args.seq, args.masks, args.flows, args.normals, cameras=args.cameras)
+    rows = [{"metric": k, "value": v} for k, v in res.items()]
+    print(format_table(rows, ["metric", "value"]))
+    if args.out:
+        write_text(args.out, "metric,value\n" + "".join(f"{k},{v}\n" for k, v in res.items()))
+
+
+def _cmd_fit(args: argparse.Namespace) -> None:
+    from .config import load_config
+    from .stages.fit import run_fit
+
+    params = dict(load_config(args.config)["fit"])
+    if args.views is not None:
+        params["views"] = args.views
+    if args.threads:
+        params["threads"] = args.threads
+    scene = Path(args.scene_dir)
+    normals = None if args.no_normals else (args.normals or (str(scene / args.seq / "normals")
+                                                             if (scene / args.seq / "normals").is_dir() else None))
+    run_fit(scene, args.seq, args.rig, args.template, args.masks, args.flows, normals, params, args.out,
+            ablation=args.ablation, progress=not args.quiet, cue_source="command line")
+    print(args.out)
+
+
+def _cmd_fit_eval(args: argparse.Namespace) -> None:
+    from .stages.fit import run_fit_eval
+
+    fits = {}
+    for item in args.fits:
+        name, _, path = item.rpartition("=")
+        fits[name or Path(path).parent.name] = path
+    run_fit_eval(args.scene_dir, args.seq, args.rig, fits, args.out, samples=args.samples)
+    print(args.out)
+
+
+def _field_cfg(path: str) -> dict:
+    from .config import load_config
+
+    return load_config(path)
+
+
+def _cmd_train(args: argparse.Namespace) -> None:
+    import torch
+
+    from .metrics.image import load_lpips
+    from .stages.field import run_train
+
+    cfg = _field_cfg(args.config)
+    params = {k: cfg["field"][k] for k in ("model", "priors", "sampler", "train", "render")}
+    if args.steps:
+        params["train"] = {**params["train"], "steps": args.steps}
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    lpips = load_lpips(**cfg["metrics"]["lpips"]) if params["train"]["lpips_weight"] > 0 else None
+    run_train(args.scene_dir, args.seq, args.variant, args.masks, args.out, params, template_npz=args.template,
+              rig_npz=args.rig, garment_poses_npz=args.poses, lpips=lpips, device=args.device or cfg["field"]["device"],
+              progress=not args.quiet)
+    print(args.out)
+
+
+def _cmd_render(args: argparse.Namespace) -> None:
+    import torch
+
+    from .stages.field import run_render
+    from .stages.scene import read_scene
+
+    cfg = _field_cfg(args.config)
+    params = {k: cfg["field"][k] for k in ("sampler", "render")}
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    info = read_scene(args.scene_dir)
+    cams = {"test": info["cameras"]["test"], "train": info["cameras"]["train"],
+            "all": info["cameras"]["train"] + info["cameras"]["test"]}.get(args.cameras)
+    if cams is None:
+        cams = args.cameras.split(",")
+    stride = args.frame_stride or cfg["field"]["render"]["frame_stride"]
+    if args.library_motion:
+        name = args.library_name or Path(args.library_motion).stem
+        run_render(args.field, args.scene_dir, args.out, params, cameras=cams, template_npz=args.template,
+                   rig_npz=args.rig, library_motion_npz=args.library_motion, library_name=name, frame_stride=stride,
+                   device=args.device or cfg["field"]["device"], progress=not args.quiet)
+    else:
+        if not args.seq:
+            raise ValueError("render: give --seq SEQ (a captured sequence) or --library-motion NPZ")
+        run_render(args.field, args.scene_dir, args.out, params, seq=args.seq, cameras=cams,
+                   template_npz=args.template, rig_npz=args.rig, garment_poses_npz=args.poses, frame_stride=stride,
+                   device=args.device or cfg["field"]["device"], progress=not args.quiet,
+                   use_occupancy=not args.no_occupancy, cull_joints=not args.no_joint_culling)
+    print(args.out)
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> None:
+    from .metrics.image import load_dists, load_lpips
+    from .stages.evaluate import run_evaluate
+
+    cfg = _field_cfg(args.config)
+    renders = []
+    for item in args.renders:
+        parts = item.split(":", 2)
+        if len(parts) != 3 or parts[0] not in ("novel_view", "novel_pose"):
+            raise ValueError(f"evaluate: renders are KIND:SEQ:DIR with KIND novel_view|novel_pose, got {item!r}")
+        renders.append(tuple(parts))
+    m = cfg["metrics"]
+    summary = args.summary or str(Path(args.out).with_name("metrics_summary.json"))
+    run_evaluate(args.scene_dir, renders, args.out, summary, m, lpips=load_lpips(**m["lpips"]),
+                 dists=load_dists(**m["dists"]), progress=not args.quiet)
+    print(args.out)
+
+
+def _cmd_validate(args: argparse.Namespace) -> None:
+    from .stages.validate import format_summary, run_validate
+
+    summary = run_validate(args.scene_dir, args.out, images="all" if args.all_images else "ends")
+    print(format_summary(summary))
+    if args.out:
+        print(args.out)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="anidress",
@@ -100,6 +277,145 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--out", required=True, help="output .npz")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_simulate)
+    s = sub.add_parser("masks", help="estimate body/garment masks of a sequence (<out>/<cam>/<frame>.png)")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("seq", help="sequence name")
+    s.add_argument("-o", "--out", required=True, help="output folder (results/<scene>/<seq>/masks)")
+    s.add_argument("--template", help="garment template.npz (the shape prior); none: tight clothes, labels 0/1")
+    s.add_argument("--config", default="config/config.yaml", help="settings: cues/masks (default: %(default)s)")
+    s.add_argument("--method", choices=["prior", "colour", "grabcut"], help="override cues/masks/method")
+    s.add_argument("--cameras", default="train", choices=["train", "all"])
+    s.add_argument("--threads", type=int, default=2)
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_masks)
+
+    s = sub.add_parser("flows", help="forward optical flow t-1 -> t of a sequence (<out>/<cam>/<frame>.exr)")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("seq", help="sequence name")
+    s.add_argument("--masks", required=True, help="the sequence's masks (bound the processed region)")
+    s.add_argument("-o", "--out", required=True, help="output folder (results/<scene>/<seq>/flows)")
+    s.add_argument("--config", default="config/config.yaml", help="settings: cues/flows (default: %(default)s)")
+    s.add_argument("--method", choices=["dis_ultrafast", "dis_fast", "dis_medium", "deepflow", "tvl1", "farneback"],
+                   help="override cues/flows/method")
+    s.add_argument("--cameras", default="train", choices=["train", "all"])
+    s.add_argument("--threads", type=int, default=2)
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_flows)
+
+    s = sub.add_parser("normals", help="check a sequence's shipped normal maps and record them (or the skip)")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("seq", help="sequence name")
+    s.add_argument("--normals", help="normal maps folder (default: none, the stage is skipped)")
+    s.add_argument("-o", "--out", required=True, help="output record (results/<scene>/<seq>/normals.json)")
+    s.add_argument("--cameras", default="train", choices=["train", "all"])
+    s.set_defaults(func=_cmd_normals)
+
+    s = sub.add_parser("cues-eval", help="compare masks / flows / normals with the synthetic ground truth")
+    s.add_argument("scene_dir", help="data/<scene> (a synthetic scene with gt/)")
+    s.add_argument("seq", help="sequence name")
+    s.add_argument("--masks", help="estimated masks folder")
+    s.add_argument("--flows", help="estimated flows folder")
+    s.add_argument("--normals", help="normal maps folder (e.g. data/<scene>/<seq>/normals)")
+    s.add_argument("--cameras", default="train", choices=["train", "all"])
+    s.add_argument("--out", help="also write the table as CSV (metric,value)")
+    s.set_defaults(func=_cmd_cues_eval)
+
+    s = sub.add_parser("fit", help="fit the garment poses of a sequence to its cues (garment_poses.npz)")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("seq", help="sequence name")
+    s.add_argument("--rig", required=True, help="rig.npz (rule rig)")
+    s.add_argument("--template", required=True, help="template.npz (for --first-frame-init body)")
+    s.add_argument("--masks", required=True, help="masks folder <cam>/<frame>.png (labels 0/1/2)")
+    s.add_argument("--flows", help="flows folder <cam>/<frame>.exr (X, Y, valid); none: no flow loss")
+    s.add_argument("--normals", help="normal maps folder (default: <scene>/<seq>/normals if present)")
+    s.add_argument("--no-normals", action="store_true", help="normal loss off")
+    s.add_argument("--ablation", choices=["vertex", "no_normal_flow", "no_flow"], help="run an ablation instead")
+    s.add_argument("--views", type=int, help="use N training cameras spread evenly (default: fit/views)")
+    s.add_argument("--config", default="config/config.yaml", help="settings: fit (default: %(default)s)")
+    s.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's)")
+    s.add_argument("-o", "--out", required=True, help="output garment_poses.npz")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_fit)
+
+    s = sub.add_parser("fit-eval", help="fitted garments against the synthetic ground truth (fit_metrics.csv)")
+    s.add_argument("scene_dir", help="data/<scene> (synthetic, with gt/meshes.npz)")
+    s.add_argument("seq", help="sequence name")
+    s.add_argument("fits", nargs="+", help="garment_poses.npz files, optionally NAME=PATH")
+    s.add_argument("--rig", required=True, help="rig.npz the fits used")
+    s.add_argument("--samples", type=int, default=20000, help="surface samples per mesh (Chamfer)")
+    s.add_argument("-o", "--out", required=True, help="output CSV")
+    s.set_defaults(func=_cmd_fit_eval)
+
+    s = sub.add_parser("train", help="train the pose-driven radiance field of a sequence (field.pt)")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("seq", help="training sequence")
+    s.add_argument("--variant", choices=["full", "body_only"], default="full")
+    s.add_argument("--masks", required=True, help="masks folder <cam>/<frame>.png of the training cameras")
+    s.add_argument("--template", help="template.npz (garment scenes)")
+    s.add_argument("--rig", help="rig.npz (variant full of a garment scene)")
+    s.add_argument("--poses", help="garment_poses.npz of the sequence (variant full)")
+    s.add_argument("--config", default="config/config.yaml", help="field and metrics settings")
+    s.add_argument("--steps", type=int, help="override field/train/steps")
+    s.add_argument("--device", help="cpu | cuda (default: field/device)")
+    s.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's)")
+    s.add_argument("-o", "--out", required=True, help="output field.pt (field.pt.ckpt beside it while training)")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_train)
+
+    s = sub.add_parser("render", help="render a trained field: a captured sequence or a library motion")
+    s.add_argument("field", help="field.pt")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("--seq", help="captured sequence to render (its smpl/ motion and cameras)")
+    s.add_argument("--poses", help="garment_poses.npz of --seq (variant full)")
+    s.add_argument("--library-motion", help="results/<scene>/motions/lib-<name>.npz (garment poses from the rig)")
+    s.add_argument("--library-name", help="the rig's sequence name (default: the motion file stem)")
+    s.add_argument("--cameras", default="test", help="test | train | all | comma-separated names")
+    s.add_argument("--template", help="template.npz (garment scenes)")
+    s.add_argument("--rig", help="rig.npz (variant full)")
+    s.add_argument("--frame-stride", type=int, default=0, help="every n-th frame (default: field/render)")
+    s.add_argument("--no-occupancy", action="store_true", help="ablation: sample the whole grid box")
+    s.add_argument("--no-joint-culling", action="store_true", help="ablation: every joint for every sample")
+    s.add_argument("--config", default="config/config.yaml")
+    s.add_argument("--device", help="cpu | cuda")
+    s.add_argument("--threads", type=int, default=0)
+    s.add_argument("-o", "--out", required=True, help="output folder (rgb/, alpha/, depth/, render.json)")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_render)
+
+    s = sub.add_parser("evaluate", help="image metrics of renders against the ground truth (metrics.csv)")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("renders", nargs="+", help="KIND:SEQ:DIR with KIND novel_view | novel_pose")
+    s.add_argument("--config", default="config/config.yaml", help="metrics settings (LPIPS / DISTS weights)")
+    s.add_argument("-o", "--out", required=True, help="output metrics.csv")
+    s.add_argument("--summary", help="output summary JSON (default: metrics_summary.json beside --out)")
+    s.add_argument("--quiet", action="store_true")
+    s.set_defaults(func=_cmd_evaluate)
+    s = sub.add_parser("rig", help="garment rigging model from a scene's simulations (rig.npz)")
+    s.add_argument("template", help="template.npz from `anidress template`")
+    s.add_argument("sims", nargs="+", help="sim/<motion>.npz files from `anidress simulate`")
+    s.add_argument("--config", default="config/config.yaml", help="SSDR parameters: rig (default: %(default)s)")
+    s.add_argument("--bones", type=int, help="override rig/bones")
+    s.add_argument("--iters", type=int, help="override rig/iters")
+    s.add_argument("--nnz", type=int, help="override rig/nnz")
+    s.add_argument("-o", "--out", required=True, help="output rig.npz")
+    s.set_defaults(func=_cmd_rig)
+
+    s = sub.add_parser("rig-decompose", help="SSDR of one mesh sequence, file to file (Dem Bones' layout)")
+    s.add_argument("seq", help="SEQ.npz with rest (V,3), faces (F,3), frames (T,V,3)")
+    s.add_argument("--bones", type=int, default=25, help="bones B (default: %(default)s)")
+    s.add_argument("--iters", type=int, default=50, help="global iterations (default: %(default)s)")
+    s.add_argument("--nnz", type=int, default=8, help="most bones per vertex (default: %(default)s)")
+    s.add_argument("--smooth", type=float, default=1e-4, help="weights smoothness (default: %(default)s)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("-o", "--out", required=True,
+                   help="OUT.npz: weights (B,V), transforms (T,B,4,4) with x = sum_b W[b,i] (M[t,b] [rest_i; 1])")
+    s.set_defaults(func=_cmd_rig_decompose)
+    s = sub.add_parser("validate", help="check a scene folder (cameras, frames, images, body, garment) before a run")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("-o", "--out", help="write the summary JSON here (the workflow: results/<scene>/scene_check.json)")
+    s.add_argument("--all-images", action="store_true",
+                   help="decode every image (default: every header, first and last frame of each camera decoded)")
+    s.set_defaults(func=_cmd_validate)
     return p
 
 

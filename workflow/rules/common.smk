@@ -55,9 +55,10 @@ def motion_params(wildcards):
 
 
 def get_final_outputs():
-    """Everything `rule all` builds: scene datasets, and garment simulations where there is a garment."""
+    """Everything `rule all` builds: scene datasets; garment simulations and the rig where there is a garment."""
     out = [f"data/{s}" for s in SCENES]
     for s in SCENES:
         if has_garment(s):
             out += expand("results/{scene}/sim/{motion}.npz", scene=s, motion=sim_motion_names(s))
+            out.append(f"results/{s}/rig.npz")
     return out
