@@ -490,7 +490,9 @@ def collect(args) -> None:
                          f"{_f(row['considered_per_ray'], 1)} |")
         else:
             fp = work / v / "field.pt"
-            state = "trained, not rendered/evaluated" if fp.is_file() else "training not finished"
+            state = ("trained, not rendered/evaluated" if fp.is_file() else
+                     "worker stopped before the end of training: at the machine's load it would not have finished "
+                     "within the session; the comparison is run A below")
             L.append(f"| {v} | -- | -- | NOT MEASURED ({state}) | | | | | | | | |")
     L.append("")
     # an earlier complete run of both variants (same functions and field config), when kept
@@ -548,7 +550,8 @@ def collect(args) -> None:
         L.append(f"- full beats body_only on novel-pose IoU: {_f(f_['iou'], 4)} vs {_f(b_['iou'], 4)} -- "
                  f"**{'MET' if f_['iou'] > b_['iou'] else 'NOT MET'}**")
     else:
-        L.append("- full vs body_only on novel pose: **NOT MEASURED in this run** (see the table)")
+        L.append("- full vs body_only on novel pose in the run of the first table: **NOT MEASURED** (body_only stopped, "
+                 "see the table); the comparison is run A")
     for v, w in res.items():
         L.append(f"- {v}: training loop {w['train']['wall_s']:.0f} s wall / {w['train']['cpu_s']:.0f} s CPU "
                  f"(10-minute criterion: wall {'MET' if w['train']['wall_s'] <= 600 else 'NOT MET'} at this load, "
@@ -579,6 +582,11 @@ def collect(args) -> None:
                      "reference": "" if name == "default" else "full/default"})
     d0, o0, c0 = abl["default"], abl["occupancy_off"], abl["joint_culling_off"]
     L.append("")
+    L.append("- occupancy_off: every sample inside the frame's grid box is evaluated; where no voxel is occupied "
+             "there is no candidate list either, so those samples evaluate all K = 49 joints (the grid carries "
+             "both). joint_culling_off: the occupancy stays, every sample evaluates all 49 joints. Renders: 8 "
+             "images of `dance` (test cameras, frames 0 and 30) with the trained full field; occupancy_off casts a "
+             "ray through every pixel of the projected grid box.")
     if "kept" in d0 and "seen" in d0:
         L.append(f"- fraction of samples skipped by the occupancy grid while training: "
                  f"{100 * (1 - d0['kept'] / d0['seen']):.1f}% ({d0['kept']:.1f} of {d0['seen']:.1f} samples per ray "
