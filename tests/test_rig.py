@@ -65,16 +65,17 @@ def _match(M_true, M_est):
 
 def test_recovers_known_rig_float64():
     rest, faces, W, M, X = _known_rig()
-    model = rig.ssdr(rest, X, faces, num_bones=4, iters=150, smooth=0.0)
+    model = rig.ssdr(rest, X, faces, num_bones=4, iters=500, smooth=0.0)
     assert model.num_bones == 4
     assert model.transforms.shape == (20, 4, 4, 4) and model.weights.shape == (300, 4)
     _check_weights(model.weights, 8)
-    # not exact in 150 iterations: the alternation converges linearly (see module notes)
-    assert model.rmse < 1e-5
+    # the alternation converges linearly (~x5 per 50 iterations here): 500 iterations reach
+    # ~1e-9 m on this 1.5 m tube (from 0.19 m after the initialisation)
+    assert model.rmse < 3e-9
     assert model.history[-1] < model.history[0]
     perm = _match(M, model.transforms)
-    assert (model.transforms[:, perm] - M).abs().max() < 1e-3
-    assert (model.weights[:, perm] - W).abs().max() < 1e-3
+    assert (model.transforms[:, perm] - M).abs().max() < 1e-7
+    assert (model.weights[:, perm] - W).abs().max() < 1e-7
     rec = rig.reconstruct(model)
     assert abs(rig.rmse(rec, X) - model.rmse) < 1e-12
     assert torch.allclose(rig.reconstruct(model.rest, model.weights, model.transforms), rec)
