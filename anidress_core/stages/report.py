@@ -1,0 +1,362 @@
+"""Stage `report`: results/report.html, one self-contained page (DESIGN.md §11, issue 8 §1).
+
+Reads what the pipeline wrote (nothing is recomputed here):
+
+* per scene: ``data/<scene>/scene.yaml``, ``results/<scene>/scene_check.json``,
+  ``results/<scene>/sim/*.npz`` (stability statistics), ``results/<scene>/rig.npz``
+  (RMSE per simulated sequence), per sequence ``fit_metrics.csv`` and
+  ``garment_poses.npz`` (loss curves), ``normals.json`` (cue skips), per training
+  sequence and variant ``metrics_summary.json`` / ``metrics.csv`` and the renders;
+* ``benchmarks/runs/<scene>/**.tsv``: Snakemake's per-job run time and memory;
+* ``benchmarks/tradeoffs.csv`` (``snakemake bench``) and ``benchmarks/rig.csv``: the
+  run-time-vs-error sweeps, shown as Pareto plots.
+
+and renders ``reports/report.html.j2`` (Jinja2) into one HTML file: tables shaped like the
+paper's (novel view / novel pose, full vs body_only), fitting error per frame and per
+ablation, rig RMSE per bone count, run time and memory per stage, image grids
+(ground truth | render | error heat map), the trade-off plots, and "skipped and why".
+Charts are inline SVG (:mod:`anidress_core.plots`), images inline PNG. A small script in
+the page records load errors and counts the images and tables that rendered, in
+``<body data-*>`` attributes a headless-browser test reads.
+"""
+from __future__ import annotations
+
+import base64
+import csv
+import datetime
+import json
+import logging
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .. import __version__, plots
+from ..io import files
+
+__all__ = ["collect_report", "render_report", "run_report"]
+
+log = logging.getLogger("anidress.report")
+
+VARIANTS = ("full", "body_only")
+
+
+# --------------------------------------------------------------------------- small readers
+
+
+def _read_csv(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _num(x) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return float("nan")
+    return v
+
+
+def _png_data_uri(img: np.ndarray) -> str:
+    """(H, W, 3) float [0, 1] or uint8 -> data:image/png;base64,..."""
+    import cv2
+
+    a = np.asarray(img)
+    if a.dtype != np.uint8:
+        a = (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
+    ok, buf = cv2.imencode(".png", a[..., ::-1] if a.ndim == 3 else a)
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def _heat(err: np.ndarray, vmax: float) -> np.ndarray:
+    """Per-pixel error (H, W) -> colour heat map (H, W, 3) uint8 (OpenCV's inferno)."""
+    import cv2
+
+    u8 = (np.clip(err / max(vmax, 1e-12), 0, 1) * 255).astype(np.uint8)
+    return cv2.applyColorMap(u8, cv2.COLORMAP_INFERNO)[..., ::-1]
+
+
+def _stats(vals) -> dict:
+    v = np.asarray([x for x in vals if math.isfinite(x)], dtype=np.float64)
+    if v.size == 0:
+        return {"mean": float("nan"), "p95": float("nan"), "worst": float("nan"), "n": 0}
+    return {"mean": float(v.mean()), "p95": float(np.percentile(v, 95)), "worst": float(v.max()), "n": int(v.size)}
+
+
+# --------------------------------------------------------------------------- sections
+
+
+def _sims(res: Path) -> list[dict]:
+    out = []
+    for p in sorted((res / "sim").glob("*.npz")):
+        try:
+            a, h = files.load_npz(p)
+        except files.ArtifactError as e:
+            out.append({"motion": p.stem, "error": str(e)})
+            continue
+        meta = h.get("meta", {})
+        fr = a.get("frames")
+        out.append({"motion": p.stem, "frames": int(fr.shape[0]) if fr is not None else 0,
+                    "max_stretch": float(np.max(a["max_stretch"])) if "max_stretch" in a else float("nan"),
+                    "max_penetration_mm": 1e3 * float(np.max(a["max_penetration_m"]))
+                    if "max_penetration_m" in a else float("nan"),
+                    "nan": int(np.sum(a["nan_count"])) if "nan_count" in a else 0,
+                    "recoveries": len(meta.get("recoveries", [])), "wall_s": float(meta.get("wall_s", float("nan")))})
+    return out
+
+
+def _rig(res: Path) -> dict | None:
+    p = res / "rig.npz"
+    if not p.is_file():
+        return None
+    a, h = files.load_npz(p, required=("rmse", "rmse_per_sequence", "sequences", "weights"))
+    meta = h.get("meta", {})
+    return {"bones": int(a["weights"].shape[1]), "vertices": int(a["weights"].shape[0]),
+            "rmse_mm": 1e3 * float(a["rmse"]), "wall_s": float(meta.get("wall_s", float("nan"))),
+            "frames_decomposed": meta.get("frames_decomposed"),
+            "per_sequence": [{"name": str(n), "rmse_mm": 1e3 * float(r)}
+                             for n, r in zip(a["sequences"], a["rmse_per_sequence"])],
+            "history_mm": [1e3 * x for x in meta.get("history_m", [])]}
+
+
+def _fit(res: Path, seq: str) -> dict | None:
+    p = res / seq / "fit_metrics.csv"
+    if not p.is_file():
+        return None
+    rows = _read_csv(p)
+    methods: dict[str, list[dict]] = {}
+    for r in rows:
+        methods.setdefault(r["method"], []).append(r)
+    table, series = [], []
+    for m, rs in methods.items():
+        rs.sort(key=lambda r: int(r["frame"]))
+        rm = [_num(r["vertex_rmse_m"]) * 1e3 for r in rs]
+        wall = [_num(r.get("wall_s")) for r in rs]
+        tw = float(np.nansum(wall)) if wall else float("nan")
+        table.append({"method": m, "rmse_mm": _stats(rm), "floor_mm": _stats([_num(r["rig_floor_rmse_m"]) * 1e3
+                                                                              for r in rs]),
+                      "chamfer_mm": _stats([_num(r["chamfer_m"]) * 1e3 for r in rs]),
+                      "nc": _stats([_num(r["normal_consistency"]) for r in rs]),
+                      "jitter_mm": _stats([_num(r["jitter_m"]) * 1e3 for r in rs]),
+                      "gt_jitter_mm": _stats([_num(r["gt_jitter_m"]) * 1e3 for r in rs]),
+                      "fps": len(rs) / tw if tw > 0 else float("nan")})
+        series.append((m, [int(r["frame"]) for r in rs], rm))
+    chart = plots.line_chart(series, f"{seq}: garment vertex RMSE per frame", "frame", "vertex RMSE (mm)")
+    curves = None
+    gp = res / seq / "garment_poses.npz"
+    if gp.is_file():
+        a, _ = files.load_npz(gp)
+        if "curve" in a:
+            c = np.asarray(a["curve"], dtype=np.float64)
+            pick = sorted({0, c.shape[0] // 2, c.shape[0] - 1})
+            curves = plots.line_chart([(f"frame {t}", list(range(c.shape[1])), list(c[t])) for t in pick],
+                                      f"{seq}: fitting loss per accepted step", "step", "weighted loss", logy=True)
+    return {"table": table, "chart": chart, "curves": curves}
+
+
+def _field(res: Path, data: Path, seq: str, info: dict) -> dict:
+    out = {"variants": {}, "grids": []}
+    for v in VARIANTS:
+        p = res / seq / v / "metrics_summary.json"
+        if p.is_file():
+            out["variants"][v] = files.read_json(p)
+    # image grid: ground truth | full | body_only | |error| of full, for one novel-view and one novel-pose image
+    for kind, rel in (("novel_view", "novel_view"), *[("novel_pose", f"novel_pose/{s['name']}")
+                                                      for s in info.get("sequences", []) if s["role"] == "novel_pose"]):
+        folder = res / seq / "full" / "renders" / rel
+        rj = folder / "render.json"
+        if not rj.is_file():
+            continue
+        r = files.read_json(rj)
+        frames, cams = r.get("frames", []), r.get("cameras", [])
+        if not frames or not cams:
+            continue
+        f, cam = frames[len(frames) // 2], cams[0]
+        gseq = seq if kind == "novel_view" else rel.split("/", 1)[1]
+        try:
+            img = files.read_image(data / gseq / "images" / cam / f"{f:06d}.png")
+            mask = files.read_mask(data / gseq / "gt" / "masks" / cam / f"{f:06d}.png") > 0
+            bg = np.asarray(r.get("background", [0.0, 0.0, 0.0]), dtype=np.float32)
+            gt = np.where(mask[..., None], img, bg)
+            tiles = [("ground truth", gt)]
+            err = None
+            for v in VARIANTS:
+                pp = res / seq / v / "renders" / rel / "rgb" / cam / f"{f:06d}.png"
+                if pp.is_file():
+                    pred = files.read_image(pp)
+                    tiles.append((v, pred))
+                    if v == "full":
+                        err = np.abs(pred - gt).mean(-1)
+            if err is not None:
+                tiles.append(("|error| full (0..0.25)", _heat(err, 0.25)))
+        except (FileNotFoundError, files.ArtifactError) as e:
+            log.warning("report: image grid %s %s skipped: %s", seq, kind, e)
+            continue
+        out["grids"].append({"kind": kind, "sequence": gseq, "camera": cam, "frame": f,
+                             "tiles": [{"label": lab, "src": _png_data_uri(t)} for lab, t in tiles]})
+    return out
+
+
+def _runtimes(root: Path, scene: str) -> list[dict]:
+    """Snakemake benchmark TSVs of one scene: stage (rule dir), job, seconds, max RSS MB."""
+    base = root / "benchmarks" / "runs" / scene
+    out = []
+    for p in sorted(base.rglob("*.tsv")) if base.is_dir() else []:
+        rows = list(csv.DictReader(open(p), delimiter="\t"))
+        if not rows:
+            continue
+        rel = p.relative_to(base).with_suffix("")
+        job = str(rel)
+        stage = rel.parts[-1] if len(rel.parts) == 1 else (rel.parts[0] if rel.parts[0] in
+                                                            ("simulate", "motions", "masks", "flows") else rel.parts[-1])
+        out.append({"stage": stage, "job": job, "s": _num(rows[-1].get("s")), "max_rss_mb": _num(rows[-1].get("max_rss")),
+                    "cpu_time_s": _num(rows[-1].get("cpu_time"))})
+    return out
+
+
+def _tradeoffs(root: Path) -> dict:
+    """benchmarks/tradeoffs.csv -> one Pareto chart per (stage, error metric)."""
+    p = root / "benchmarks" / "tradeoffs.csv"
+    if not p.is_file():
+        return {"available": False, "path": str(p)}
+    rows = _read_csv(p)
+    charts, verdicts = [], []
+    keys = list(dict.fromkeys((r["stage"], r["error_metric"]) for r in rows))
+    for stage, metric in keys:
+        rs = [r for r in rows if r["stage"] == stage and r["error_metric"] == metric]
+        pts = [{"x": _num(r["wall_s"]), "y": _num(r["error"]), "label": f"{r['knob']}={r['value']}",
+                "group": r["knob"], "highlight": r.get("is_default") in ("1", "True", "true")} for r in rs]
+        charts.append(plots.scatter_chart(pts, f"{stage}: {metric} vs run time", "wall time (s, log)",
+                                          metric))
+        good = [q for q in pts if math.isfinite(q["x"]) and math.isfinite(q["y"])]
+        front = {good[i]["label"] for i in plots.pareto_front([(q["x"], q["y"]) for q in good])}
+        for q in good:
+            if q["highlight"]:
+                verdicts.append({"stage": stage, "metric": metric, "default": q["label"],
+                                 "on_front": q["label"] in front,
+                                 "dominated_by": [o["label"] for o in good if o["x"] <= q["x"] and o["y"] <= q["y"]
+                                                  and (o["x"] < q["x"] or o["y"] < q["y"])]})
+    return {"available": True, "charts": charts, "verdicts": verdicts, "rows": len(rows)}
+
+
+def _rig_sweep(root: Path) -> str | None:
+    p = root / "benchmarks" / "rig.csv"
+    if not p.is_file():
+        return None
+    rows = [r for r in _read_csv(p) if "sweep" in r.get("method", "")]
+    if not rows:
+        return None
+    rows.sort(key=lambda r: int(r["bones_asked"]))
+    return plots.line_chart([("RMSE", [int(r["bones_asked"]) for r in rows], [_num(r["rmse_m"]) * 1e3 for r in rows])],
+                            f"rig RMSE per bone count ({rows[0]['vertices']} vertices x {rows[0]['frames']} frames)",
+                            "bones B", "RMSE (mm)")
+
+
+# --------------------------------------------------------------------------- collect / render
+
+
+def collect_report(config: dict, root: str | os.PathLike = ".") -> dict:
+    """Everything the page shows, from the files under ``root`` (data/, results/, benchmarks/)."""
+    root = Path(root)
+    scenes, skipped = [], []
+    for name in config["run_scenes"]:
+        scfg = config["scenes"][name]
+        data, res = root / "data" / name, root / "results" / name
+        info = {}
+        if (data / "scene.yaml").is_file():
+            info = yaml.safe_load((data / "scene.yaml").read_text()) or {}
+        garment = scfg.get("kind", "tight") != "tight"
+        if not garment:
+            skipped.append({"scene": name, "stage": "template, simulate, rig, fit", "reason":
+                            "tight-clothed scene (no garment template): the field uses body poses only "
+                            "(DESIGN.md §6)"})
+        check = files.read_json(res / "scene_check.json") if (res / "scene_check.json").is_file() else None
+        seqs = []
+        for s in scfg.get("sequences", []):
+            seq = s["name"]
+            ent = {"name": seq, "role": s["role"], "frames": s.get("frames"), "fit": None, "field": None}
+            nj = res / seq / "normals.json"
+            if nj.is_file():
+                n = files.read_json(nj)
+                if n.get("skipped"):
+                    skipped.append({"scene": name, "stage": f"normals ({seq})",
+                                    "reason": f"{n.get('reason', 'no normals')}: normal loss weight 0"})
+                elif n.get("shipped") or n.get("source"):
+                    skipped.append({"scene": name, "stage": f"normal estimation ({seq})",
+                                    "reason": f"normals shipped with the data used as they are ({n.get('source', '')})"})
+            if (data / seq / "masks").is_dir():
+                skipped.append({"scene": name, "stage": f"mask estimation ({seq})",
+                                "reason": "masks shipped with the data used as they are"})
+            if garment:
+                ent["fit"] = _fit(res, seq)
+            if s["role"] == "train":
+                ent["field"] = _field(res, data, seq, info or scfg)
+                for v, summ in ent["field"]["variants"].items():
+                    for metric in ("lpips", "dists"):
+                        note = summ.get(metric, "")
+                        if note and note != "available":
+                            skipped.append({"scene": name, "stage": f"{metric.upper()} ({seq}, {v})",
+                                            "reason": f"unavailable: {note}"})
+            seqs.append(ent)
+        rt = _runtimes(root, name)
+        by_stage: dict[str, list[dict]] = {}
+        for r in rt:
+            by_stage.setdefault(r["stage"], []).append(r)
+        stage_rows = [{"stage": k, "jobs": len(v), "total_s": float(np.nansum([r["s"] for r in v])),
+                       "max_s": float(np.nanmax([r["s"] for r in v])),
+                       "max_rss_mb": float(np.nanmax([r["max_rss_mb"] for r in v]))} for k, v in by_stage.items()]
+        stage_rows.sort(key=lambda r: -r["total_s"])
+        scenes.append({
+            "name": name, "kind": scfg.get("kind"), "garment": garment, "info": info, "check": check,
+            "sims": _sims(res) if garment else [], "rig": _rig(res) if garment else None, "sequences": seqs,
+            "runtimes": stage_rows,
+            "runtime_chart": plots.bar_chart([(r["stage"], r["total_s"]) for r in stage_rows],
+                                             f"{name}: wall time per stage (all its jobs)", "seconds"),
+        })
+    return {
+        "title": "AniDress pipeline report", "created": datetime.datetime.now().isoformat(timespec="seconds"),
+        "code_version": __version__, "config_hash": files.config_hash(config), "scenes": scenes,
+        "skipped": skipped, "tradeoffs": _tradeoffs(root), "rig_sweep": _rig_sweep(root),
+    }
+
+
+def _fmt(x, digits=3):
+    if x is None:
+        return "–"
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if not math.isfinite(v):
+        return "n/a"
+    return f"{v:.{digits}f}"
+
+
+def render_report(data: dict, template_dir: str | os.PathLike, out_html: str | os.PathLike) -> None:
+    """Render ``report.html.j2`` from ``template_dir`` with ``data`` into ``out_html`` (atomic)."""
+    import jinja2
+
+    env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(template_dir)), autoescape=True,
+                             undefined=jinja2.StrictUndefined)
+    env.filters["f"] = _fmt
+    html = env.get_template("report.html.j2").render(**data)
+    files.write_text(out_html, html)
+
+
+def run_report(config: dict, out_html: str | os.PathLike, root: str | os.PathLike = ".",
+               template_dir: str | os.PathLike | None = None) -> dict:
+    """Collect and render the report; returns the collected data."""
+    tdir = Path(template_dir) if template_dir else Path(__file__).resolve().parents[2] / "reports"
+    if not (tdir / "report.html.j2").is_file():
+        raise FileNotFoundError(f"{tdir / 'report.html.j2'}: report template not found")
+    data = collect_report(config, root)
+    render_report(data, tdir, out_html)
+    log.info("report: %s (%d scenes, %d skips)", out_html, len(data["scenes"]), len(data["skipped"]))
+    return data

@@ -1,0 +1,143 @@
+"""The HTML report (anidress_core.stages.report): content from the pipeline's files, and a
+real headless browser (Debian chromium) loading it without errors."""
+import csv
+import json
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from anidress_core import plots
+from anidress_core.io import files
+from anidress_core.stages.report import collect_report, run_report
+
+REPO = Path(__file__).resolve().parents[1]
+H = W = 24
+
+
+def _tree(root: Path) -> dict:
+    """A tiny but complete results tree: one skirt scene, one training + one novel-pose sequence."""
+    rng = np.random.default_rng(0)
+    cfg = {"run_scenes": ["sk", "tt"],
+           "scenes": {"sk": {"kind": "skirt", "sequences": [{"name": "walk", "role": "train", "frames": 3},
+                                                            {"name": "dance", "role": "novel_pose", "frames": 3}]},
+                      "tt": {"kind": "tight", "sequences": [{"name": "walk", "role": "train", "frames": 3}]}}}
+    data, res = root / "data" / "sk", root / "results" / "sk"
+    (data).mkdir(parents=True)
+    (data / "scene.yaml").write_text(yaml.safe_dump({"sequences": cfg["scenes"]["sk"]["sequences"]}))
+    files.write_json(res / "scene_check.json", {"sequences": {"walk": {}, "dance": {}}, "cameras": {
+        "train": ["01"], "test": ["02"]}, "image_size": [H, W], "checks": ["a", "b"], "warnings": []})
+    for m in ("lib-twirl", "seq-walk"):
+        files.save_npz(res / "sim" / f"{m}.npz", {"frames": np.zeros((3, 5, 3), np.float32),
+                                                  "max_stretch": np.array([1.01, 1.02, 1.05]),
+                                                  "max_penetration_m": np.zeros(3), "nan_count": np.zeros(3, int)},
+                       meta={"wall_s": 1.5, "recoveries": []})
+    files.save_npz(res / "rig.npz", {"rmse": np.float64(0.004), "rmse_per_sequence": np.array([0.003, 0.005]),
+                                     "sequences": np.array(["lib-twirl", "seq-walk"]), "weights": np.ones((5, 2)) / 2},
+                   meta={"wall_s": 2.0, "frames_decomposed": 6, "history_m": [0.01, 0.005, 0.004]})
+    for seq in ("walk", "dance"):
+        (res / seq).mkdir(parents=True)
+        with open(res / seq / "fit_metrics.csv", "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["method", "frame", "vertex_rmse_m", "rig_floor_rmse_m", "chamfer_m", "normal_consistency",
+                        "jitter_m", "gt_jitter_m", "accel_error_m", "loss", "loss_mask", "loss_normal", "loss_flow",
+                        "iterations", "wall_s"])
+            for meth, base in (("full", 0.005), ("no_flow", 0.007)):
+                for f in range(3):
+                    w.writerow([meth, f, base + 0.001 * f, 0.004, 0.003, 0.95, 0.001, 0.001, 0.0, 1, 1, 1, 1, 5, 0.5])
+        files.save_npz(res / seq / "garment_poses.npz", {"curve": np.array([[3.0, 2.0, 1.0], [2.0, 1.5, np.nan],
+                                                                             [1.0, 0.5, 0.4]])})
+    # renders, images and masks of one novel-view and one novel-pose image
+    for kind, seq, rel in (("novel_view", "walk", "novel_view"), ("novel_pose", "dance", "novel_pose/dance")):
+        img = rng.random((H, W, 3)).astype(np.float32)
+        files.write_png(data / seq / "images" / "02" / "000001.png", img)
+        files.write_mask(data / seq / "gt" / "masks" / "02" / "000001.png", (rng.random((H, W)) > 0.5).astype(np.uint8))
+        for v in ("full", "body_only"):
+            d = res / "walk" / v / "renders" / rel
+            files.write_json(d / "render.json", {"frames": [0, 1, 2], "cameras": ["02"], "background": [0, 0, 0]})
+            files.write_png(d / "rgb" / "02" / "000001.png", np.clip(img + 0.05, 0, 1))
+    for v, psnr in (("full", 27.5), ("body_only", 26.9)):
+        files.write_json(res / "walk" / v / "metrics_summary.json", {
+            "metrics": [{"kind": "novel_view", "sequence": "walk", "images": 3, "psnr_db": psnr + 1, "ssim": 0.9,
+                         "iou": 0.95, "lpips": float("nan"), "dists": float("nan")},
+                        {"kind": "novel_pose", "sequence": "dance", "images": 3, "psnr_db": psnr, "ssim": 0.88,
+                         "iou": 0.93, "lpips": float("nan"), "dists": float("nan")}],
+            "lpips": "weights not found (test)", "dists": "weights not found (test)"})
+    files.write_json(res / "walk" / "normals.json", {"skipped": True, "reason": "no normals shipped"})
+    tsv = root / "benchmarks" / "runs" / "sk"
+    (tsv / "simulate").mkdir(parents=True)
+    for p, s in ((tsv / "rig.tsv", 12.0), (tsv / "simulate" / "lib-twirl.tsv", 30.0)):
+        p.write_text("s\th:m:s\tmax_rss\tcpu_time\n" + f"{s}\t0:00:12\t512.0\t{s}\n")
+    with open(root / "benchmarks" / "tradeoffs.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["stage", "knob", "value", "wall_s", "error", "error_metric", "is_default"])
+        for b, t, e in ((10, 2.0, 5.1), (25, 5.0, 2.2), (30, 6.0, 1.8)):
+            w.writerow(["rig", "bones", b, t, e, "rig RMSE (mm)", int(b == 25)])
+    return cfg
+
+
+def test_report_content(tmp_path):
+    cfg = _tree(tmp_path)
+    d = collect_report(cfg, tmp_path)
+    sk = d["scenes"][0]
+    assert sk["rig"]["rmse_mm"] == pytest.approx(4.0) and len(sk["sims"]) == 2
+    fit = sk["sequences"][0]["fit"]["table"]
+    assert {r["method"] for r in fit} == {"full", "no_flow"}
+    assert fit[0]["rmse_mm"]["mean"] == pytest.approx(6.0) and fit[0]["rmse_mm"]["worst"] == pytest.approx(7.0)
+    grids = sk["sequences"][0]["field"]["grids"]
+    assert [g["kind"] for g in grids] == ["novel_view", "novel_pose"] and len(grids[0]["tiles"]) == 4
+    reasons = " ".join(k["reason"] for k in d["skipped"])
+    assert "tight-clothed" in reasons and "normal loss weight 0" in reasons and "unavailable" in reasons
+    assert d["tradeoffs"]["verdicts"] == [{"stage": "rig", "metric": "rig RMSE (mm)", "default": "bones=25",
+                                           "on_front": True, "dominated_by": []}]
+    out = tmp_path / "report.html"
+    run_report(cfg, out, tmp_path)
+    html = out.read_text()
+    assert "27.50" in html and "26.90" in html and "28.50" in html  # novel pose / view PSNR of both variants
+    assert html.count("<table") >= 6 and html.count("<svg") >= 4 and html.count("data:image/png;base64") == 8
+
+
+def test_pareto_front_and_empty_charts():
+    pts = [(1, 5), (2, 3), (3, 3), (4, 1), (5, 2)]
+    assert plots.pareto_front(pts) == [0, 1, 3]
+    assert "no data" in plots.line_chart([("a", [1], [float("nan")])], "t", "x", "y")
+    assert "<path" in plots.scatter_chart([{"x": 1, "y": 2}, {"x": 2, "y": 1}], "t", "x", "y")
+
+
+def _chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        p = shutil.which(name)
+        if p:
+            return p
+    return None
+
+
+def test_report_loads_in_a_headless_browser(tmp_path):
+    exe = _chromium()
+    if exe is None:
+        if os.environ.get("ANIDRESS_NO_BROWSER") == "1":
+            pytest.skip("ANIDRESS_NO_BROWSER=1: browser check disabled explicitly")
+        pytest.fail("Debian chromium not found: `apt-get install chromium` (.ci/run does), "
+                    "or set ANIDRESS_NO_BROWSER=1 to skip this check on purpose")
+    cfg = _tree(tmp_path)
+    out = tmp_path / "report.html"
+    run_report(cfg, out, tmp_path)
+    with tempfile.TemporaryDirectory() as profile:
+        res = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                              "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                              f"--user-data-dir={profile}", "--virtual-time-budget=5000", "--dump-dom",
+                              out.resolve().as_uri()], capture_output=True, text=True, timeout=120)
+    body = re.search(r"<body([^>]*)>", res.stdout)
+    assert body, f"no DOM from chromium (rc {res.returncode}): {res.stderr[-1500:]}"
+    attrs = dict(re.findall(r'data-([a-z-]+)="([^"]*)"', body.group(1)))
+    assert attrs.get("loaded") == "1", attrs
+    assert attrs["errors"] == "0", attrs.get("error-list")
+    assert int(attrs["images"]) == 8 and attrs["images-ok"] == attrs["images"]
+    assert int(attrs["tables"]) >= 6 and int(attrs["svgs"]) >= 4
+    assert "Skipped and why" in res.stdout and "Ours w/o G" in res.stdout
