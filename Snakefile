@@ -8,8 +8,10 @@ include: "workflow/rules/cues.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/field.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/report.smk"  # last: its input is everything above
 
 
 rule all:
     input:
         get_final_outputs(),
+        "results/report.html",

@@ -55,10 +55,19 @@ def motion_params(wildcards):
 
 
 def get_final_outputs():
-    """Everything `rule all` builds: scene datasets; garment simulations and the rig where there is a garment."""
-    out = [f"data/{s}" for s in SCENES]
+    """Everything the report summarises (`rule all` adds the report itself).
+
+    Per scene: the scene check, the dataset; for garment scenes the simulations, the rig,
+    the 2D cues and the fits (with metrics on synthetic scenes); the field's metrics and
+    renders of every training sequence (tight scenes: body joints only, DESIGN.md §6).
+    """
+    out = []
     for s in SCENES:
+        out += [f"data/{s}", f"results/{s}/scene_check.json"]
         if has_garment(s):
             out += expand("results/{scene}/sim/{motion}.npz", scene=s, motion=sim_motion_names(s))
             out.append(f"results/{s}/rig.npz")
+            out += cues_outputs(s)
+            out += fit_outputs(s)
+        out += field_outputs(s)
     return out

@@ -32,7 +32,7 @@ def field_masks(scene, seq):
 def field_train_inputs(wildcards):
     """Scene, masks (when a rule makes them), template; rig and fitted garment poses for `full`."""
     scene, seq, variant = wildcards.scene, wildcards.seq, wildcards.variant
-    inp = {"scene": f"data/{scene}"}
+    inp = {"scene": f"data/{scene}", "check": ancient(f"results/{scene}/scene_check.json")}
     m = field_masks(scene, seq)
     if m.startswith("results/"):
         inp["masks"] = m

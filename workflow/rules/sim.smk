@@ -6,6 +6,7 @@
 rule template:
     input:
         "data/{scene}",
+        check=ancient("results/{scene}/scene_check.json"),
     output:
         ply="results/{scene}/template.ply",
         npz="results/{scene}/template.npz",
@@ -27,6 +28,7 @@ rule template:
 rule motions:
     input:
         "data/{scene}",
+        check=ancient("results/{scene}/scene_check.json"),
     output:
         "results/{scene}/motions/{motion}.npz",
     log:
