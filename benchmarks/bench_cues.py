@@ -49,7 +49,7 @@ from anidress_core.stages import cues as sc  # noqa: E402
 from anidress_core.stages.scene import read_scene  # noqa: E402
 
 COLUMNS = ["scene", "sequence", "cue", "method", "reference", "cameras", "frames", "wall_s", "per_frame_s",
-           "per_pair_ms", "region_frac", "iou_subject", "iou_body", "iou_garment", "epe_all_px", "epe_subject_px",
+           "per_pair_ms", "prior_ms_per_pair", "region_frac", "iou_subject", "iou_body", "iou_garment", "epe_all_px", "epe_subject_px",
            "epe_garment_px", "epe_garment_gt3px_frac", "epe_garment_x_s_per_pair", "normal_subject_mean_deg",
            "normal_subject_median_deg", "normal_garment_mean_deg", "normal_garment_median_deg",
            "normal_garment_within20_frac", "default", "notes"]
@@ -115,30 +115,46 @@ def prior_iou(scene_dir: Path, seq: str, tpl: Path, frames: list[int]) -> dict:
 
 
 def interleaved_timing(scene_dir: Path, seq: str, names: list[str], frames: list[int], masks_dir: Path,
-                       methods: list[str], margin: int, pairs: int = 24, repeats: int = 3,
-                       full_frame: bool = False) -> dict[str, float]:
+                       methods: list[str], margin: int, prior=None, downsample: int = 1, pairs: int = 24,
+                       repeats: int = 3, full_frame: bool = False) -> dict[str, float]:
     """Median seconds per pair of each method, the methods interleaved pair by pair (and their
-    order rotated) so that load changes on a shared machine hit every method alike."""
+    order rotated) so that load changes on a shared machine hit every method alike. With
+    ``prior`` (stages.cues._Prior) the methods get its flow as initialisation, as in the stage."""
     from anidress_core.cues import flow as cf
 
     rng = np.random.default_rng(0)
-    picks = [(names[rng.integers(len(names))], int(rng.integers(1, len(frames)))) for _ in range(pairs)]
+    picks = [(int(rng.integers(len(names))), int(rng.integers(1, len(frames)))) for _ in range(pairs)]
     times: dict[str, list[float]] = {m: [] for m in methods}
-    for k, (cam, i) in enumerate(picks):
-        f0, f1 = frames[i - 1], frames[i]
+    for k, (c, i) in enumerate(picks):
+        cam, f0, f1 = names[c], frames[i - 1], frames[i]
         g0 = cf.to_gray8(files.read_image(sc.image_path(scene_dir / seq, cam, f0)))
         g1 = cf.to_gray8(files.read_image(sc.image_path(scene_dir / seq, cam, f1)))
         region = cf.flow_region(files.read_mask(masks_dir / cam / f"{f0:06d}.png"),
                                 files.read_mask(masks_dir / cam / f"{f1:06d}.png"), margin)
         if region is None:
             continue
+        init = prior.flow(f0, f1, downsample)[c] if prior is not None else None
         order = methods[k % len(methods):] + methods[: k % len(methods)]
         for _ in range(repeats):
             for m in order:
-                times[m].append(cf.estimate_flow(g0, g1, m, region).compute_s)
+                times[m].append(cf.estimate_flow(g0, g1, m, region, init=init).compute_s)
                 if full_frame:
-                    times.setdefault(m + " full frame", []).append(cf.estimate_flow(g0, g1, m, None).compute_s)
+                    times.setdefault(m + " full frame", []).append(
+                        cf.estimate_flow(g0, g1, m, None, init=init).compute_s)
     return {m: float(np.median(t)) for m, t in times.items()}
+
+
+def prior_flow_only(src: Path, seq: str, prior, names: list[str], frames: list[int], downsample: int,
+                    out: Path) -> float:
+    """Write the prior's flow alone (no image) as a flows folder; returns seconds per frame."""
+    t0 = time.perf_counter()
+    for i in range(1, len(frames)):
+        fl = prior.flow(frames[i - 1], frames[i], downsample)
+        for c, cam in enumerate(names):
+            files.write_exr(out / cam / f"{frames[i]:06d}.exr",
+                            np.concatenate([fl[c], np.ones(fl.shape[1:3] + (1,), np.float32)], -1),
+                            ("X", "Y", "valid"))
+    return (time.perf_counter() - t0) / max(1, len(frames) - 1)
 
 
 def main() -> None:
@@ -212,21 +228,37 @@ def main() -> None:
                     default_masks = tmp / scene / seq / "masks_default"
                     sc.run_masks(src, seq, default_masks, cfg["masks"], tpl, progress=False, threads=1)
 
-                # ---- flows (on the default estimated masks' region)
-                timing = interleaved_timing(src, seq, names, frames, default_masks, flow_methods,
-                                            cfg["flows"]["margin_px"])
+                # ---- flows (on the default estimated masks' region, initialised as configured)
+                fcfg = cfg["flows"]
+                ds = int(fcfg["prior_downsample"])
+                prior = None
+                if fcfg["prior"]:
+                    prior = sc._Prior(src, seq, info, tpl, sc._cameras(src / seq, names, info), frames)
+                timing = interleaved_timing(src, seq, names, frames, default_masks, flow_methods, fcfg["margin_px"],
+                                            prior, ds)
+                prior_ms = 0.0
+                if prior is not None:
+                    out = tmp / scene / seq / "flows_prior_only"
+                    per_frame = prior_flow_only(src, seq, prior, names, frames, ds, out)
+                    prior_ms = 1e3 * per_frame / len(names)
+                    ev = sc.evaluate_cues(src, seq, flows_dir=out)
+                    rows.append({**base, "cue": "flows", "method": "prior flow alone", "reference": "ground-truth flow",
+                                 "per_pair_ms": prior_ms, "per_frame_s": per_frame, **_pick(ev, "epe_"),
+                                 "notes": f"posed body + skinned template, rasterised at 1/{ds} size, no image"})
+                how = f"prior-initialised (1/{ds} size, {prior_ms:.1f} ms per pair)" if prior is not None else "plain"
                 flow_rows = []
                 for method in list(flow_methods):
                     out = tmp / scene / seq / f"flows_{method}"
-                    st = sc.run_flows(src, seq, default_masks, out, {**cfg["flows"], "method": method}, threads=1,
+                    st = sc.run_flows(src, seq, default_masks, out, {**fcfg, "method": method}, tpl, threads=1,
                                       progress=False)
                     ev = sc.evaluate_cues(src, seq, flows_dir=out)
                     t = timing[method]
+                    total = t + prior_ms / 1e3
                     r = {**base, "cue": "flows", "method": method, "reference": "ground-truth flow",
-                         "wall_s": st["wall_s"], "per_pair_ms": 1e3 * t, "per_frame_s": t * len(names),
-                         "region_frac": st["region_fraction"], **_pick(ev, "epe_"),
-                         "epe_garment_x_s_per_pair": ev["epe_garment_px"] * t,
-                         "notes": f"region: estimated masks, margin {cfg['flows']['margin_px']} px; whole-sequence "
+                         "wall_s": st["wall_s"], "per_pair_ms": 1e3 * t, "prior_ms_per_pair": prior_ms,
+                         "per_frame_s": total * len(names), "region_frac": st["region_fraction"],
+                         **_pick(ev, "epe_"), "epe_garment_x_s_per_pair": ev["epe_garment_px"] * total,
+                         "notes": f"{how}; region: estimated masks, margin {fcfg['margin_px']} px; whole-sequence "
                                   f"run {1e3 * st['compute_s_per_pair']:.1f} ms per pair"}
                     rows.append(r)
                     flow_rows.append(r)
@@ -239,22 +271,35 @@ def main() -> None:
                     zero = {k.replace("epe_zero_", "epe_"): v for k, v in ev.items() if k.startswith("epe_zero_")}
                 best = min(flow_rows, key=lambda r: r["epe_garment_x_s_per_pair"]) if flow_rows else None
                 if best is not None:
-                    best["default"] = "best error x time" + (" (= config)" if best["method"] == cfg["flows"]["method"]
-                                                             else f" (config has {cfg['flows']['method']})")
-                    # the same method on the full frame: what the region restriction saves
+                    best["default"] = "best error x time" + (" (= config)" if best["method"] == fcfg["method"]
+                                                             else f" (config has {fcfg['method']})")
+                    m = best["method"]
+                    # the same method without the prior, and on the full frame: what each part brings
+                    if prior is not None:
+                        out = tmp / scene / seq / "flows_plain"
+                        st = sc.run_flows(src, seq, default_masks, out, {**fcfg, "method": m, "prior": False}, tpl,
+                                          threads=1, progress=False)
+                        ev = sc.evaluate_cues(src, seq, flows_dir=out)
+                        tp = interleaved_timing(src, seq, names, frames, default_masks, [m], fcfg["margin_px"])[m]
+                        rows.append({**base, "cue": "flows", "method": m + " without prior",
+                                     "reference": "ground-truth flow", "wall_s": st["wall_s"], "per_pair_ms": 1e3 * tp,
+                                     "per_frame_s": tp * len(names), "region_frac": st["region_fraction"],
+                                     **_pick(ev, "epe_"), "epe_garment_x_s_per_pair": ev["epe_garment_px"] * tp,
+                                     "notes": "cues/flows/prior false"})
                     out = tmp / scene / seq / "flows_full"
-                    st = sc.run_flows(src, seq, default_masks, out, {"method": best["method"], "margin_px": 1 << 20},
+                    st = sc.run_flows(src, seq, default_masks, out, {**fcfg, "method": m, "margin_px": 1 << 20}, tpl,
                                       threads=1, progress=False)
                     ev = sc.evaluate_cues(src, seq, flows_dir=out)
-                    tt = interleaved_timing(src, seq, names, frames, default_masks, [best["method"]],
-                                            cfg["flows"]["margin_px"], full_frame=True)
-                    t_full, t_reg = tt[best["method"] + " full frame"], tt[best["method"]]
-                    rows.append({**base, "cue": "flows", "method": best["method"] + " full frame",
+                    tt = interleaved_timing(src, seq, names, frames, default_masks, [m], fcfg["margin_px"], prior, ds,
+                                            full_frame=True)
+                    t_full, t_reg = tt[m + " full frame"], tt[m]
+                    rows.append({**base, "cue": "flows", "method": m + " full frame",
                                  "reference": "ground-truth flow", "wall_s": st["wall_s"],
-                                 "per_pair_ms": 1e3 * t_full, "per_frame_s": t_full * len(names), "region_frac": 1.0,
+                                 "per_pair_ms": 1e3 * t_full, "prior_ms_per_pair": prior_ms,
+                                 "per_frame_s": (t_full + prior_ms / 1e3) * len(names), "region_frac": 1.0,
                                  **_pick(ev, "epe_"),
-                                 "notes": f"no region restriction: {t_full / t_reg:.2f}x the time of the region "
-                                          f"(timed interleaved with it)"})
+                                 "notes": f"{how}; no region restriction: {t_full / t_reg:.2f}x the time of the "
+                                          "region (timed interleaved with it)"})
                     rows.append({**base, "cue": "flows", "method": "zero flow", "reference": "ground-truth flow",
                                  **_pick(zero, "epe_"), "notes": "no motion: the size of the motion"})
                 rows.append({**base, "cue": "flows", "method": "ground-truth flow", "reference": "ground-truth flow",
@@ -297,7 +342,7 @@ def overall_masks(rows: list[dict], configured: str) -> list[str]:
 def overall_choice(rows: list[dict], configured: str) -> list[str]:
     """The flow method with the lowest mean garment EPE x mean seconds per pair over every
     benchmarked sequence it ran on (only methods run on all of them compete)."""
-    flows = [r for r in rows if r["cue"] == "flows" and "epe_garment_x_s_per_pair" in r]
+    flows = [r for r in rows if r["cue"] == "flows" and r["method"] in FLOW_METHODS]
     seqs = {(r["scene"], r["sequence"]) for r in flows}
     score = {}
     for m in {r["method"] for r in flows}:
@@ -305,13 +350,13 @@ def overall_choice(rows: list[dict], configured: str) -> list[str]:
         if {(r["scene"], r["sequence"]) for r in rs} != seqs:
             continue
         epe = float(np.mean([r["epe_garment_px"] for r in rs]))
-        t = float(np.mean([r["per_pair_ms"] for r in rs])) / 1e3
+        t = float(np.mean([r["per_pair_ms"] + r.get("prior_ms_per_pair", 0.0) for r in rs])) / 1e3
         score[m] = (epe * t, epe, t)
     if not score:
         return []
     best = min(score, key=lambda m: score[m][0])
     lines = ["", f"Flow default over all {len(seqs)} benchmarked sequences (mean garment EPE x mean seconds per "
-                 "pair, lower is better):", ""]
+                 "pair, estimator + prior, lower is better):", ""]
     for m, (sc_, epe, t) in sorted(score.items(), key=lambda kv: kv[1][0]):
         lines.append(f"- `{m}`: {epe:.3f} px x {1e3 * t:.2f} ms = {sc_:.3g}"
                      + (" **<- best error per second**" if m == best else ""))
@@ -319,6 +364,21 @@ def overall_choice(rows: list[dict], configured: str) -> list[str]:
     lines.append(f"The config default `cues/flows/method` is `{configured}`"
                  + (": the best by this measure." if configured == best else
                     f"; this run finds `{best}` better by this measure."))
+    # the prior initialisation, on vs off, for the best method
+    off = [r for r in rows if r["cue"] == "flows" and r["method"] == best + " without prior"]
+    on = [r for r in flows if r["method"] == best]
+    if off and len(off) == len(on):
+        e_on, e_off = (float(np.mean([r["epe_garment_px"] for r in x])) for x in (on, off))
+        w_on, w_off = (float(np.mean([r["epe_garment_px"] for r in x])) for x in (
+            [max(on, key=lambda r: r["epe_garment_px"])], [max(off, key=lambda r: r["epe_garment_px"])]))
+        t_prior = float(np.mean([r.get("prior_ms_per_pair", 0.0) for r in on]))
+        lines += ["", f"Prior initialisation (`cues/flows/prior`) for `{best}`: mean garment EPE {e_on:.3f} px with, "
+                      f"{e_off:.3f} px without; worst sequence {w_on:.3f} vs {w_off:.3f} px; it costs "
+                      f"{t_prior:.1f} ms per camera pair (the rasteriser), the same for every method. By error x "
+                      f"time alone it "
+                      + ("pays" if e_on * (float(np.mean([r['per_pair_ms'] for r in on])) + t_prior)
+                         < e_off * float(np.mean([r['per_pair_ms'] for r in off])) else "does not pay")
+                      + "; it is on by default for the error (see the twirl rows)."]
     return lines
 
 
@@ -406,15 +466,19 @@ def write(rows: list[dict], args, started: str, load_before: str, notes_md: list
         "",
         "EPE *all*: every pixel where the ground truth is valid (visible in both frames; outside the processed "
         "region the estimate is 0, right for the static background); *subject* / *garment*: those pixels of "
-        "frame t-1's subject / garment. Times: the OpenCV call alone, one thread, median over 24 camera pairs x 3 "
-        "repeats with the methods interleaved (robust to the load of a shared machine); per frame = all training "
-        "cameras. The default is the lowest garment EPE x seconds per pair.",
+        "frame t-1's subject / garment. The methods are initialised by the flow of the posed body + skinned "
+        "garment template (`cues/flows/prior`; its own error is the row *prior flow alone*, and the default "
+        "method without it is shown too). Times: the estimator call (with the prior's warp and composition) on "
+        "one thread, median over 24 camera pairs x 3 repeats with the methods interleaved (robust to the load of "
+        "a shared machine), plus the prior's rasterisation per pair (the same for every method); per frame = all "
+        "training cameras. The default is the lowest garment EPE x (estimator + prior) seconds per pair.",
         "",
         _table([r for r in rows if r["cue"] == "flows"], [
             ("scene", "scene", ""), ("sequence", "seq", ""), ("method", "method", ""), ("reference", "reference", ""),
             ("epe_all_px", "EPE all", ".4f"), ("epe_subject_px", "EPE subject", ".4f"),
             ("epe_garment_px", "EPE garment", ".4f"), ("epe_garment_gt3px_frac", "garment >3 px", ".4f"),
-            ("per_pair_ms", "ms per pair", ".2f"), ("per_frame_s", "s per frame", ".3f"),
+            ("per_pair_ms", "ms per pair", ".2f"), ("prior_ms_per_pair", "+ prior ms per pair", ".1f"),
+            ("per_frame_s", "s per frame", ".3f"),
             ("region_frac", "pixels processed", ".3f"), ("epe_garment_x_s_per_pair", "EPE x s", ".3g"),
             ("default", "default", ""), ("notes", "notes", "")]),
         "",

@@ -26,9 +26,11 @@ import time
 from typing import NamedTuple
 
 import numpy as np
+import torch
+from torch import Tensor
 
 __all__ = ["FLOW_METHODS", "Region", "FlowEstimate", "flow_region", "to_gray8", "estimate_flow",
-           "make_estimator"]
+           "make_estimator", "mesh_flow", "extend_flow"]
 
 FLOW_METHODS = ("dis_ultrafast", "dis_fast", "dis_medium", "deepflow", "tvl1", "farneback")
 """Names accepted by :func:`estimate_flow` (config ``cues/flows/method``)."""
@@ -113,12 +115,17 @@ def make_estimator(method: str):
 
 
 def estimate_flow(img0: np.ndarray, img1: np.ndarray, method: str, region: Region | None = None,
-                  estimator=None) -> FlowEstimate:
+                  estimator=None, init: np.ndarray | None = None) -> FlowEstimate:
     """Forward flow from ``img0`` (frame t-1) to ``img1`` (frame t) inside ``region``.
 
     img0, img1: (H, W, 3) RGB (float in [0, 1] or uint8) or (H, W) uint8 grey.
     region: the box to process (default: the whole image); flow is 0 and ``valid``
     False outside it. estimator: a reusable object from :func:`make_estimator`.
+    init: optional (H, W, 2) initial flow (e.g. :func:`mesh_flow` of the posed body
+    and skinned garment): ``img1`` is warped back by it, the method estimates the
+    residual r between ``img0`` and the warped image, and the flow is the composition
+    r(x) + init(x + r(x)). Large motions of a periodic texture (a twirling plaid
+    dress) that the coarse-to-fine estimators alias are then only residuals.
     """
     import cv2
 
@@ -130,6 +137,8 @@ def estimate_flow(img0: np.ndarray, img1: np.ndarray, method: str, region: Regio
         raise ValueError(f"estimate_flow: images must match and be uint8, got {g0.shape} {g0.dtype} "
                          f"and {g1.shape} {g1.dtype}")
     H, W = g0.shape
+    if init is not None and init.shape != (H, W, 2):
+        raise ValueError(f"estimate_flow: init must be ({H}, {W}, 2), got {init.shape}")
     flow = np.zeros((H, W, 2), np.float32)
     valid = np.zeros((H, W), bool)
     if region is None:
@@ -137,16 +146,68 @@ def estimate_flow(img0: np.ndarray, img1: np.ndarray, method: str, region: Regio
     y0, y1, x0, x1 = region
     if not (0 <= y0 < y1 <= H and 0 <= x0 < x1 <= W):
         raise ValueError(f"estimate_flow: region {tuple(region)} outside the {H}x{W} image")
-    a = np.ascontiguousarray(g0[y0:y1, x0:x1])
-    b = np.ascontiguousarray(g1[y0:y1, x0:x1])
     est = estimator if estimator is not None else make_estimator(method)
     t0 = time.perf_counter()
+    if init is not None:
+        # 1. warp frame t back by the initial flow: g1w(x) = g1(x + init(x))
+        ys, xs = np.mgrid[0:H, 0:W].astype(np.float32)
+        init = init.astype(np.float32)
+        g1 = cv2.remap(g1, xs + init[..., 0], ys + init[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    a = np.ascontiguousarray(g0[y0:y1, x0:x1])
+    b = np.ascontiguousarray(g1[y0:y1, x0:x1])
+    # 2. the method on the box
     if method == "farneback":
         # OpenCV's documented example parameters (pyramid 0.5, 3 levels, window 15)
         f = cv2.calcOpticalFlowFarneback(a, b, None, 0.5, 3, 15, 3, 5, 1.2, 0)
     else:
         f = est.calc(a, b, None)
+    if init is not None:
+        # 3. compose: x -> x + r(x) in the warped frame is x + r(x) + init(x + r(x)) in frame t
+        ib = np.ascontiguousarray(init[y0:y1, x0:x1])
+        yy, xx = ys[y0:y1, x0:x1] - y0, xs[y0:y1, x0:x1] - x0
+        f = f + cv2.remap(ib, xx + f[..., 0], yy + f[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     dt = time.perf_counter() - t0
     flow[y0:y1, x0:x1] = f
     valid[y0:y1, x0:x1] = True
     return FlowEstimate(flow, valid, region, dt)
+
+
+def mesh_flow(face_id: Tensor, bary: Tensor, verts_next: Tensor, faces: Tensor, K: Tensor,
+              world_to_cam: Tensor) -> Tensor:
+    """Flow (C, H, W, 2) of a moving mesh: each covered pixel of frame t-1 follows its surface point.
+
+    face_id (C, H, W) and bary (C, H, W, 3): the rasterised mesh at frame t-1
+    (:func:`anidress_core.raster.rasterize`); verts_next: (V, 3) world vertices at
+    frame t; K (C, 3, 3), world_to_cam (C, 4, 4). X_t = sum_k b_k V_t[f_k] is projected
+    into each camera; flow = pi(X_t) - pixel. 0 where the mesh does not cover the pixel
+    (no visibility test: it is an initialisation, not ground truth).
+    """
+    C, H, W = face_id.shape
+    hit = face_id >= 0
+    tri = verts_next[faces[face_id.clamp_min(0)]]  # (C, H, W, 3 corners, 3)
+    X = (bary[..., :, None].to(tri.dtype) * tri).sum(-2)  # (C, H, W, 3)
+    w2c = world_to_cam.to(X.dtype)
+    # Xc[c, h, w, i] = sum_j R[c, i, j] X[c, h, w, j] + t[c, i]
+    Xc = torch.einsum("cij,chwj->chwi", w2c[:, :3, :3], X) + w2c[:, None, None, :3, 3]
+    z = Xc[..., 2].clamp_min(1e-6)
+    Kd = K.to(X.dtype)
+    u = Kd[:, 0, 0, None, None] * Xc[..., 0] / z + Kd[:, 0, 2, None, None]
+    v = Kd[:, 1, 1, None, None] * Xc[..., 1] / z + Kd[:, 1, 2, None, None]
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=X.dtype), torch.arange(W, dtype=X.dtype), indexing="ij")
+    flow = torch.stack([u - xs, v - ys], -1)
+    return torch.where(hit[..., None], flow, torch.zeros_like(flow))
+
+
+def extend_flow(flow: np.ndarray, covered: np.ndarray, sigma_px: float = 8.0) -> np.ndarray:
+    """Fill an (H, W, 2) flow outside ``covered`` (H, W) by normalised Gaussian averaging of the
+    covered values (sigma ``sigma_px``), so a subject reaching beyond the mesh prior still gets
+    a smooth initialisation; 0 where no covered pixel is near."""
+    import cv2
+
+    m = covered.astype(np.float32)
+    if not m.any():
+        return np.zeros_like(flow)
+    num = cv2.GaussianBlur(flow * m[..., None], (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
+    den = cv2.GaussianBlur(m, (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
+    fill = np.where(den[..., None] > 1e-3, num / np.maximum(den, 1e-3)[..., None], 0.0)
+    return np.where(covered[..., None], flow, fill).astype(np.float32)

@@ -33,6 +33,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 import torch
+from torch import Tensor
 from tqdm import tqdm
 
 from .. import __version__
@@ -190,6 +191,34 @@ class _Prior:
         return cue_masks.render_prior(self.body_verts[t], self.body_faces, g, self.garment_faces, self.cams.K,
                                       self.cams.world_to_cam, self.cams.height, self.cams.width).numpy()
 
+    def _mesh(self, t: int) -> tuple[Tensor, Tensor]:
+        if self.garment_verts is None:
+            return self.body_verts[t], self.body_faces
+        return (torch.cat([self.body_verts[t], self.garment_verts[t]]),
+                torch.cat([self.body_faces, self.garment_faces + self.body_verts.shape[1]]))
+
+    def flow(self, frame_prev: int, frame: int, downsample: int = 1, sigma_px: float = 4.0) -> np.ndarray:
+        """Flow (C, H, W, 2) of the prior mesh from ``frame_prev`` to ``frame``, extended beyond it
+        (:func:`anidress_core.cues.flow.extend_flow`); computed at 1/``downsample`` of the image
+        size (the rasteriser is the cost; the estimator refines the details) and resized."""
+        import cv2
+
+        from ..raster import rasterize
+
+        cams = self.cams if downsample == 1 else self.cams.scaled(1.0 / downsample)
+        v0, faces = self._mesh(self.frame_pos[frame_prev])
+        v1, _ = self._mesh(self.frame_pos[frame])
+        K, w2c = cams.K.float(), cams.world_to_cam.float()
+        frags = rasterize(v0, faces, K, w2c, cams.height, cams.width)
+        fl = cue_flow.mesh_flow(frags.face_id, frags.bary, v1, faces, K, w2c).numpy()
+        hit = (frags.face_id >= 0).numpy()
+        out = np.stack([cue_flow.extend_flow(fl[c], hit[c], sigma_px / downsample) for c in range(fl.shape[0])])
+        if downsample == 1:
+            return out
+        H, W = self.cams.height, self.cams.width
+        sx, sy = W / cams.width, H / cams.height
+        return np.stack([cv2.resize(o, (W, H), interpolation=cv2.INTER_LINEAR) * np.float32([sx, sy]) for o in out])
+
 
 def _plates(seq_dir: Path, cams: Sequence[str], frames: list[int], background: str, shape, median_frames: int,
             pool: ThreadPoolExecutor) -> np.ndarray:
@@ -292,31 +321,32 @@ def _read_labels(path: Path, shape) -> np.ndarray:
     return m
 
 
-def _flow_camera(seq_dir: Path, masks_dir: Path, cam: str, frames: list[int], method: str, margin: int,
-                 shape, out: Path | None, keep: bool = False) -> dict:
-    """Flows of one camera, frame after frame (each image is read once)."""
-    est = cue_flow.make_estimator(method)
-    prev_img = prev_mask = None
-    compute, pixels, kept = 0.0, 0, {}
-    for i, f in enumerate(frames):
-        img = cue_flow.to_gray8(_read_rgb(image_path(seq_dir, cam, f), shape))
-        mask = _read_labels(masks_dir / cam / f"{f:06d}.png", shape)
-        if i > 0:
-            region = cue_flow.flow_region(prev_mask, mask, margin)
+class _CameraFlow:
+    """Flows of one camera, frame after frame (each image and mask is read once)."""
+
+    def __init__(self, seq_dir: Path, masks_dir: Path, cam: str, method: str, margin: int, shape, out: Path):
+        self.seq_dir, self.masks_dir, self.cam, self.method, self.margin = seq_dir, masks_dir, cam, method, margin
+        self.shape, self.out = shape, out
+        self.est = cue_flow.make_estimator(method)
+        self.prev_img = self.prev_mask = None
+        self.compute, self.pixels, self.pairs = 0.0, 0, 0
+
+    def step(self, frame: int, init: np.ndarray | None) -> None:
+        img = cue_flow.to_gray8(_read_rgb(image_path(self.seq_dir, self.cam, frame), self.shape))
+        mask = _read_labels(self.masks_dir / self.cam / f"{frame:06d}.png", self.shape)
+        if self.prev_img is not None:
+            region = cue_flow.flow_region(self.prev_mask, mask, self.margin)
             if region is None:
-                r = cue_flow.FlowEstimate(np.zeros(shape + (2,), np.float32), np.zeros(shape, bool), None, 0.0)
+                r = cue_flow.FlowEstimate(np.zeros(self.shape + (2,), np.float32), np.zeros(self.shape, bool),
+                                          None, 0.0)
             else:
-                r = cue_flow.estimate_flow(prev_img, img, method, region, est)
-                pixels += (region.y1 - region.y0) * (region.x1 - region.x0)
-            compute += r.compute_s
-            if out is not None:
-                files.write_exr(out / cam / f"{f:06d}.exr",
-                                np.concatenate([r.flow, r.valid[..., None].astype(np.float32)], -1),
-                                ("X", "Y", "valid"))
-            if keep:
-                kept[f] = r
-        prev_img, prev_mask = img, mask
-    return {"compute_s": compute, "pixels": pixels, "pairs": len(frames) - 1, "flows": kept}
+                r = cue_flow.estimate_flow(self.prev_img, img, self.method, region, self.est, init)
+                self.pixels += (region.y1 - region.y0) * (region.x1 - region.x0)
+            self.compute += r.compute_s
+            self.pairs += 1
+            files.write_exr(self.out / self.cam / f"{frame:06d}.exr",
+                            np.concatenate([r.flow, r.valid[..., None].astype(np.float32)], -1), ("X", "Y", "valid"))
+        self.prev_img, self.prev_mask = img, mask
 
 
 @contextlib.contextmanager
@@ -332,40 +362,54 @@ def _cv2_threads(n: int):
 
 
 def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLike, out_dir: str | os.PathLike,
-              cfg: dict, cameras: str | Sequence[str] = "train", threads: int = 2, progress: bool = True) -> dict:
+              cfg: dict, template_npz: str | os.PathLike | None = None, cameras: str | Sequence[str] = "train",
+              threads: int = 2, progress: bool = True) -> dict:
     """Forward optical flow of one sequence into ``out_dir/<cam>/<frame>.exr`` (no file for the first frame).
 
-    cfg: the ``cues/flows`` config section (``method``, ``margin_px``). masks_dir: the
-    sequence's masks (shipped or estimated), which bound the processed region.
-    Cameras run in parallel on ``threads`` threads (OpenCV itself single-threaded).
+    cfg: the ``cues/flows`` config section (``method``, ``margin_px``, ``prior``).
+    masks_dir: the sequence's masks (shipped or estimated), which bound the processed
+    region. With ``prior`` the flow of the posed body + skinned garment template
+    (``template_npz``; None: the body alone) initialises the estimator
+    (:func:`anidress_core.cues.flow.estimate_flow`). The cameras of a frame run in
+    parallel on ``threads`` threads (OpenCV itself single-threaded).
     """
     t_start = time.perf_counter()
     scene_dir, masks_dir = Path(scene_dir), Path(masks_dir)
     seq_dir = scene_dir / seq
     info = read_scene(scene_dir)
     names = select_cameras(info, cameras, scene_dir)
-    size = info.get("image_size")
-    shape = tuple(size) if size else None
     frames = sequence_frames(seq_dir, names)
-    method, margin = cfg["method"], int(cfg["margin_px"])
+    method, margin, use_prior = cfg["method"], int(cfg["margin_px"]), bool(cfg.get("prior", False))
     if method not in cue_flow.FLOW_METHODS:
         raise ValueError(f"cues/flows/method must be one of {cue_flow.FLOW_METHODS}, got {method!r}")
-    if shape is None:
-        img = files.read_image(image_path(seq_dir, names[0], frames[0]))
-        shape = img.shape[:2]
-    log.info("flows %s/%s: %s, %d cameras x %d pairs, margin %d px, %d threads", scene_dir.name, seq, method,
-             len(names), len(frames) - 1, margin, threads)
+    size = info.get("image_size")
+    shape = tuple(size) if size else files.read_image(image_path(seq_dir, names[0], frames[0])).shape[:2]
+    log.info("flows %s/%s: %s%s, %d cameras x %d pairs, margin %d px, %d threads", scene_dir.name, seq, method,
+             " initialised by the body/garment prior" if use_prior else "", len(names), len(frames) - 1, margin,
+             threads)
+    torch.set_num_threads(max(1, threads))
+    prior = None
+    if use_prior:
+        prior = _Prior(scene_dir, seq, info, template_npz, _cameras(seq_dir, names, info), frames)
+    prior_s = 0.0
     with atomic_dir(out_dir) as tmp, _cv2_threads(1), ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        futs = [pool.submit(_flow_camera, seq_dir, masks_dir, cam, frames, method, margin, shape, tmp)
-                for cam in names]
-        res = [f.result() for f in tqdm(futs, desc=f"flows {seq}", unit="camera", disable=not progress)]
+        cams = [_CameraFlow(seq_dir, masks_dir, cam, method, margin, shape, tmp) for cam in names]
+        for i, f in enumerate(tqdm(frames, desc=f"flows {seq}", unit="frame", disable=not progress)):
+            init = None
+            if prior is not None and i > 0:
+                t0 = time.perf_counter()
+                init = prior.flow(frames[i - 1], f, int(cfg.get("prior_downsample", 1)))
+                prior_s += time.perf_counter() - t0
+            list(pool.map(lambda c: cams[c].step(f, None if init is None else init[c]), range(len(cams))))
     wall = time.perf_counter() - t_start
-    pairs = sum(r["pairs"] for r in res)
-    compute = sum(r["compute_s"] for r in res)
-    stats = {"method": method, "pairs": pairs, "wall_s": wall, "compute_s_per_pair": compute / max(1, pairs),
-             "region_fraction": sum(r["pixels"] for r in res) / max(1, pairs * shape[0] * shape[1])}
-    log.info("flows %s/%s: wrote %s in %.1f s; %.4f s of %s per pair, %.0f%% of the pixels processed",
+    pairs = sum(c.pairs for c in cams)
+    compute = sum(c.compute for c in cams)
+    stats = {"method": method, "prior": use_prior, "pairs": pairs, "wall_s": wall,
+             "compute_s_per_pair": compute / max(1, pairs), "prior_s_per_frame": prior_s / max(1, len(frames) - 1),
+             "region_fraction": sum(c.pixels for c in cams) / max(1, pairs * shape[0] * shape[1])}
+    log.info("flows %s/%s: wrote %s in %.1f s; %.4f s of %s per pair%s, %.0f%% of the pixels processed",
              scene_dir.name, seq, out_dir, wall, stats["compute_s_per_pair"], method,
+             f" + {stats['prior_s_per_frame']:.3f} s of prior flow per frame" if use_prior else "",
              100 * stats["region_fraction"])
     return stats
 

@@ -18,7 +18,8 @@ def outputs(tiny_scene, cues_config, tmp_path_factory):
     scene_dir, tpl = tiny_scene
     out = tmp_path_factory.mktemp("cues_out")
     ms = sc.run_masks(scene_dir, "walk", out / "masks", cues_config["masks"], tpl, progress=False)
-    fs = sc.run_flows(scene_dir, "walk", out / "masks", out / "flows", cues_config["flows"], progress=False)
+    fs = sc.run_flows(scene_dir, "walk", out / "masks", out / "flows", cues_config["flows"], tpl, progress=False)
+    assert cues_config["flows"]["prior"] and fs["prior"]
     return out, ms, fs
 
 

@@ -69,7 +69,7 @@ def cues_outputs(scene):
 
 
 def _cue_template(wildcards):
-    """The garment template is the shape prior of mask estimation (none for a tight-clothed scene)."""
+    """The garment template: shape prior of the masks and flow prior of the flows (none: tight clothes)."""
     if has_garment(wildcards.scene):
         return f"results/{wildcards.scene}/template.npz"
     return []
@@ -102,6 +102,7 @@ rule flows:
     input:
         scene="data/{scene}",
         masks=lambda wc: masks_dir(wc.scene, wc.seq),
+        template=_cue_template,
     output:
         directory("results/{scene}/{seq}/flows"),
     log:
