@@ -136,6 +136,12 @@ class FitConfig:
     towards the start pose. Silhouettes and normals do not observe sliding of a nearly
     rotationally symmetric garment about the body; without flow (frame 0) nothing else
     does. 0 = off (the paper's loss)."""
+    flow_margin_px: int = 1
+    """Flow targets only where the mask and the flow are valid this many pixels around (see
+    :func:`flow_targets`)."""
+    flow_align_iters: int = 3
+    """Frames t > 0: Gauss-Newton steps on L_of alone before the full loss (cheap, no
+    rasterisation); 0 = off."""
     crop_margin: int = 12
     """Render only a window per view around the mask and the start pose, grown by this many
     pixels (the same loss while the garment stays inside; faster); -1 = whole images."""
@@ -334,16 +340,18 @@ def _sanitize_normals(normals: Tensor | None) -> tuple[Tensor | None, Tensor | N
 
 @torch.no_grad()
 def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragments, flow: Tensor,
-                 flow_valid: Tensor | None, prev_mask: Tensor, depth_tol: float = 0.005) -> FlowTargets:
+                 flow_valid: Tensor | None, prev_mask: Tensor, depth_tol: float = 0.005,
+                 margin: int = 1) -> FlowTargets:
     """Flow-loss targets of frame t from the fitted mesh of frame t-1 (paper eq. L_of).
 
     prev_verts (V, 3) fitted mesh of t-1; prev_fragments: its :func:`raster.occlude`-d
     fragments (visibility of t-1); flow (C, H, W, 2) forward flow t-1 -> t on frame t-1's
     pixel grid, in pixels; flow_valid (C, H, W) bool or None (all valid); prev_mask
     (C, H, W) garment mask of t-1. A vertex gets a target in a view when it is visible
-    there (:func:`raster.visible_vertices`), its nearest pixel is garment in the mask and
-    valid in the flow, and the bilinearly sampled flow is finite:
-    ``target = project(prev_verts) + flow(project(prev_verts))``.
+    there (:func:`raster.visible_vertices`), every pixel within ``margin`` pixels of its
+    nearest pixel is garment in the mask and valid in the flow (the bilinear support, and
+    no flow mixed in from the body or the background across a boundary), and the
+    bilinearly sampled flow is finite: ``target = project(prev_verts) + flow(project(prev_verts))``.
     """
     C, H, W = prev_mask.shape
     if flow.shape != (C, H, W, 2):
@@ -354,9 +362,12 @@ def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragme
     col = uv[..., 0].round().clamp(0, W - 1).long()
     row = uv[..., 1].round().clamp(0, H - 1).long()
     cam = torch.arange(C, device=uv.device)[:, None].expand_as(col)
-    ok = vis & prev_mask.bool()[cam, row, col]
+    good = prev_mask.bool() if not prev_mask.is_floating_point() else prev_mask >= 1
     if flow_valid is not None:
-        ok &= flow_valid.bool()[cam, row, col]
+        good = good & flow_valid.bool()
+    if margin > 0:  # erode: the whole (2 margin + 1)^2 neighbourhood must be good
+        good = -Fnn.max_pool2d(-good[:, None].double(), 2 * margin + 1, stride=1, padding=margin)[:, 0] > 0.5
+    ok = vis & good[cam, row, col]
     # bilinear flow at the projections; pixel centres sit at integer coordinates
     f = flow.permute(0, 3, 1, 2).to(uv.dtype)  # (C, 2, H, W)
     grid = torch.stack([2 * uv[..., 0] / max(W - 1, 1) - 1, 2 * uv[..., 1] / max(H - 1, 1) - 1], -1)
@@ -845,6 +856,50 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
 # --------------------------------------------------------------------------------------
 
 
+def _flow_align(rig: RigParts, views: Views, flow: FlowTargets, transforms: Tensor, iters: int) -> Tensor:
+    """Minimise L_of alone over the bone increments by damped Gauss-Newton (no rasterisation).
+
+    The flow residuals are vertex projections, nearly linear in the increments, so a few
+    steps move the previous frame's pose to where the flow says the visible vertices
+    went; the full loss then starts from there (frame t is still initialised from t-1).
+    Every step must lower L_of, else the pose before it is kept.
+    """
+    G = transforms.double().clone()
+    V = rig.rest.shape[0]
+
+    def cost(M):
+        uv, _ = raster.project_vertices(lbs(rig.rest, rig.weights, M), views.K, views.world_to_cam)
+        d = uv[flow.cam, flow.vert] - flow.target
+        return float((d * d).sum())
+
+    c = cost(G)
+    for _ in range(iters):
+        x = lbs(rig.rest, rig.weights, G)
+        Jx = skin_jacobian(rig, G).reshape(3 * V, -1)  # (3V, P)
+        uv, Puv = projection_jacobian(x, views)
+        Pf = Puv[flow.cam, flow.vert]  # (N, 2, 3)
+        r = uv[flow.cam, flow.vert] - flow.target
+        blocks = torch.zeros(V, 3, 3, dtype=x.dtype, device=x.device).index_add_(0, flow.vert, Pf.transpose(1, 2) @ Pf)
+        gx = torch.zeros(V, 3, dtype=x.dtype, device=x.device).index_add_(0, flow.vert,
+                                                                         torch.einsum("nij,ni->nj", Pf, r))
+        J3 = Jx.view(V, 3, -1)
+        H = torch.einsum("vjp,vjk,vkq->pq", J3, blocks, J3)
+        g = Jx.t() @ gx.reshape(-1)
+        d = H.diagonal()
+        delta, info = torch.linalg.solve_ex(H + torch.diag(1e-3 * d + 1e-9 * float(d.max().clamp_min(1e-30))), -g)
+        if int(info) != 0 or not bool(torch.isfinite(delta).all()):
+            break
+        G_new = apply_increment(G, rig.centres, delta.view(-1, 6))
+        c_new = cost(G_new)
+        if not c_new < c:
+            break
+        gain = (c - c_new) / max(c, 1e-30)
+        G, c = G_new, c_new
+        if gain < 1e-3:
+            break
+    return G
+
+
 def _lm(pb: _Problem, transforms: Tensor, max_iters: int) -> FrameFit:
     """Levenberg-Marquardt on the bone increments (see the module docstring)."""
     cfg, rig = pb.cfg, pb.rig
@@ -951,11 +1006,12 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         n = cfg.vertex_max_iters * (3 if first else 1)
         return _vertex_adam(pb, cues, x0, init, n)
     G, spent = init, 0
-    x_start = lbs(rig.rest, rig.weights, init)
-    prior = x_start if first else None
+    prior = lbs(rig.rest, rig.weights, init) if first else None
+    if flow is not None and cfg.w_flow > 0 and cfg.flow_align_iters > 0 and flow.cam.numel():
+        G = _flow_align(rig, views, flow, G, cfg.flow_align_iters)
     window = None
     if cfg.crop_margin >= 0:  # render only the windows that can hold the garment
-        window = crop_window(views, cues.mask, x_start, cfg.crop_margin)
+        window = crop_window(views, cues.mask, lbs(rig.rest, rig.weights, G), cfg.crop_margin)
         views, cues, flow = crop_frame(views, cues, flow, window)
     if cues.occluder is None:  # the body's depth, in the windows only
         cues = cues._replace(occluder=_occluder_or_inf(cues, views), occluder_mesh=None)
@@ -998,7 +1054,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                     log.warning("fit: frame %d has no flow; L_of is off for it", t)
             else:
                 prev = out[-1]
-                targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.vis_depth_tol)
+                targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.vis_depth_tol,
+                                       cfg.flow_margin_px)
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev)
         res.terms["wall_s"] = time.perf_counter() - t0
         res.terms["flow_targets"] = 0 if targets is None else int(targets.cam.numel())
