@@ -22,8 +22,12 @@ demo: venv
 test: venv
 	$(BIN)/pytest
 
+# Run-time-vs-error sweeps on the demo scene (builds it first): benchmarks/tradeoffs.{csv,md}.
+# The per-stage benchmarks (raster, sim, rig, cues, fit, field, validate) are scripts in
+# benchmarks/ (see README); their references need envs/requirements-bench.txt.
 bench: venv
-	$(BIN)/python benchmarks/bench_raster.py
+	$(BIN)/pip install --disable-pip-version-check -q -r envs/requirements-bench.txt
+	$(SNAKEMAKE) --workflow-profile config/profiles/default bench
 
 # Numerical stress tests alone (they also run in `make test`): extreme motions, degenerate
 # meshes and sequences, wrong scales, float32 vs float64 (tests/stress).

@@ -8,7 +8,8 @@ include: "workflow/rules/cues.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/field.smk"
 include: "workflow/rules/evaluate.smk"
-include: "workflow/rules/report.smk"  # last: its input is everything above
+include: "workflow/rules/report.smk"  # after the stages: its input is everything above
+include: "workflow/rules/bench.smk"
 
 
 rule all:
