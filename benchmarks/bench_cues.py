@@ -168,7 +168,12 @@ def main() -> None:
                     help="flow methods slower than this on the first sequence are not rerun on the others")
     ap.add_argument("--data", default=str(ROOT / "data"), help="folder of the scenes (default: data/)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks"))
+    ap.add_argument("--render-only", action="store_true",
+                    help="no measurement: rewrite cues.md from the cues.csv and cues.md of an earlier run in --out "
+                         "against the current config (after setting the defaults it found); figures unchanged")
     args = ap.parse_args()
+    if args.render_only:
+        return render_only(args)
     import cv2
     import torch
 
@@ -431,7 +436,51 @@ def _table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
     return "\n".join(lines)
 
 
-def write(rows: list[dict], args, started: str, load_before: str, notes_md: list[str]) -> None:
+def render_only(args) -> None:
+    """Rewrite cues.md from an earlier run's cues.csv (+ its md header) with the current config's defaults."""
+    out = Path(args.out)
+    cfg = load_config(ROOT / "config" / "config.yaml")["cues"]
+    rows = []
+    with open(out / "cues.csv", newline="") as fh:
+        for r in csv.DictReader(fh):
+            row = {}
+            for k, v in r.items():
+                if v == "":
+                    continue
+                try:
+                    row[k] = float(v) if k not in ("scene", "sequence", "cue", "method", "reference", "default",
+                                                   "notes") else v
+                except ValueError:
+                    row[k] = v
+            rows.append(row)
+    old = (out / "cues.md").read_text().splitlines()
+    header = {k: next((ln for ln in old if ln.startswith(k)), f"{k} ?") for k in
+              ("Command:", "Date:", "Git revision:", "Machine:", "Load average")}
+    start = next(i for i, ln in enumerate(old) if ln.startswith("Cameras:"))
+    stop = next((i for i, ln in enumerate(old) if ln.startswith("Mask methods over") or ln.startswith("## Masks")),
+                len(old))
+    notes = [ln for ln in old[start + 1: stop] if ln.startswith("- ")]
+    # the default markers against the current config
+    for r in rows:
+        r.pop("default", None)
+        if r["cue"] == "masks" and r["method"] == cfg["masks"]["method"]:
+            r["default"] = "yes (config)"
+    for key in {(r["scene"], r["sequence"]) for r in rows}:
+        cand = [r for r in rows if (r["scene"], r["sequence"]) == key and r["cue"] == "flows"
+                and r["method"] in FLOW_METHODS and "epe_garment_x_s_per_pair" in r]
+        if cand:
+            best = min(cand, key=lambda r: r["epe_garment_x_s_per_pair"])
+            best["default"] = "best error x time" + (" (= config)" if best["method"] == cfg["flows"]["method"]
+                                                     else f" (config has {cfg['flows']['method']})")
+    notes += overall_masks(rows, cfg["masks"]["method"]) + overall_choice(rows, cfg["flows"]["method"])
+    rerender = (f"Re-rendered by `.venv/bin/python benchmarks/bench_cues.py --render-only` on "
+                f"{datetime.datetime.now().isoformat(timespec='seconds')} against the config's current defaults; "
+                "every figure is that of the run above.  ")
+    write(rows, args, None, None, notes, header={**header, "rerender": rerender})
+
+
+def write(rows: list[dict], args, started: str | None, load_before: str | None, notes_md: list[str],
+          header: dict | None = None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with files.atomic_path(out / "cues.csv") as tmp:
@@ -441,14 +490,17 @@ def write(rows: list[dict], args, started: str, load_before: str, notes_md: list
             for r in rows:
                 w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
     cmd = ".venv/bin/python benchmarks/bench_cues.py " + " ".join(sys.argv[1:])
+    if header is None:
+        head = [f"Command: `{cmd.strip()}`  ", f"Date: {started}  ", f"Git revision: {git_rev()}  ",
+                f"Machine: {machine()}; torch and OpenCV set to 1 thread  ",
+                f"Load average (1, 5, 15 min) before the run: {load_before}; after: {load()}  "]
+    else:
+        head = [header[k] for k in ("Command:", "Date:", "Git revision:", "Machine:", "Load average")]
+        head.append(header["rerender"])
     md = [
         "# 2D cues benchmark (`anidress_core.cues`)",
         "",
-        f"Command: `{cmd.strip()}`  ",
-        f"Date: {started}  ",
-        f"Git revision: {git_rev()}  ",
-        f"Machine: {machine()}; torch and OpenCV set to 1 thread  ",
-        f"Load average (1, 5, 15 min) before the run: {load_before}; after: {load()}  ",
+        *head,
         "Cameras: each scene's training cameras (what the fitting uses). Ground truth: data/<scene>/<seq>/gt "
         "(masks and flows at pixel centres; the images are 2x2 supersampled, so a silhouette pixel whose "
         "centre is in the subject can be half covered: about a quarter of the silhouette pixels are ambiguous).",
