@@ -102,8 +102,10 @@ def _cmd_flows(args: argparse.Namespace) -> None:
     cfg = dict(_cues_cfg(args)["flows"])
     if args.method:
         cfg["method"] = args.method
-    run_flows(args.scene_dir, args.seq, args.masks, args.out, cfg, cameras=args.cameras, threads=args.threads,
-              progress=not args.quiet)
+    if args.no_prior:
+        cfg["prior"] = False
+    run_flows(args.scene_dir, args.seq, args.masks, args.out, cfg, template_npz=args.template, cameras=args.cameras,
+              threads=args.threads, progress=not args.quiet)
     print(args.out)
 
 
@@ -293,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scene_dir", help="data/<scene>")
     s.add_argument("seq", help="sequence name")
     s.add_argument("--masks", required=True, help="the sequence's masks (bound the processed region)")
+    s.add_argument("--template", help="garment template.npz (flow prior: posed body + skinned garment; "
+                                      "none: the body alone)")
+    s.add_argument("--no-prior", action="store_true", help="no body/garment flow initialisation (cues/flows/prior)")
     s.add_argument("-o", "--out", required=True, help="output folder (results/<scene>/<seq>/flows)")
     s.add_argument("--config", default="config/config.yaml", help="settings: cues/flows (default: %(default)s)")
     s.add_argument("--method", choices=["dis_ultrafast", "dis_fast", "dis_medium", "deepflow", "tvl1", "farneback"],

@@ -8,22 +8,24 @@ weights (V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
 
 * L_M, silhouette: rendered garment coverage (hard rasterisation, antialiased at the
   silhouette edges, :func:`anidress_core.raster.silhouette`; the body is an occluder,
-  :func:`anidress_core.raster.occlude`) against the garment mask (label 2), squared
-  difference summed over all pixels of all views, divided by the length in pixels of
-  the target masks' contours (so for sub-pixel misalignment L_M is about the mean
-  squared contour offset in pixels^2).
+  :func:`anidress_core.raster.occlude`) against the garment mask (label 2): squared
+  difference summed over all pixels of all views.
 * L_N, normals: camera-space normals of the visible faces
-  (:func:`anidress_core.raster.face_normals_cam`) against the normal maps, squared
-  difference of unit vectors, summed over pixels that are garment in both the render
-  and the mask (and have a finite normal), divided by the number of mask pixels with
-  a normal.
+  (:func:`anidress_core.raster.face_normals_cam`) against the normal maps: squared
+  difference of unit vectors summed over pixels that are garment in both the render and
+  the mask (and have a finite normal).
 * L_of, optical flow: projections of the vertices of the previous frame's fitted mesh
-  that are visible in a view and land on garment pixels (mask of t-1), moved by the
-  forward flow t-1 -> t sampled there, are the targets of the same vertices' projections
-  now; squared distance in pixels, mean over (view, vertex) targets. Off at frame 0.
+  that are visible in a view and lie inside its garment mask (t-1), moved by the forward
+  flow t-1 -> t sampled there, are the targets of the same vertices' projections now:
+  squared distance in pixels summed over (view, vertex) targets. Off at frame 0.
 
-The paper sums over views; we average (every term is a mean in pixel units), which
-keeps the weights meaningful whatever the number of views.
+As in the paper every term is a sum (over views and pixels or targets); all three are
+divided by one common constant, the number of garment pixels in the masks, so that their
+ratios are the paper's whatever the image size and number of views
+(``normalisation='paper'``; ``'per_term'`` makes each term a mean of its own residuals).
+Optional, off by default: a proximal term towards the start pose at frame 0
+(``w_prior_first``), because masks and normals cannot observe a nearly rotationally
+symmetric garment sliding about the body.
 
 Optimisation. The unknowns are increments (omega_b, tau_b) of every bone: a rotation
 by the axis-angle omega_b about the bone's current centre (the rig's rest centroid
@@ -39,7 +41,11 @@ chained with the projection Jacobian and dx/d(omega, tau) (linear in the skinnin
 weights). Rasterisation (visibility, which pixels and edges) is redone at every
 evaluation and held fixed inside one linearisation (nvdiffrast's split). A frame stops
 when an accepted step lowers the loss by less than ``rel_tol`` (relative), when the
-step is below ``step_tol``, or after ``max_iters`` evaluations.
+step is below ``step_tol``, or after ``max_iters`` evaluations. Frames t > 0 start from
+frame t-1's pose moved by a few Gauss-Newton steps on L_of alone (``flow_align_iters``,
+vertex projections only, no rasterisation), which keeps fast motion inside the
+one-pixel reach of the silhouette gradients. The renders are cut to a window per view
+around the mask and the start pose (``crop_margin``), the body occluder rasterised there.
 
 Ablation (a) of the paper, direct vertex fitting without the rig, optimises the V x 3
 vertex positions with Adam on the same loss through autograd (Gauss-Newton on 3V
@@ -1000,26 +1006,29 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     _check_cues(views, cues)
     flow = None if first else flow
     full_hw = (views.height, views.width)
-    if cfg.method == "vertex":
-        x0 = lbs(rig.rest, rig.weights, init) if init_verts is None else init_verts.double()
-        pb = _make_problem(rig, views, cues, flow, cfg, x0 if first else None)
-        n = cfg.vertex_max_iters * (3 if first else 1)
-        return _vertex_adam(pb, cues, x0, init, n)
     G, spent = init, 0
-    prior = lbs(rig.rest, rig.weights, init) if first else None
-    if flow is not None and cfg.w_flow > 0 and cfg.flow_align_iters > 0 and flow.cam.numel():
-        G = _flow_align(rig, views, flow, G, cfg.flow_align_iters)
+    if cfg.method == "vertex":
+        x_start = lbs(rig.rest, rig.weights, init) if init_verts is None else init_verts.double()
+    else:
+        if flow is not None and cfg.w_flow > 0 and cfg.flow_align_iters > 0 and flow.cam.numel():
+            G = _flow_align(rig, views, flow, G, cfg.flow_align_iters)
+        x_start = lbs(rig.rest, rig.weights, G)
+    prior = lbs(rig.rest, rig.weights, init) if first and cfg.method == "rig" else (x_start if first else None)
     window = None
     if cfg.crop_margin >= 0:  # render only the windows that can hold the garment
-        window = crop_window(views, cues.mask, lbs(rig.rest, rig.weights, G), cfg.crop_margin)
+        window = crop_window(views, cues.mask, x_start, cfg.crop_margin)
         views, cues, flow = crop_frame(views, cues, flow, window)
     if cues.occluder is None:  # the body's depth, in the windows only
         cues = cues._replace(occluder=_occluder_or_inf(cues, views), occluder_mesh=None)
-    for f in cfg.levels_first if first else cfg.levels:
-        pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg, prior)
-        res = _lm(pb, G, cfg.max_iters_first if first else cfg.max_iters)
-        G, spent = res.transforms, spent + res.iterations
-    res.iterations = spent  # the curve and terms are those of the full resolution
+    if cfg.method == "vertex":
+        pb = _make_problem(rig, views, cues, flow, cfg, prior)
+        res = _vertex_adam(pb, cues, x_start, init, cfg.vertex_max_iters * (3 if first else 1))
+    else:
+        for f in cfg.levels_first if first else cfg.levels:
+            pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg, prior)
+            res = _lm(pb, G, cfg.max_iters_first if first else cfg.max_iters)
+            G, spent = res.transforms, spent + res.iterations
+        res.iterations = spent  # the curve and terms are those of the full resolution
     if window is not None:  # visibility in whole images (outside the windows: no garment)
         res.fragments = uncrop_fragments(res.fragments, window, full_hw[0], full_hw[1],
                                          torch.full((views.K.shape[0], *full_hw), float("inf"), dtype=torch.float64,

@@ -60,11 +60,17 @@ def run(tmp_path_factory, tiny_scene):
     (wd / "results" / "tinyskirt").mkdir(parents=True)
     for ext in ("npz", "ply"):
         shutil.copy(tiny_scene[1].with_suffix("." + ext), wd / "results" / "tinyskirt" / f"template.{ext}")
+    # the capture: the tiny scene's images, cameras, body and garment, with masks shipped
+    # (its ground truth's), no normal maps and no ground truth -- a valid scene (rule
+    # validate_scene runs before every cue rule)
     cap = wd / "data" / "cap"
-    (cap / "walk" / "masks" / "01").mkdir(parents=True)
-    (cap / "scene.yaml").write_text(yaml.safe_dump({"fps": 30, "sequences": [{"name": "walk"}],
-                                                    "body_model": {"type": "mannequin", "file": "x.npz"},
-                                                    "cameras": {"train": ["01"], "test": []}}))
+    shutil.copytree(tiny_scene[0], cap)
+    shutil.move(cap / "walk" / "gt" / "masks", cap / "walk" / "masks")
+    for d in ("normals", "gt"):
+        shutil.rmtree(cap / "walk" / d)
+    meta = yaml.safe_load((cap / "scene.yaml").read_text())
+    meta.update(name="cap", synthetic=False)
+    (cap / "scene.yaml").write_text(yaml.safe_dump(meta))
     res = _snakemake(wd, *TARGETS)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     return wd

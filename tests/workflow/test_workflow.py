@@ -35,6 +35,12 @@ TINY = {
     },
     "template": {"vertices": 600},
     "simulate": {"library": ["sway"], "library_frames": 5, "cloth": {"settle_frames": 5}},
+    "rig": {"bones": 6, "iters": 10},
+    "fit": {"max_iters": 5, "max_iters_first": 10},
+    "field": {
+        "train": {"steps": 20, "rays_per_step": 256, "images_per_step": 4, "checkpoint_every": 10},
+        "render": {"frame_stride": 2, "library": ["sway"], "library_frame_stride": 2},
+    },
 }
 
 
@@ -74,7 +80,9 @@ def test_tiny_scene_layout(tiny_run):
     # nothing half-written is left beside the scenes
     assert sorted(p.name for p in (tiny_run / "data").iterdir()) == ["tiny", "tinyskirt"]
     # a tight-clothed scene skips the garment stages (DESIGN.md §6)
-    assert not (tiny_run / "results" / "tiny").exists()
+    tight = tiny_run / "results" / "tiny"
+    assert not [p for p in ("template.npz", "sim", "rig.npz", "walk/garment_poses.npz", "walk/flows")
+                if (tight / p).exists()]
 
 
 def test_garment_scene_template_and_simulations(tiny_run):
@@ -99,6 +107,30 @@ def test_garment_scene_template_and_simulations(tiny_run):
         assert sim["frames"].shape == (frames, 600, 3) and np.isfinite(sim["frames"]).all()
         assert sim["nan_count"].sum() == 0
         assert (tiny_run / "logs" / "tinyskirt" / "simulate" / f"{motion}.log").is_file()
+
+
+def test_every_stage_ran_to_the_report(tiny_run):
+    import csv
+    import json
+
+    res = tiny_run / "results"
+    assert (res / "tiny" / "scene_check.json").is_file() and (res / "tinyskirt" / "scene_check.json").is_file()
+    rig = np.load(res / "tinyskirt" / "rig.npz")
+    assert rig["weights"].shape == (600, 6) and sorted(rig["sequences"].tolist()) == ["lib-sway", "seq-walk"]
+    assert (res / "tinyskirt" / "walk" / "flows").is_dir() and (res / "tinyskirt" / "walk" / "normals.json").is_file()
+    poses = np.load(res / "tinyskirt" / "walk" / "garment_poses.npz")
+    assert poses["transforms"].shape[:2] == (4, 6) and np.isfinite(poses["transforms"]).all()
+    with open(res / "tinyskirt" / "walk" / "fit_metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {r["method"] for r in rows} == {"full"} and all(np.isfinite(float(r["vertex_rmse_m"])) for r in rows)
+    # the tight scene trains one field (body joints only); the garment scene both variants
+    for scene, variants in (("tiny", ["full"]), ("tinyskirt", ["full", "body_only"])):
+        for v in variants:
+            summary = json.loads((res / scene / "walk" / v / "metrics_summary.json").read_text())
+            assert summary, f"{scene}/{v}: empty metrics summary"
+    assert any((res / "tinyskirt" / "walk" / "full" / "renders" / "library" / "lib-sway").iterdir())
+    html = (res / "report.html").read_text()
+    assert "tinyskirt" in html and "tiny" in html
 
 
 def test_second_run_has_nothing_to_do(tiny_run):
@@ -127,8 +159,25 @@ def test_param_change_reruns_exactly_that_stage(tiny_run):
     import copy
 
     cfg = copy.deepcopy(TINY)
-    cfg["scenes"]["tiny"]["render"]["noise_std"] = 0.01
-    assert _planned_jobs(tiny_run, cfg) == {"synth": 1, "all": 1}
+    cfg["scenes"]["tiny"]["render"]["noise_std"] = 0.01  # one scene's data: that scene downstream, not the other
+    assert _planned_jobs(tiny_run, cfg) == {
+        "synth": 1, "validate_scene": 1, "masks": 1, "train_field": 1, "render_novel_view": 1,
+        "render_novel_pose": 1, "evaluate_field": 1, "report": 1, "all": 1}
     cfg = copy.deepcopy(TINY)
-    cfg["simulate"]["cloth"]["damping"] = 0.6  # reruns every simulation, nothing upstream
-    assert _planned_jobs(tiny_run, cfg) == {"simulate": 2, "all": 1}
+    cfg["simulate"]["cloth"]["damping"] = 0.6  # every simulation and what reads the rig; not the data, cues
+    assert _planned_jobs(tiny_run, cfg) == {          # or the body-only field
+        "simulate": 2, "rig": 1, "fit": 1, "fit_eval": 1, "train_field": 1, "render_novel_view": 1,
+        "render_library": 1, "evaluate_field": 1, "report": 1, "all": 1}
+    cfg = copy.deepcopy(TINY)
+    cfg["rig"]["bones"] = 5
+    assert _planned_jobs(tiny_run, cfg) == {
+        "rig": 1, "fit": 1, "fit_eval": 1, "train_field": 1, "render_novel_view": 1, "render_library": 1,
+        "evaluate_field": 1, "report": 1, "all": 1}
+    cfg = copy.deepcopy(TINY)
+    cfg["field"]["render"]["library"] = ["twirl"]  # not simulated: refused with a message, nothing planned
+    (tiny_run / "tiny.yaml").write_text(yaml.safe_dump(cfg))
+    try:
+        res = _snakemake(tiny_run, "-n")
+    finally:
+        (tiny_run / "tiny.yaml").write_text(yaml.safe_dump(TINY))
+    assert res.returncode != 0 and "does not simulate" in res.stdout + res.stderr

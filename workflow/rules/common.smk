@@ -14,8 +14,25 @@ with open(os.path.join(workflow.basedir, "workflow", "schemas", "config.schema.y
 # validate_config fills nested defaults (snakemake.utils.validate fills only the top
 # level) and raises one message naming every bad key.
 _validated = validate_config(config, _SCHEMA)
+
+
+def _canonical(obj):
+    """Mappings with their keys sorted, recursively (lists keep their order): rule params are
+    compared as text between runs, so the order of keys in a config file must not count."""
+    if isinstance(obj, dict):
+        return {k: _canonical(obj[k]) for k in sorted(obj)}
+    if isinstance(obj, list):
+        return [_canonical(v) for v in obj]
+    return obj
+
+
 config.clear()
-config.update(_validated)
+config.update(_canonical(_validated))
+
+_missing_lib = sorted(set(config["field"]["render"]["library"]) - set(config["simulate"]["library"]))
+if _missing_lib:
+    raise ValueError(f"config: field/render/library names {_missing_lib}, which simulate/library "
+                     f"{config['simulate']['library']} does not simulate (the rig has no garment poses for them)")
 
 SCENES = list(config["run_scenes"])
 SYNTHETIC_SCENES = [s for s, c in config["scenes"].items() if c["synthetic"]]

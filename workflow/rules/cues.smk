@@ -78,6 +78,7 @@ def _cue_template(wildcards):
 rule masks:
     input:
         scene="data/{scene}",
+        check=ancient("results/{scene}/scene_check.json"),
         template=_cue_template,
     output:
         directory("results/{scene}/{seq}/masks"),
@@ -101,6 +102,7 @@ rule masks:
 rule flows:
     input:
         scene="data/{scene}",
+        check=ancient("results/{scene}/scene_check.json"),
         masks=lambda wc: masks_dir(wc.scene, wc.seq),
         template=_cue_template,
     output:
@@ -125,6 +127,7 @@ rule flows:
 rule normals:
     input:
         scene="data/{scene}",
+        check=ancient("results/{scene}/scene_check.json"),
     output:
         "results/{scene}/{seq}/normals.json",
     log:

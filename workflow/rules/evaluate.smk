@@ -16,6 +16,7 @@ def field_eval_renders(scene, seq, variant):
 rule evaluate_field:
     input:
         scene="data/{scene}",
+        check=ancient("results/{scene}/scene_check.json"),
         renders=lambda wc: [r[2] for r in field_eval_renders(wc.scene, wc.seq, wc.variant)],
     output:
         csv="results/{scene}/{seq,[^/]+}/{variant}/metrics.csv",

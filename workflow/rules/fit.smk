@@ -34,7 +34,7 @@ def fit_inputs(wildcards):
     if not has_garment(scene):
         raise ValueError(f"scene {scene!r} has no garment (kind tight): nothing to fit")
     inp = {"rig": f"results/{scene}/rig.npz", "template": f"results/{scene}/template.npz",
-           "scene": f"data/{scene}"}
+           "scene": f"data/{scene}", "check": ancient(f"results/{scene}/scene_check.json")}
     if config["fit"]["cues"] != "ground_truth":
         d = fit_cue_dirs(scene, seq)
         if d["masks"].startswith("results/"):
@@ -114,6 +114,7 @@ rule fit_ablation:
 rule fit_eval:
     input:
         scene="data/{scene}",
+        check=ancient("results/{scene}/scene_check.json"),
         rig="results/{scene}/rig.npz",
         full="results/{scene}/{seq}/garment_poses.npz",
         ablations=lambda wc: [f"results/{wc.scene}/{wc.seq}/fit_ablations/{a}/garment_poses.npz"
