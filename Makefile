@@ -18,6 +18,7 @@ $(STAMP): envs/requirements.txt pyproject.toml
 
 demo: venv
 	$(SNAKEMAKE) --workflow-profile config/profiles/default
+	@echo "report: $(CURDIR)/results/report.html"
 
 test: venv
 	$(BIN)/pytest

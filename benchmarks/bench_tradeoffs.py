@@ -16,11 +16,12 @@ in this process, one after another, work files under benchmarks/runs/tradeoffs/:
   (stage fit, first ``--fit-frames`` frames of the training sequence);
 * fit: training views {4, 8}; iteration limit / tolerance {10 / 1e-2, 20 / 1e-3, 40 / 1e-4};
   -> vertex RMSE (mm) vs fitting time;
-* flow: method {dis, deepflow, tvl1} -> garment end-point error (px) vs time per frame;
+* flow: method {dis_ultrafast, dis_fast, dis_medium, farneback, deepflow} -> garment
+  end-point error (px) vs time per image (tvl1, ~1.3 s per pair here, is in benchmarks/cues.md);
 * resolution: the scene re-synthesised at half the image size (same seed, cameras, motion)
   with its own cues -> fitted vertex RMSE vs fitting time;
-* field: training steps {150, 300, 600, 1200} and ray-marching step {0.02, 0.01, 0.005} m
-  -> novel-view PSNR (4 test cameras x 4 frames) vs training time.
+* field: training steps (``--field-steps``, default {150, 300, 600}) and ray-marching step
+  {0.02, 0.01, 0.005} m -> novel-view PSNR (4 test cameras x 4 frames) vs training time.
 """
 from __future__ import annotations
 
@@ -152,7 +153,7 @@ def sweep_flow(cfg, scene, rows, args):
     data, res, seq = _scene_paths(cfg, scene)
     masks, _, _ = _cue_dirs(res, data, seq)
     default = cfg["cues"]["flows"]["method"]
-    for method in ("dis", "deepflow", "tvl1"):
+    for method in ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "deepflow"):
         out = WORK / scene / f"flow_{method}"
         if out.exists():
             shutil.rmtree(out)
@@ -160,7 +161,7 @@ def sweep_flow(cfg, scene, rows, args):
         with Timer() as t:
             run_flows(data, seq, masks, out, c, res / "template.npz", threads=1, progress=False)
         ev = evaluate_cues(data, seq, flows_dir=out)
-        epe = float(ev.get("flow_epe_garment_px", ev.get("epe_garment_px", float("nan"))))
+        epe = float(ev["epe_garment_px"])
         frames = max(1, int(ev.get("frames", 1)) - 1) * max(1, int(ev.get("cameras", 1)))
         t.wall, t.cpu = t.wall / frames, t.cpu / frames
         _row(rows, "flow", "method", method, t, epe, "garment flow EPE (px); time per image", method == default)
@@ -209,7 +210,8 @@ def sweep_field(cfg, scene, rows, args):
     base = cfg["field"]
     steps_default = base["train"]["steps"]
     step_default = base["sampler"]["step_m"]
-    runs = [("steps", s, {"train": {"steps": s}}) for s in ((100, 300) if args.quick else (150, 300, 600, 1200))]
+    steps = (100, 300) if args.quick else tuple(int(x) for x in args.field_steps.split(","))
+    runs = [("steps", s, {"train": {"steps": s}}) for s in steps]
     runs += [("ray step (m)", m, {"sampler": {"step_m": m}}) for m in (0.02, 0.005)]
     for knob, value, over in runs:
         p = copy.deepcopy(base)
@@ -241,6 +243,7 @@ def main():
     ap.add_argument("--only", default="rig,fit,flow,resolution,field")
     ap.add_argument("--fit-frames", type=int, default=30)
     ap.add_argument("--quick", action="store_true", help="fewer field steps (a smoke run)")
+    ap.add_argument("--field-steps", default="150,300,600", help="training steps swept (comma list)")
     args = ap.parse_args()
     cfg = load_config(args.config)
     torch.set_num_threads(2)
@@ -274,16 +277,24 @@ def main():
     for r in rows:
         lines.append(f"| {r['stage']} | {r['knob']} | {r['value']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
                      f"{r['error']:.4g} | {r['error_metric']} | {'yes' if r['is_default'] else ''} |")
-    from anidress_core.plots import pareto_front
+    from anidress_core.plots import pareto_front, scatter_chart
 
-    lines += ["", "## Defaults and the Pareto front", ""]
-    for key in dict.fromkeys((r["stage"], r["error_metric"]) for r in rows):
+    lines += ["", "## Defaults and the Pareto front", "",
+              "One chart per stage and error (CPU seconds, log scale, against the error; lower-left is "
+              "better); the dashed line is the Pareto front, the config's defaults are outlined.", ""]
+    for n, key in enumerate(dict.fromkeys((r["stage"], r["error_metric"]) for r in rows)):
         rs = [r for r in rows if (r["stage"], r["error_metric"]) == key]
-        front = {rs[i]["value"] for i in pareto_front([(r["wall_s"], r["error"]) for r in rs])}
-        for r in rs:
+        front = set(pareto_front([(r["cpu_s"], r["error"]) for r in rs]))
+        for i, r in enumerate(rs):
             if r["is_default"]:
                 lines.append(f"- {key[0]} / {key[1]}: default {r['knob']}={r['value']} is "
-                             f"{'on' if r['value'] in front else 'NOT on'} the front of these {len(rs)} runs.")
+                             f"{'on' if i in front else 'NOT on'} the front of these {len(rs)} runs.")
+        svg = scatter_chart([{"x": r["cpu_s"], "y": r["error"], "label": f"{r['knob']}={r['value']}",
+                              "group": r["knob"], "highlight": bool(r["is_default"])} for r in rs],
+                            f"{key[0]}: {key[1]}", "CPU s", key[1])
+        name = f"tradeoffs_{n}_{key[0]}.svg"
+        (ROOT / "benchmarks" / name).write_text(svg)
+        lines += ["", f"![{key[0]}: {key[1]} against CPU time]({name})", ""]
     (ROOT / "benchmarks" / "tradeoffs.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
