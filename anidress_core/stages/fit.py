@@ -69,6 +69,7 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
         vertex_lr=float(params.get("vertex", {}).get("lr", 1e-3)),
         vertex_max_iters=int(params.get("vertex", {}).get("max_iters", 60)),
         vertex_patience=int(params.get("vertex", {}).get("patience", 10)),
+        w_prior_first=float(params.get("first_frame_prior", 0.0)),
     )
     return FIT.config_for(base, ablation)
 
