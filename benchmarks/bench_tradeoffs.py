@@ -47,6 +47,10 @@ from anidress_core.config import load_config  # noqa: E402
 from anidress_core.io import files  # noqa: E402
 
 WORK = ROOT / "benchmarks" / "runs" / "tradeoffs"
+#: (stage, knob) of the rows each sweep writes (for --merge)
+SWEEP_KNOBS = {"rig": {("rig", "bones"), ("fit", "bones")}, "fit": {("fit", "views"), ("fit", "iterations/tolerance")},
+               "flow": {("flow", "method")}, "resolution": {("fit", "resolution")},
+               "field": {("field", "steps"), ("field", "ray step (m)")}}
 FIELDS = ["stage", "knob", "value", "wall_s", "cpu_s", "error", "error_metric", "is_default", "reference", "notes"]
 
 
@@ -181,8 +185,14 @@ def sweep_resolution(cfg, scene, rows, args):
     _row(rows, "fit", "resolution", f"{H}x{W}", t, rm, "fitted vertex RMSE (mm)", True)
     sc = copy.deepcopy(scene_config(cfg, scene))
     sc["image_size"] = [H // 2, W // 2]
-    sc["sequences"] = [dict(s, frames=min(s["frames"], args.fit_frames)) for s in sc["sequences"] if s["name"] == seq]
+    # the whole sequence: a procedural motion depends on its length, and the fit starts from
+    # the rig's poses of the full-resolution scene's simulated sequence
+    sc["sequences"] = [s for s in sc["sequences"] if s["name"] == seq]
     half = WORK / f"{scene}_half" / "data"
+    if (half / "scene.yaml").is_file():
+        made = __import__("yaml").safe_load((half / "scene.yaml").read_text())
+        if [s["frames"] for s in made["sequences"]] != [s["frames"] for s in sc["sequences"]]:
+            shutil.rmtree(half.parent)
     if not (half / "scene.yaml").is_file():
         run_synth(sc, f"{scene}_half", half, threads=2, progress=False)
     hres = WORK / f"{scene}_half" / "results"
@@ -243,6 +253,8 @@ def main():
     ap.add_argument("--only", default="rig,fit,flow,resolution,field")
     ap.add_argument("--fit-frames", type=int, default=30)
     ap.add_argument("--quick", action="store_true", help="fewer field steps (a smoke run)")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the rows of the sweeps not in --only from the existing benchmarks/tradeoffs.csv")
     ap.add_argument("--field-steps", default="150,300,600", help="training steps swept (comma list)")
     args = ap.parse_args()
     cfg = load_config(args.config)
@@ -257,12 +269,21 @@ def main():
         sweeps[name](cfg, args.scene, rows, args)
         loads.append(os.getloadavg()[0])
     out = ROOT / "benchmarks" / "tradeoffs.csv"
+    if args.merge and out.is_file():  # keep the other sweeps' rows of the last run
+        with open(out) as fh:
+            old = list(csv.DictReader(fh))
+        rerun = {k for name in args.only.split(",") for k in SWEEP_KNOBS[name]}
+        kept = [dict(r, wall_s=float(r["wall_s"]), cpu_s=float(r["cpu_s"]), error=float(r["error"]),
+                     is_default=int(r["is_default"])) for r in old if (r["stage"], r["knob"]) not in rerun]
+        rows = kept + rows
     with files.atomic_path(out) as tmp:
         with open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=FIELDS)
             w.writeheader()
             w.writerows(rows)
     rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
+    md = ROOT / "benchmarks" / "tradeoffs.md"
+    prev_md = md.read_text().splitlines() if md.is_file() else []
     lines = ["# Run time against error (`benchmarks/bench_tradeoffs.py`)", "",
              f"- date: {started.isoformat(timespec='seconds')}",
              f"- command: `.venv/bin/python benchmarks/bench_tradeoffs.py --scene {args.scene} --only {args.only} "
@@ -270,6 +291,9 @@ def main():
              f"- machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, torch "
              f"{torch.__version__}; load average (1 min) at the start and after each sweep: "
              + ", ".join(f"{x:.2f}" for x in loads),
+             *([f"- merged (--merge): the rows of the other sweeps come from the earlier run: "
+                + "; ".join(l[2:] for l in prev_md if l.startswith(("- date:", "- command:", "- machine:")))]
+               if args.merge and prev_md else []),
              "- each row: the config's defaults except the knob; `error` is lower-is-better (the field's row holds "
              "minus PSNR); the report (results/report.html) draws one Pareto plot per stage and error and says "
              "whether the default is on the front.", "",
@@ -295,7 +319,7 @@ def main():
         name = f"tradeoffs_{n}_{key[0]}.svg"
         (ROOT / "benchmarks" / name).write_text(svg)
         lines += ["", f"![{key[0]}: {key[1]} against CPU time]({name})", ""]
-    (ROOT / "benchmarks" / "tradeoffs.md").write_text("\n".join(lines) + "\n")
+    md.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
