@@ -64,7 +64,8 @@ class Timer:
 
 
 def _row(rows, stage, knob, value, t, error, metric, default, notes=""):
-    rows.append({"stage": stage, "knob": knob, "value": value, "wall_s": round(t.wall, 3), "cpu_s": round(t.cpu, 3),
+    rows.append({"stage": stage, "knob": knob, "value": value, "wall_s": float(f"{t.wall:.4g}"),
+                 "cpu_s": float(f"{t.cpu:.4g}"),
                  "error": error, "error_metric": metric, "is_default": int(bool(default)), "reference": "no",
                  "notes": notes})
     print(f"  {stage:6s} {knob}={value}: {t.wall:.1f} s wall, {metric} {error:.4g}", flush=True)
@@ -299,7 +300,7 @@ def main():
              "whether the default is on the front.", "",
              "| stage | knob | value | wall s | CPU s | error | metric | default |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
-        lines.append(f"| {r['stage']} | {r['knob']} | {r['value']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+        lines.append(f"| {r['stage']} | {r['knob']} | {r['value']} | {r['wall_s']:.4g} | {r['cpu_s']:.4g} | "
                      f"{r['error']:.4g} | {r['error_metric']} | {'yes' if r['is_default'] else ''} |")
     from anidress_core.plots import pareto_front, scatter_chart
 
@@ -311,8 +312,13 @@ def main():
         front = set(pareto_front([(r["cpu_s"], r["error"]) for r in rs]))
         for i, r in enumerate(rs):
             if r["is_default"]:
-                lines.append(f"- {key[0]} / {key[1]}: default {r['knob']}={r['value']} is "
-                             f"{'on' if i in front else 'NOT on'} the front of these {len(rs)} runs.")
+                beat = [f"{o['knob']}={o['value']} ({o['cpu_s']:.3g} CPU s, {o['error']:.4g})" for o in rs
+                        if o["cpu_s"] <= r["cpu_s"] and o["error"] <= r["error"]
+                        and (o["cpu_s"] < r["cpu_s"] or o["error"] < r["error"])]
+                lines.append(f"- {key[0]} / {key[1]}: default {r['knob']}={r['value']} ({r['cpu_s']:.3g} CPU s, "
+                             f"{r['error']:.4g}) is " + ("on the front" if i in front else
+                                                        "NOT on the front: dominated by " + ", ".join(beat))
+                             + f" of these {len(rs)} runs.")
         svg = scatter_chart([{"x": r["cpu_s"], "y": r["error"], "label": f"{r['knob']}={r['value']}",
                               "group": r["knob"], "highlight": bool(r["is_default"])} for r in rs],
                             f"{key[0]}: {key[1]}", "CPU s", key[1])
