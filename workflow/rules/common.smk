@@ -20,7 +20,7 @@ def _canonical(obj):
     """Mappings with their keys sorted, recursively (lists keep their order): rule params are
     compared as text between runs, so the order of keys in a config file must not count."""
     if isinstance(obj, dict):
-        return {k: _canonical(obj[k]) for k in sorted(obj)}
+        return {k: _canonical(obj[k]) for k in sorted(obj, key=str)}
     if isinstance(obj, list):
         return [_canonical(v) for v in obj]
     return obj
