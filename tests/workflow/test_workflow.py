@@ -130,7 +130,7 @@ def test_every_stage_ran_to_the_report(tiny_run):
             assert summary, f"{scene}/{v}: empty metrics summary"
     assert any((res / "tinyskirt" / "walk" / "full" / "renders" / "library" / "lib-sway").iterdir())
     html = (res / "report.html").read_text()
-    assert "tinyskirt" in html and "tiny" in html
+    assert "Scene tiny (tight)" in html and "Scene tinyskirt (skirt)" in html
 
 
 def test_second_run_has_nothing_to_do(tiny_run):
