@@ -38,12 +38,13 @@ from pathlib import Path
 
 import numpy as np
 
+from benchutil import cpu_model
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from anidress_core.config import load_config  # noqa: E402
 from anidress_core.cues import FLOW_METHODS, MASK_METHODS, CueErrors  # noqa: E402
-from anidress_core.cues import masks as cm  # noqa: E402
 from anidress_core.io import files  # noqa: E402
 from anidress_core.stages import cues as sc  # noqa: E402
 from anidress_core.stages.scene import read_scene  # noqa: E402
@@ -56,14 +57,7 @@ COLUMNS = ["scene", "sequence", "cue", "method", "reference", "cameras", "frames
 
 
 def machine() -> str:
-    cpu = platform.processor() or "?"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_model()
     import cv2
     import torch
 

@@ -39,6 +39,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchutil import cpu_model
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,14 +58,7 @@ log = logging.getLogger("anidress.bench")
 
 
 def machine() -> str:
-    cpu = platform.processor() or "?"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_model()
     return (f"{cpu}, {os.cpu_count()} logical CPUs, torch threads {torch.get_num_threads()}; Python "
             f"{platform.python_version()}, torch {torch.__version__}, numpy {np.__version__}")
 

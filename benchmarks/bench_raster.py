@@ -23,6 +23,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchutil import cpu_model
 import torch
 import trimesh
 
@@ -114,16 +116,6 @@ def edge_distance(mesh, K, E, fid) -> np.ndarray:
         d = np.minimum(d, np.linalg.norm(a + s[:, None] * ab - p, axis=1))
     out[ii, jj] = d
     return out
-
-
-def cpu_model() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def main() -> None:

@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchutil import cpu_model
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -39,14 +41,7 @@ from anidress_core.sim import ClothParams, edge_stretch, penetration_depth, simu
 
 
 def machine() -> str:
-    cpu = platform.processor() or "?"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_model()
     import torch
     import warp
 

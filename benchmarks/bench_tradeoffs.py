@@ -30,7 +30,6 @@ import copy
 import csv
 import datetime
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -42,6 +41,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from benchutil import cpu_model  # noqa: E402
 
 from anidress_core.config import load_config  # noqa: E402
 from anidress_core.io import files  # noqa: E402
@@ -175,7 +175,7 @@ def sweep_flow(cfg, scene, rows, args):
 def sweep_resolution(cfg, scene, rows, args):
     """Half-resolution copy of the scene (same everything else), its own cues, then the fit."""
     from anidress_core.config import scene_config
-    from anidress_core.stages.cues import run_flows, run_masks, run_normals  # noqa: F401
+    from anidress_core.stages.cues import run_flows, run_masks
     from anidress_core.stages.synth import run_synth
 
     data, res, seq = _scene_paths(cfg, scene)
@@ -289,7 +289,7 @@ def main():
              f"- date: {started.isoformat(timespec='seconds')}",
              f"- command: `.venv/bin/python benchmarks/bench_tradeoffs.py --scene {args.scene} --only {args.only} "
              f"--fit-frames {args.fit_frames}{' --quick' if args.quick else ''}` (git {rev.strip()} + working tree)",
-             f"- machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, torch "
+             f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs, torch "
              f"{torch.__version__}; load average (1 min) at the start and after each sweep: "
              + ", ".join(f"{x:.2f}" for x in loads),
              *([f"- merged (--merge): the rows of the other sweeps come from the earlier run: "

@@ -17,13 +17,14 @@ import csv
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import yaml
+
+from benchutil import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -83,7 +84,7 @@ def main() -> None:
     rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
     lines = [f"# One pipeline run of `{scene}`: cost per stage and what it measured", "",
              f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}; git {rev.strip()}",
-             f"- machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs; "
+             f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs; "
              f"load average now {' / '.join(f'{x:.2f}' for x in os.getloadavg())}",
              f"- command: `.venv/bin/python benchmarks/collect_pipeline.py --scene {scene}"
              + (f" --wall-s {args.wall_s:.0f}" if args.wall_s else "") + "` after the run",

@@ -13,15 +13,7 @@ import torch
 from anidress_core import geometry as g
 from anidress_core import rig
 
-from tests.test_rig import _known_rig, _tube
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+from tests.test_rig import _known_rig, _one_thread, _tube  # noqa: F401 (_one_thread: autouse fixture)
 
 
 def _finite(model):
