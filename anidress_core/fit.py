@@ -18,8 +18,17 @@ weights (V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
   that are visible in a view and lie inside its garment mask (t-1), moved by the forward
   flow t-1 -> t sampled there, are the targets of the same vertices' projections now:
   squared distance in pixels summed over (view, vertex) targets. Off at frame 0.
+* L_ph, multi-view photo-consistency (not in the paper; ``w_photo``, 0 = off): every vertex
+  seen by two or more views (visible, its pixel inside the eroded garment mask) should have
+  the same colour in all of them; residual = its colour in a view (slightly blurred image,
+  bilinear) minus its mean over those views, robust Cauchy loss. A shape cue in the spirit of
+  multi-view stereo: it places textured surface points in depth, where the masks see only
+  the outline and the normals only the orientation, and it is absolute at every frame (L_of
+  chains frames). It cannot see a garment sliding along its own surface (the same surface
+  with other vertex labels); that stays L_of's job. Measured in benchmarks/fit.md (ablation
+  ``no_photo``).
 
-As in the paper every term is a sum (over views and pixels or targets); all three are
+As in the paper every term is a sum (over views and pixels or targets); all of them are
 divided by one common constant, the number of garment pixels in the masks, so that their
 ratios are the paper's whatever the image size and number of views
 (``normalisation='paper'``; ``'per_term'`` makes each term a mean of its own residuals).
@@ -79,6 +88,7 @@ __all__ = [
     "Views",
     "FrameCues",
     "FlowTargets",
+    "photo_features",
     "FrameFit",
     "contour_length",
     "flow_targets",
@@ -99,6 +109,7 @@ ABLATIONS = {
     "vertex": "(a) direct vertex fitting without the rig (Adam on vertex positions)",
     "no_normal_flow": "(b) no normal and no flow losses (silhouettes only)",
     "no_flow": "(c) no flow loss (silhouettes and normals)",
+    "no_photo": "the paper's loss L_M + L_N + L_of (no photo-consistency L_ph)",
 }
 
 
@@ -151,6 +162,14 @@ class FitConfig:
     crop_margin: int = 12
     """Render only a window per view around the mask and the start pose, grown by this many
     pixels (the same loss while the garment stays inside; faster); -1 = whole images."""
+    w_photo: float = 0.0
+    """Weight of L_ph, multi-view photo-consistency (not in the paper; 0 = off): the colour of
+    every vertex seen by two or more views, in each of them, against its mean over them (robust
+    Cauchy loss); places textured surface points in depth at every frame (module docstring)."""
+    photo_blur: float = 0.5
+    """Gaussian blur (pixels, standard deviation) of the images for L_ph."""
+    photo_scale: float = 0.05
+    """Cauchy scale of L_ph (colour difference, RGB in [0, 1]): rho(r) = s^2 log(1 + |r|^2 / s^2)."""
     normalisation: str = "paper"
     """'paper': each term is the paper's sum (over pixels, flow targets), all divided by one
     common constant, the number of garment pixels of the masks; 'per_term': each term is a
@@ -161,10 +180,13 @@ class FitConfig:
             raise ValueError(f"FitConfig.normalisation must be 'paper' or 'per_term', got {self.normalisation!r}")
         if self.method not in ("rig", "vertex"):
             raise ValueError(f"FitConfig.method must be 'rig' or 'vertex', got {self.method!r}")
-        for k in ("w_mask", "w_normal", "w_flow"):
+        for k in ("w_mask", "w_normal", "w_flow", "w_photo"):
             v = getattr(self, k)
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"FitConfig.{k} must be finite and >= 0, got {v}")
+        if not (self.photo_blur >= 0 and self.photo_scale > 0):
+            raise ValueError(f"FitConfig: photo_blur must be >= 0 and photo_scale > 0, got {self.photo_blur}, "
+                             f"{self.photo_scale}")
         if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex_max_iters < 1:
             raise ValueError("FitConfig: iteration limits must be >= 1")
         for k in ("levels", "levels_first"):
@@ -181,9 +203,11 @@ def config_for(base: FitConfig, ablation: str | None) -> FitConfig:
     if ablation == "vertex":
         return replace(base, method="vertex")
     if ablation == "no_normal_flow":
-        return replace(base, w_normal=0.0, w_flow=0.0)
+        return replace(base, w_normal=0.0, w_flow=0.0, w_photo=0.0)
     if ablation == "no_flow":
-        return replace(base, w_flow=0.0)
+        return replace(base, w_flow=0.0, w_photo=0.0)
+    if ablation == "no_photo":
+        return replace(base, w_photo=0.0)
     raise ValueError(f"unknown ablation {ablation!r}; choose from {sorted(ABLATIONS)}")
 
 
@@ -284,6 +308,8 @@ class FrameCues(NamedTuple):
     occluder_mesh: tuple | None = None
     """(verts (Vb, 3), faces (Fb, 3)) of the occluder (the posed body), rasterised by
     :func:`fit_frame` in its render windows when ``occluder`` is None (cheaper)."""
+    image: Tensor | None = None
+    """(C, H, W, 3) colour images in [0, 1] for L_ph (``FitConfig.w_photo``), or None (L_ph off)."""
 
 
 class FlowTargets(NamedTuple):
@@ -371,9 +397,7 @@ def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragme
     good = prev_mask.bool() if not prev_mask.is_floating_point() else prev_mask >= 1
     if flow_valid is not None:
         good = good & flow_valid.bool()
-    if margin > 0:  # erode: the whole (2 margin + 1)^2 neighbourhood must be good
-        good = -Fnn.max_pool2d(-good[:, None].double(), 2 * margin + 1, stride=1, padding=margin)[:, 0] > 0.5
-    ok = vis & good[cam, row, col]
+    ok = vis & _eroded(good, margin)[cam, row, col]  # the whole (2 margin + 1)^2 neighbourhood is good
     # bilinear flow at the projections; pixel centres sit at integer coordinates
     f = flow.permute(0, 3, 1, 2).to(uv.dtype)  # (C, 2, H, W)
     grid = torch.stack([2 * uv[..., 0] / max(W - 1, 1) - 1, 2 * uv[..., 1] / max(H - 1, 1) - 1], -1)
@@ -383,6 +407,64 @@ def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragme
     ok &= torch.isfinite(fs).all(-1)
     c, v = ok.nonzero(as_tuple=True)
     return FlowTargets(c, v, (uv[c, v] + fs[c, v]).double())
+
+
+def photo_features(image: Tensor, blur: float) -> Tensor:
+    """(C, 9, H, W): the image (C, H, W, 3) blurred by a Gaussian of ``blur`` pixels (channels
+    0-2) and its derivatives along x (3-5) and y (6-8), central differences (one-sided at the
+    border). L_ph samples these bilinearly at vertex projections; the
+    derivative channels are its Gauss-Newton Jacobian (smoother than the bilinear
+    interpolant's own piecewise-constant derivative)."""
+    x = image.permute(0, 3, 1, 2).double()
+    x = torch.where(torch.isfinite(x), x, torch.zeros_like(x))
+    C, ch, H, W = x.shape
+    if blur > 0:
+        r = max(1, int(math.ceil(3 * blur)))
+        k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=x.dtype, device=x.device) / blur) ** 2)
+        k = (k / k.sum()).view(1, 1, -1)
+        y = x.reshape(C * ch, 1, H, W)
+        y = Fnn.conv2d(Fnn.pad(y, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+        y = Fnn.conv2d(Fnn.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+        x = y.view(C, ch, H, W)
+    gx = torch.zeros_like(x)
+    gy = torch.zeros_like(x)
+    if W > 1:
+        gx[..., 1:-1] = 0.5 * (x[..., 2:] - x[..., :-2])
+        gx[..., 0], gx[..., -1] = x[..., 1] - x[..., 0], x[..., -1] - x[..., -2]
+    if H > 1:
+        gy[..., 1:-1, :] = 0.5 * (x[..., 2:, :] - x[..., :-2, :])
+        gy[..., 0, :], gy[..., -1, :] = x[..., 1, :] - x[..., 0, :], x[..., -1, :] - x[..., -2, :]
+    return torch.cat([x, gx, gy], 1)
+
+
+def _sample(feat: Tensor, uv: Tensor) -> Tensor:
+    """Bilinear samples (C, V, ch) of feat (C, ch, H, W) at pixel positions uv (C, V, 2)
+    (pixel centres at integer coordinates; outside: the border value)."""
+    H, W = feat.shape[-2:]
+    grid = torch.stack([2 * uv[..., 0] / max(W - 1, 1) - 1, 2 * uv[..., 1] / max(H - 1, 1) - 1], -1)
+    grid = torch.where(torch.isfinite(grid), grid, torch.full_like(grid, -2.0))
+    out = Fnn.grid_sample(feat.to(uv.dtype), grid[:, None], mode="bilinear", padding_mode="border",
+                          align_corners=True)
+    return out[:, :, 0].permute(0, 2, 1)
+
+
+def _eroded(mask: Tensor, margin: int) -> Tensor:
+    """(C, H, W) bool: pixels whose whole (2 margin + 1)^2 neighbourhood is garment (mask >= 1 if soft)."""
+    good = mask.bool() if not mask.is_floating_point() else mask >= 1
+    if margin <= 0:
+        return good
+    return -Fnn.max_pool2d(-good[:, None].double(), 2 * margin + 1, stride=1, padding=margin)[:, 0] > 0.5
+
+
+def _pixel_ok(region: Tensor, uv: Tensor) -> Tensor:
+    """(C, V) bool: the pixel nearest to uv (C, V, 2) lies in the image and in region (C, H, W)."""
+    C, H, W = region.shape
+    finite = torch.isfinite(uv).all(-1)
+    col = torch.where(finite, uv[..., 0], torch.full_like(uv[..., 0], -1.0)).round()
+    row = torch.where(finite, uv[..., 1], torch.full_like(uv[..., 1], -1.0)).round()
+    inside = finite & (col >= 0) & (col <= W - 1) & (row >= 0) & (row <= H - 1)
+    cam = torch.arange(C, device=uv.device)[:, None].expand_as(col)
+    return inside & region[cam, row.clamp(0, H - 1).long(), col.clamp(0, W - 1).long()]
 
 
 def apply_increment(transforms: Tensor, centres: Tensor, delta: Tensor) -> Tensor:
@@ -458,6 +540,9 @@ class _Problem(NamedTuple):
     cfg: FitConfig
     prior: Tensor | None = None  # (V, 3) start mesh of the first frame (proximal term), or None
     w_prior: float = 0.0  # its weight per vertex: w_prior_first / V
+    photo: Tensor | None = None  # (C, 9, H, W) photo_features of the images, or None (L_ph off)
+    photo_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
+    n_photo: float = 1.0
 
 
 class _Eval(NamedTuple):
@@ -468,6 +553,7 @@ class _Eval(NamedTuple):
     uv: Tensor  # (C, V, 2)
     sil: "_SilData"
     nrm: "_NormalData | None"
+    pho: "_PhotoData | None" = None
 
 
 class _SilData(NamedTuple):
@@ -477,6 +563,14 @@ class _SilData(NamedTuple):
     edge: Tensor  # (N, 2)
     pixel: Tensor  # (N,) pixel whose coverage the crossing changes
     residual: Tensor  # (C H W,) s - m
+
+
+class _PhotoData(NamedTuple):
+    cam: Tensor  # (N,)
+    vert: Tensor  # (N,)
+    residual: Tensor  # (N, 3) colour - reference
+    grad: Tensor  # (N, 3, 2) d colour / d uv
+    weight: Tensor  # (N,) Cauchy IRLS weight 1 / (1 + |r|^2 / s^2)
 
 
 class _NormalData(NamedTuple):
@@ -519,19 +613,25 @@ def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTarget
     occ = _occluder_or_inf(cues, views)
     if flow is not None and (cfg.w_flow == 0 or flow.cam.numel() == 0):
         flow = None
+    photo = region = None
+    if cfg.w_photo > 0 and cues.image is not None:
+        photo = photo_features(cues.image, cfg.photo_blur)
+        region = _eroded(soft, cfg.flow_margin_px)
     if cfg.normalisation == "paper":  # the paper's sums over pixels / targets, one common scale
         n_px = float(max(float(soft.sum()), 1.0))
-        n_mask = n_normal = n_flow = n_px
-    else:  # every term a mean: per contour pixel, per normal pixel, per flow target
+        n_mask = n_normal = n_flow = n_photo = n_px
+    else:  # every term a mean: per contour pixel, per normal pixel, per flow target, per vertex
         n_mask = float(max(int(contour_length(mask).sum()), 1))
         n_normal = float(max(int(nok.sum()), 1)) if nok is not None else 1.0
         n_flow = float(max(flow.cam.numel(), 1)) if flow is not None else 1.0
+        n_photo = float(rig.rest.shape[0])
     return _Problem(
         rig=rig, views=views, mask=mask, mask_flat=soft.reshape(-1), n_mask=n_mask,
         normals=normals, normal_ok=nok, n_normal=n_normal,
         occluder=occ, flow=flow, n_flow=n_flow, cfg=cfg,
         prior=None if prior is None or cfg.w_prior_first == 0 else prior.detach().double(),
         w_prior=cfg.w_prior_first / rig.rest.shape[0],
+        photo=photo, photo_region=region, n_photo=n_photo,
     )
 
 
@@ -594,7 +694,7 @@ def crop_frame(views: Views, cues: FrameCues, flow: FlowTargets | None, c: Crop
         off = torch.stack([c.x0, c.y0], -1).to(flow.target.dtype)[flow.cam]
         fl = FlowTargets(flow.cam, flow.vert, flow.target - off)
     return (Views(K, views.world_to_cam, c.height, c.width),
-            FrameCues(cut(cues.mask), cut(cues.normals), cut(cues.occluder), cues.occluder_mesh), fl)
+            FrameCues(cut(cues.mask), cut(cues.normals), cut(cues.occluder), cues.occluder_mesh, cut(cues.image)), fl)
 
 
 def uncrop_fragments(frags: raster.Fragments, c: Crop, height: int, width: int,
@@ -649,10 +749,13 @@ def downsample(views: Views, cues: FrameCues, flow: FlowTargets | None, factor: 
         ns = ns / ns.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         normals = torch.where(full[..., None], ns, torch.zeros_like(ns))
     occ = -Fnn.max_pool2d(-crop(_occluder_or_inf(cues, views))[:, None], f)[:, 0]
+    image = None
+    if cues.image is not None:
+        image = pool(crop(cues.image.double()).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
     fl = None
     if flow is not None:
         fl = FlowTargets(flow.cam, flow.vert, (flow.target - (f - 1) / 2) / f)
-    return Views(K, views.world_to_cam, Hc, Wc), FrameCues(m, normals, occ), fl
+    return Views(K, views.world_to_cam, Hc, Wc), FrameCues(m, normals, occ, None, image), fl
 
 
 def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
@@ -699,9 +802,33 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
     # 4. first frame: proximal term towards the start (see FitConfig.w_prior_first)
     if pb.prior is not None:
         terms["prior"] = float(((verts - pb.prior) ** 2).sum()) / verts.shape[0]
+    # 5. multi-view photo-consistency: colours of the vertices seen twice or more against their mean
+    pho = None
+    terms["photo"] = 0.0
+    if pb.photo is not None:
+        vis = raster.visible_vertices(verts, K, E, frags, cfg.vis_depth_tol) & _pixel_ok(pb.photo_region, uv)
+        smp = _sample(pb.photo, uv)  # (C, V, 9)
+        vis, ref = _photo_reference(vis, smp[..., :3])
+        c, vv = vis.nonzero(as_tuple=True)
+        smp = smp[c, vv]  # (N, 9)
+        r = smp[:, :3] - ref[vv].to(smp.dtype)
+        s2 = cfg.photo_scale ** 2
+        e = (r * r).sum(-1)
+        terms["photo"] = float((s2 * torch.log1p(e / s2)).sum()) / pb.n_photo
+        pho = _PhotoData(c, vv, r, torch.stack([smp[:, 3:6], smp[:, 6:9]], -1), 1.0 / (1.0 + e / s2))
     loss = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
-    loss += cfg.w_prior_first * terms["prior"]
-    return _Eval(loss, terms, verts, frags, uv, sil, nrm)
+    loss += cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"]
+    return _Eval(loss, terms, verts, frags, uv, sil, nrm, pho)
+
+
+def _photo_reference(vis: Tensor, colours: Tensor) -> tuple[Tensor, Tensor]:
+    """The (camera, vertex) pairs with an L_ph residual (C, V) bool -- the vertices seen (vis
+    (C, V)) by two or more views -- and each vertex's reference colour (V, 3): the mean of its
+    colours (C, V, 3) over those views. For the squared loss the mean's own derivative drops out
+    of the gradient (the residuals of a vertex sum to 0), so the Gauss-Newton step holds it fixed."""
+    w = vis.to(colours.dtype)[..., None]
+    n = w.sum(0)  # (V, 1)
+    return vis & (n[:, 0] >= 2)[None], (colours * w).sum(0) / n.clamp_min(1)
 
 
 def _visible_face_normals(verts: Tensor, faces: Tensor, world_to_cam: Tensor, cam: Tensor, face: Tensor) -> Tensor:
@@ -739,8 +866,17 @@ def _normal_corner_jacobian(tri: Tensor, R: Tensor, flip: Tensor) -> tuple[Tenso
     return flip[:, None] * torch.einsum("uij,uj->ui", R, n), J
 
 
+#: dtype of the large Jacobian products in the Levenberg-Marquardt steps: float32 is ~20 %
+#: faster per Gauss-Newton system than float64 at ~2e-7 relative error in H and g (skirt, 8
+#: views), far below what the step needs; residuals, poses and H, g themselves stay float64.
+JACOBIAN_DTYPE = torch.float32
+
+
 def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.float64) -> tuple[Tensor, Tensor]:
     """H = sum_k w_k/n_k J_k^T J_k and g = sum_k w_k/n_k J_k^T r_k (so that L(d) ~ L + 2 g.d + d.H d).
+
+    ``jdtype``: dtype of the (3V, P) Jacobian products (float64 for the exactness tests,
+    :data:`JACOBIAN_DTYPE` in the optimiser).
 
     J_k = (d r_k / d x) (d x / d delta). Normal and flow residuals are accumulated in
     vertex space first (3x3 blocks of vertex pairs sharing a face, H_x, and g_x), then
@@ -764,7 +900,6 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
     # 1. silhouette: dt/dq by autograd on the gathered edge end points, then chain per pixel
     s = ev.sil
     if cfg.w_mask > 0 and s.pixel.numel():
-        C = ev.uv.shape[0]
         uvf = ev.uv.reshape(-1, 2)
         with torch.enable_grad():
             q1 = uvf[s.cam * V + s.edge[:, 0]].detach().requires_grad_()
@@ -811,7 +946,15 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
         blocks.index_add_(0, lay.diag[fl.vert], w * Pf.transpose(1, 2) @ Pf)
         gx.index_add_(0, fl.vert, w * torch.einsum("nij,ni->nj", Pf, r))
         any_vertex_term = True
-    # 4. proximal term: residual sqrt(w / V) (x - x_start), identity Jacobian on each vertex
+    # 4. photo-consistency (IRLS): residual sqrt(weight) (colour - reference), d colour / d x = dI/duv duv/dx
+    if ev.pho is not None and cfg.w_photo > 0 and ev.pho.cam.numel():
+        ph = ev.pho
+        Jr = ph.grad @ Puv[ph.cam, ph.vert]  # (N, 3, 3)
+        w = (cfg.w_photo / pb.n_photo) * ph.weight
+        blocks.index_add_(0, lay.diag[ph.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
+        gx.index_add_(0, ph.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, ph.residual))
+        any_vertex_term = True
+    # 5. proximal term: residual sqrt(w / V) (x - x_start), identity Jacobian on each vertex
     if pb.prior is not None:
         blocks.index_add_(0, lay.diag, pb.w_prior * torch.eye(3, dtype=blocks.dtype, device=blocks.device).expand(V, 3, 3))
         gx += pb.w_prior * (verts - pb.prior)
@@ -852,8 +995,19 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
         terms["flow"] = (d * d).sum() / pb.n_flow
     if pb.prior is not None:
         terms["prior"] = ((verts - pb.prior.to(verts.dtype)) ** 2).sum() / verts.shape[0]
+    terms["photo"] = lm.new_zeros(())
+    if pb.photo is not None:  # colours bilinear in the blurred image (visibility held fixed: fragments)
+        uv, _ = raster.project_vertices(verts, K, E)
+        with torch.no_grad():
+            vis = raster.visible_vertices(verts.detach(), K, E, fragments, cfg.vis_depth_tol)
+            vis &= _pixel_ok(pb.photo_region, uv.detach())
+        col = _sample(pb.photo[:, :3], uv)  # (C, V, 3)
+        vis, ref = _photo_reference(vis, col)
+        r = (col - ref.to(col.dtype)[None])[vis]
+        s2 = cfg.photo_scale ** 2
+        terms["photo"] = (s2 * torch.log1p((r * r).sum(-1) / s2)).sum() / pb.n_photo
     total = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
-    total = total + cfg.w_prior_first * terms["prior"]
+    total = total + cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"]
     return total, terms
 
 
@@ -914,7 +1068,7 @@ def _lm(pb: _Problem, transforms: Tensor, max_iters: int) -> FrameFit:
     if not math.isfinite(ev.loss):
         raise ValueError("fit: the loss at the starting pose is not finite (check the cues and the start pose)")
     curve = [ev.loss]
-    H, g = _gauss_newton(pb, ev, G)
+    H, g = _gauss_newton(pb, ev, G, JACOBIAN_DTYPE)
     mu, nu = None, 2.0
     it, converged = 0, False
     while it < max_iters:
@@ -946,7 +1100,7 @@ def _lm(pb: _Problem, transforms: Tensor, max_iters: int) -> FrameFit:
             if small:
                 converged = True
                 break
-            H, g = _gauss_newton(pb, ev, G)
+            H, g = _gauss_newton(pb, ev, G, JACOBIAN_DTYPE)
         else:
             if float(delta.abs().max()) < cfg.step_tol:
                 converged = True
@@ -961,7 +1115,7 @@ def _vertex_adam(pb: _Problem, cues: FrameCues, start_verts: Tensor, transforms:
     cfg, rig, views = pb.cfg, pb.rig, pb.views
     x = start_verts.double().clone().requires_grad_(True)
     opt = torch.optim.Adam([x], lr=cfg.vertex_lr)
-    best, best_x, best_terms, since = float("inf"), x.detach().clone(), {}, 0
+    best, best_x, since = float("inf"), x.detach().clone(), 0
     curve = []
     it, converged = 0, False
     for it in range(1, max_iters + 1):
@@ -975,7 +1129,7 @@ def _vertex_adam(pb: _Problem, cues: FrameCues, start_verts: Tensor, transforms:
         else:
             since += 1
         if val < best:
-            best, best_x, best_terms = val, x.detach().clone(), {k: float(v) for k, v in terms.items()}
+            best, best_x = val, x.detach().clone()
         curve.append(val)
         if since >= cfg.vertex_patience:
             converged = True
@@ -989,7 +1143,8 @@ def _vertex_adam(pb: _Problem, cues: FrameCues, start_verts: Tensor, transforms:
 
 
 def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: FitConfig = FitConfig(),
-              flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None) -> FrameFit:
+              flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None
+              ) -> FrameFit:
     """Fit one frame.
 
     init: (B, 4, 4) starting bone transforms (frame t-1's result, or the first frame's
@@ -1041,7 +1196,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                  cfg: FitConfig = FitConfig(), progress: bool = True, log=None) -> list[FrameFit]:
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
 
-    cues_of(t) -> :class:`FrameCues`; flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
+    cues_of(t) -> :class:`FrameCues` (with ``image`` for L_ph); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
     or None) of t-1 -> t, or None (no flow for that frame: L_of off there, logged);
     init: (B, 4, 4) start of frame 0. Returns one :class:`FrameFit` per frame (with the
     wall time of each in ``terms['wall_s']``).

@@ -9,6 +9,8 @@
   ``<normals_dir>/<cam>/<frame:06d>.exr`` (camera-space unit normals; no folder = normal
   loss off), ``<flows_dir>/<cam>/<frame:06d>.exr`` (channels X, Y, valid: forward flow
   frame-1 -> frame on frame-1's grid; none for frame 0);
+* with the photo-consistency term on (``weights/photo`` > 0) the training images
+  ``<seq>/images/<cam>/<frame:06d>.{png,jpg}``;
 * the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
 * ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start.
 
@@ -17,7 +19,7 @@ and writes ``garment_poses.npz`` (:func:`load_garment_poses`):
 * ``transforms`` (T, B, 4, 4) float32: bone transforms rest -> world, the rig's convention
   ``x = sum_b W[i, b] (M[b, :3, :3] rest_i + M[b, :3, 3])``;
 * ``verts`` (T, V, 3) float32 fitted meshes, ``faces`` (F, 3) int64;
-* ``loss``, ``loss_mask``, ``loss_normal``, ``loss_flow`` (T,) float64: weighted total and
+* ``loss``, ``loss_mask``, ``loss_normal``, ``loss_flow``, ``loss_photo`` (T,) float64: weighted total and
   unweighted terms at the result; ``iterations`` (T,) int64; ``converged`` (T,) bool;
   ``wall_s`` (T,) float64 per frame (cue loading included); ``flow_targets`` (T,) int64;
 * ``curve`` (T, L) float64: weighted loss after each accepted step, NaN-padded;
@@ -45,6 +47,7 @@ from .. import fit as FIT
 from ..camera import load_cameras
 from ..io import files
 from ..synth import LABEL_GARMENT
+from .cues import image_path
 from .rig import load_rig
 from .scene import load_body, load_sequence_motion, read_scene
 
@@ -54,7 +57,8 @@ log = logging.getLogger("anidress.fit")
 
 FIT_METRIC_COLUMNS = (
     "method", "frame", "vertex_rmse_m", "rig_floor_rmse_m", "chamfer_m", "normal_consistency", "jitter_m",
-    "gt_jitter_m", "accel_error_m", "loss", "loss_mask", "loss_normal", "loss_flow", "iterations", "wall_s",
+    "gt_jitter_m", "accel_error_m", "loss", "loss_mask", "loss_normal", "loss_flow", "loss_photo", "iterations",
+    "wall_s",
 )
 
 
@@ -63,6 +67,8 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
     w = params.get("weights", {})
     base = FIT.FitConfig(
         w_mask=float(w.get("mask", 2.0)), w_normal=float(w.get("normal", 0.1)), w_flow=float(w.get("flow", 3.0)),
+        w_photo=float(w.get("photo", 1000.0)), photo_blur=float(params.get("photo_blur", 0.5)),
+        photo_scale=float(params.get("photo_scale", 0.05)),
         max_iters=int(params.get("max_iters", 20)), max_iters_first=int(params.get("max_iters_first", 60)),
         rel_tol=float(params.get("rel_tol", 1e-3)), step_tol=float(params.get("step_tol", 1e-5)),
         damping=float(params.get("damping", 1e-4)), vis_depth_tol=float(params.get("visibility_depth_tol", 0.005)),
@@ -94,11 +100,12 @@ class _CueReader:
     """
 
     def __init__(self, cams, masks_dir, normals_dir, flows_dir, body_verts, body_faces, views, device,
-                 num_frames: int | None = None):
+                 num_frames: int | None = None, seq_dir: Path | None = None):
         from concurrent.futures import ThreadPoolExecutor
 
         self.cams, self.views, self.device = cams, views, device
         self.masks_dir, self.normals_dir, self.flows_dir = Path(masks_dir), normals_dir, flows_dir
+        self.seq_dir = seq_dir  # images for L_ph (None: not read)
         self.body_verts, self.body_faces = body_verts, body_faces
         self.H, self.W = cams.height, cams.width
         self.bad_values = 0
@@ -123,12 +130,13 @@ class _CueReader:
 
     def cues(self, t: int) -> FIT.FrameCues:
         job = self._ahead_cues.pop(t, None)
-        masks, nrm = job.result() if job is not None else self._read_cues(t)
+        masks, nrm, img = job.result() if job is not None else self._read_cues(t)
         self._prefetch(t + 1)
         dev = self.device
         return FIT.FrameCues(torch.as_tensor(masks, device=dev), None if nrm is None else
                              torch.as_tensor(nrm, device=dev).double(), None,
-                             (self.body_verts[t].to(dev), self.body_faces.to(dev)))
+                             (self.body_verts[t].to(dev), self.body_faces.to(dev)),
+                             None if img is None else torch.as_tensor(img, device=dev))
 
     def flow(self, t: int):
         job = self._ahead_flow.pop(t, None)
@@ -139,7 +147,7 @@ class _CueReader:
         return torch.as_tensor(res[0], device=dev).double(), torch.as_tensor(res[1], device=dev)
 
     def _read_cues(self, t: int):
-        masks, normals = [], []
+        masks, normals, images = [], [], []
         for cam in self.cams.names:
             p = _frame_file(self.masks_dir, cam, t, "png")
             masks.append(self._check(p, files.read_mask(p), None) == LABEL_GARMENT)
@@ -151,7 +159,11 @@ class _CueReader:
                     self.bad_values += int(bad.sum())
                     log.warning("%s: %d pixels with NaN/inf normals ignored", p, int(bad.sum()))
                 normals.append(n)
-        return np.stack(masks), (np.stack(normals) if normals else None)
+            if self.seq_dir is not None:
+                p = image_path(self.seq_dir, cam, t)
+                images.append(self._check(p, files.read_image(p), 3))
+        return (np.stack(masks), (np.stack(normals) if normals else None),
+                (np.stack(images) if images else None))
 
     def _read_flow(self, t: int):
         if self.flows_dir is None or t == 0:
@@ -240,15 +252,15 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         if start == "auto":
             log.info("fit: the rig has no simulated sequence %s; frame 0 starts from the body-skinned template",
                      sim_name)
-    log.info("fit %s/%s (%s): %d frames, %d views %s, %d vertices, %d bones, weights M %.2f N %.2f of %.2f, "
-             "start: %s, device %s", scene_dir.name, seq, method, T, len(names), names, rig.rest.shape[0],
-             rig.weights.shape[1], cfg.w_mask, cfg.w_normal, cfg.w_flow, start_used, device)
+    log.info("fit %s/%s (%s): %d frames, %d views %s, %d vertices, %d bones, weights M %.2f N %.2f of %.2f "
+             "ph %.1f, start: %s, device %s", scene_dir.name, seq, method, T, len(names), names, rig.rest.shape[0],
+             rig.weights.shape[1], cfg.w_mask, cfg.w_normal, cfg.w_flow, cfg.w_photo, start_used, device)
     if normals_dir is None:
         log.info("fit: no normal maps for %s; the normal loss is off (weight 0)", seq)
         cfg = dataclasses.replace(cfg, w_normal=0.0)
     reader = _CueReader(cams, masks_dir, None if cfg.w_normal == 0 else normals_dir,
                         None if cfg.w_flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device,
-                        num_frames=T)
+                        num_frames=T, seq_dir=sdir if cfg.w_photo > 0 else None)
     for cam in names:  # fail early, naming the file
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():
@@ -291,6 +303,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "faces": rig.faces.cpu().numpy().astype(np.int64),
         "loss": np.array([r.loss for r in res]), "loss_mask": np.array([r.terms["mask"] for r in res]),
         "loss_normal": np.array([r.terms["normal"] for r in res]), "loss_flow": np.array([r.terms["flow"] for r in res]),
+        "loss_photo": np.array([r.terms.get("photo", 0.0) for r in res]),
         "iterations": np.array([r.iterations for r in res], np.int64),
         "converged": np.array([r.converged for r in res], bool),
         "wall_s": np.array([r.terms["wall_s"] for r in res]),
@@ -396,7 +409,8 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
                 "accel_error_m": float(acc[t - 1]) if inner else float("nan"),
                 "loss": float(f["loss"][t]), "loss_mask": float(f.get("loss_mask", np.full(T, np.nan))[t]),
                 "loss_normal": float(f.get("loss_normal", np.full(T, np.nan))[t]),
-                "loss_flow": float(f.get("loss_flow", np.full(T, np.nan))[t]), "iterations": int(f["iterations"][t]),
+                "loss_flow": float(f.get("loss_flow", np.full(T, np.nan))[t]),
+                "loss_photo": float(f.get("loss_photo", np.full(T, np.nan))[t]), "iterations": int(f["iterations"][t]),
                 "wall_s": float(f.get("wall_s", np.full(T, np.nan))[t]),
             })
         summary["methods"][name] = {"vertex_rmse_m": float(rm.mean()), "rig_floor_rmse_m": float(floor_t.mean()),
