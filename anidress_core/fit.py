@@ -488,16 +488,20 @@ def skin_jacobian(rig: RigParts, transforms: Tensor) -> Tensor:
 
     x_v = sum_b W_vb (R_b r_v + t_b); d x_v / d omega_b = -W_vb [a_vb]_x with
     a_vb = R_b (r_v - c_b) (the vertex relative to the bone centre); d x_v / d tau_b = W_vb I.
+    Written straight into the (V, 3, B, 6) layout (no stacked skew matrices, no permuted copy).
     """
     R = transforms[:, :3, :3]
-    a = torch.einsum("bij,vbj->vbi", R, rig.rest[:, None, :] - rig.centres[None])  # (V, B, 3)
-    x, y, z = a.unbind(-1)
-    o = torch.zeros_like(x)
-    skew = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).view(*a.shape[:2], 3, 3)  # [a]_x
-    Wt = rig.weights[..., None, None]
-    J = torch.cat([-Wt * skew, Wt * torch.eye(3, dtype=a.dtype, device=a.device)], -1)  # (V, B, 3, 6)
-    V, B = a.shape[:2]
-    return J.permute(0, 2, 1, 3).reshape(V, 3, B * 6)
+    W = rig.weights
+    V, B = W.shape
+    a = torch.einsum("vj,bij->vbi", rig.rest, R) - torch.einsum("bij,bj->bi", R, rig.centres)[None]  # (V, B, 3)
+    x, y, z = (W[..., None] * a).unbind(-1)
+    J = torch.zeros(V, 3, B, 6, dtype=a.dtype, device=a.device)
+    J[:, 0, :, 1], J[:, 0, :, 2] = z, -y  # -W [a]_x, rows of [[0, z, -y], [-z, 0, x], [y, -x, 0]]
+    J[:, 1, :, 0], J[:, 1, :, 2] = -z, x
+    J[:, 2, :, 0], J[:, 2, :, 1] = y, -x
+    for i in range(3):
+        J[:, i, :, 3 + i] = W
+    return J.view(V, 3, B * 6)
 
 
 def projection_jacobian(verts: Tensor, views: Views) -> tuple[Tensor, Tensor]:
