@@ -67,7 +67,7 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
     w = params.get("weights", {})
     base = FIT.FitConfig(
         w_mask=float(w.get("mask", 2.0)), w_normal=float(w.get("normal", 0.1)), w_flow=float(w.get("flow", 3.0)),
-        w_photo=float(w.get("photo", 1000.0)), photo_blur=float(params.get("photo_blur", 0.5)),
+        w_photo=float(w.get("photo", 0.0)), photo_blur=float(params.get("photo_blur", 0.5)),
         photo_scale=float(params.get("photo_scale", 0.05)),
         max_iters=int(params.get("max_iters", 20)), max_iters_first=int(params.get("max_iters_first", 60)),
         rel_tol=float(params.get("rel_tol", 1e-3)), step_tol=float(params.get("step_tol", 1e-5)),
