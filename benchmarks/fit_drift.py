@@ -7,7 +7,8 @@ With ground-truth masks and flows (synthetic scene) and frame 0 started on the r
   (what `fit` does);
 * ``oracle``: flow targets from the previous frame's *rig floor* mesh (not available in
   practice; isolates what the chaining costs);
-* ``chain + L_ph``: as ``chain`` with the multi-view photo-consistency term on.
+* ``chain + L_ph``: as ``chain`` with the multi-view photo-consistency term on (variant
+  ``photo``).
 
 Writes benchmarks/fit_drift.md (per-frame vertex RMSE against the ground truth, every
 other frame) and prints it. Not a test.
@@ -22,6 +23,7 @@ import os
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -88,10 +90,10 @@ def main() -> None:
                                                with_bary=False), occ)
 
     runs = {}
-    for name, cfg, oracle in (("chain (paper's L_of), no L_ph", FIT.config_for(base, "no_photo"), False),
-                              ("oracle targets (from the rig floor of t-1), no L_ph", FIT.config_for(base, "no_photo"),
-                               True),
-                              ("chain + L_ph (the default)", base, False)):
+    paper = replace(base, w_photo=0.0)
+    for name, cfg, oracle in (("chain (the paper's L_of; the default)", paper, False),
+                              ("oracle targets (from the rig floor of t-1)", paper, True),
+                              ("chain + L_ph (variant photo)", FIT.config_for(paper, "photo"), False)):
         reader = _CueReader(cams, d / a.seq / "gt" / "masks", d / a.seq / "normals", d / a.seq / "gt" / "flows",
                             posed.vertices.double(), body.faces, views, torch.device("cpu"), num_frames=T,
                             seq_dir=d / a.seq if cfg.w_photo > 0 else None)
