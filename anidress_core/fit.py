@@ -835,7 +835,9 @@ def _photo_reference(vis: Tensor, colours: Tensor) -> tuple[Tensor, Tensor]:
     """The (camera, vertex) pairs with an L_ph residual (C, V) bool -- the vertices seen (vis
     (C, V)) by two or more views -- and each vertex's reference colour (V, 3): the mean of its
     colours (C, V, 3) over those views. For the squared loss the mean's own derivative drops out
-    of the gradient (the residuals of a vertex sum to 0), so the Gauss-Newton step holds it fixed."""
+    of the gradient (the residuals of a vertex sum to 0), so the Gauss-Newton step holds it fixed;
+    with the Cauchy weights (unequal per view) that is an approximation, checked only by the
+    LM's acceptance test (the exact-gradient test runs in the quadratic regime)."""
     w = vis.to(colours.dtype)[..., None]
     n = w.sum(0)  # (V, 1)
     return vis & (n[:, 0] >= 2)[None], (colours * w).sum(0) / n.clamp_min(1)
