@@ -397,19 +397,11 @@ def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragme
     K, E = views.K.to(prev_verts.dtype), views.world_to_cam.to(prev_verts.dtype)
     uv, _ = raster.project_vertices(prev_verts, K, E)  # (C, V, 2)
     vis = raster.visible_vertices(prev_verts, K, E, prev_fragments, depth_tol)  # (C, V)
-    col = uv[..., 0].round().clamp(0, W - 1).long()
-    row = uv[..., 1].round().clamp(0, H - 1).long()
-    cam = torch.arange(C, device=uv.device)[:, None].expand_as(col)
     good = prev_mask.bool() if not prev_mask.is_floating_point() else prev_mask >= 1
     if flow_valid is not None:
         good = good & flow_valid.bool()
-    ok = vis & _eroded(good, margin)[cam, row, col]  # the whole (2 margin + 1)^2 neighbourhood is good
-    # bilinear flow at the projections; pixel centres sit at integer coordinates
-    f = flow.permute(0, 3, 1, 2).to(uv.dtype)  # (C, 2, H, W)
-    grid = torch.stack([2 * uv[..., 0] / max(W - 1, 1) - 1, 2 * uv[..., 1] / max(H - 1, 1) - 1], -1)
-    grid = torch.where(torch.isfinite(grid), grid, torch.full_like(grid, -2.0))
-    fs = Fnn.grid_sample(f, grid[:, None], mode="bilinear", padding_mode="border", align_corners=True)
-    fs = fs[:, :, 0].permute(0, 2, 1)  # (C, V, 2)
+    ok = vis & _pixel_ok(_eroded(good, margin), uv)  # the whole (2 margin + 1)^2 neighbourhood is good
+    fs = _sample(flow.permute(0, 3, 1, 2), uv)  # (C, V, 2) bilinear flow at the projections
     ok &= torch.isfinite(fs).all(-1)
     c, v = ok.nonzero(as_tuple=True)
     return FlowTargets(c, v, (uv[c, v] + fs[c, v]).double())
