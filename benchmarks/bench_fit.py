@@ -7,7 +7,10 @@ measures every frame against the ground-truth garment (stages.fit.run_fit_eval):
 RMSE (mean, 95th percentile, worst frame), Chamfer distance, normal consistency,
 temporal jitter and acceleration error, frames per second; and the rig's floor on the
 same motion (RMSE of rig.fit_transforms on the ground-truth meshes in template
-topology). Writes benchmarks/fit.md and benchmarks/fit.csv; fitted poses go to
+topology). A second reference, ``sim``, is no fit at all: the rig driven by its own simulated
+poses of the sequence (``rig.transforms_of('seq-<name>')``, the cloth simulation of the
+template on the sequence's body motion, paper §4.5): what fitting to the images adds over
+the simulator. Writes benchmarks/fit.md and benchmarks/fit.csv; fitted poses go to
 benchmarks/runs/fit/ (not committed).
 
     .venv/bin/python benchmarks/bench_fit.py --scenes skirt --views 8,4 --cues pipeline
@@ -36,7 +39,8 @@ from anidress_core.stages.fit import load_garment_poses, run_fit, run_fit_eval  
 from anidress_core.stages.scene import read_scene  # noqa: E402
 
 METHODS = ["full", "photo", "vertex", "no_normal_flow", "no_flow"]
-LABEL = {"full": "full (rig, L_M + L_N + L_of)", "photo": "ours: full + L_ph (photo-consistency)",
+LABEL = {"sim": "reference: simulation only (rig driven by the simulated poses, no fit)",
+         "full": "full (rig, L_M + L_N + L_of)", "photo": "ours: full + L_ph (photo-consistency)",
          "vertex": "(a) vertex fit, no rig", "no_normal_flow": "(b) L_M only", "no_flow": "(c) L_M + L_N"}
 PAPER_ABLATIONS = ("vertex", "no_normal_flow", "no_flow")
 
@@ -53,6 +57,29 @@ def cue_dirs(scene: str, seq: str, source: str) -> dict:
                              "ground_truth")
     return {"masks": masks, "flows": flows, "normals": f"data/{scene}/{seq}/normals",
             "label": "pipeline masks + pipeline flows (config cues) + shipped degraded normals"}
+
+
+def write_sim_poses(rig_npz: str, seq: str, frames: int, out: Path) -> None:
+    """The ``sim`` reference as a garment_poses.npz: the rig driven by its simulated poses of ``seq``."""
+    from anidress_core.geometry import lbs
+    from anidress_core.io import files
+    from anidress_core.stages.rig import load_rig
+
+    art = load_rig(rig_npz, dtype=torch.float64)
+    name = f"seq-{seq}"
+    if name not in art.sequences:
+        raise SystemExit(f"{rig_npz}: no simulated sequence {name!r} (has {sorted(art.sequences)})")
+    G = art.transforms_of(name).double()
+    G = G[:frames] if frames else G
+    T = G.shape[0]
+    X = lbs(art.model.rest, art.model.weights, G)
+    nan = np.full(T, np.nan)
+    files.save_npz(out, {"transforms": G.float().numpy(), "verts": X.float().numpy(),
+                         "faces": np.asarray(art.faces, np.int64), "loss": nan, "iterations": np.zeros(T, np.int64),
+                         "wall_s": nan},
+                   meta={"method": "sim", "description": LABEL["sim"], "rig": rig_npz, "sequence": seq, "frames": T,
+                         "fps": float("nan"), "wall_fit_s": float("nan"), "cpu_fit_s": float("nan"),
+                         "torch_threads": torch.get_num_threads(), "source": f"rig.transforms_of({name!r})"})
 
 
 def git_rev() -> str:
@@ -79,6 +106,7 @@ def main() -> None:
     ap.add_argument("--seq", default="train", help="sequence names, or 'train' (the train-role sequence)")
     ap.add_argument("--views", default="8,4")
     ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--no-sim", action="store_true", help="leave out the simulation-only reference row")
     ap.add_argument("--cues", default="pipeline", choices=["pipeline", "ground_truth"])
     ap.add_argument("--frames", type=int, default=0, help="fit only the first N frames (0: all)")
     ap.add_argument("--threads", type=int, default=2)
@@ -104,6 +132,10 @@ def main() -> None:
             dirs = cue_dirs(scene, seq, args.cues)
             for nv in (int(v) for v in args.views.split(",")):
                 fits, timing = {}, {}
+                if not args.no_sim:  # no fitting: cheap, always recomputed
+                    out = Path(f"benchmarks/runs/fit/{scene}/{seq}/{args.cues}/v{nv}/sim/garment_poses.npz")
+                    write_sim_poses(rig, seq, args.frames, out)
+                    fits["sim"], timing["sim"] = out, load_garment_poses(out)[1]["meta"]
                 for method in args.methods.split(","):
                     out = Path(f"benchmarks/runs/fit/{scene}/{seq}/{args.cues}/v{nv}/{method}/garment_poses.npz")
                     p = dict(params, views=nv)
@@ -168,6 +200,8 @@ def verdicts(rows: list[dict]) -> list[str]:
                     f"({1e3 * a['accel_error_m']:.2f} vs {1e3 * r['accel_error_m']:.2f} mm)")
 
         beats = [beat(f, m, g[m]) for m in PAPER_ABLATIONS if m in g]
+        if "sim" in g:  # the simulator alone (information, not a criterion)
+            beats.append(beat(f, "simulation only (reference, not a criterion)", g["sim"]))
         if "photo" in g:  # our variant against the full method (information, not a criterion)
             p = g["photo"]
             beats.append(f"variant photo (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} vs full "
@@ -195,6 +229,7 @@ def write(rows, notes, args, command, load0, load1) -> None:
         w.writeheader()
         w.writerows(rows)
     mm = lambda x: f"{1e3 * x:.2f}"  # noqa: E731
+    num = lambda x: f"{x:.2f}" if np.isfinite(x) else "--"  # noqa: E731
     lines = [
         "# Garment fitting benchmark (`anidress_core.fit`) against the synthetic ground truth",
         "",
@@ -216,7 +251,8 @@ def write(rows, notes, args, command, load0, load1) -> None:
         "rig and camera loading excluded); CPU s/frame = process CPU time of that loop per frame (all threads; "
         "less sensitive to other jobs on the machine than the wall time).",
         "- methods: `full` = the paper's loss (the config default); (a), (b), (c) = the paper's ablations; `photo` "
-        "= our variant, the full loss + multi-view photo-consistency L_ph (weight 1000), not part of the criteria.",
+        "= our variant, the full loss + multi-view photo-consistency L_ph (weight 1000), not part of the criteria; "
+        "`sim` = no fit, the rig driven by its simulated poses of the sequence (the cloth simulator alone; no fps).",
         "",
         "| scene/seq | views | method | frames | vertex RMSE mm mean / p95 / worst (frame) | rig floor mm | RMSE / floor "
         "| Chamfer mm mean / p95 / worst | normal consistency mean / p5 / worst | jitter mm (GT) | acceleration "
@@ -230,8 +266,8 @@ def write(rows, notes, args, command, load0, load1) -> None:
             f"({r['worst_frame']}) | {mm(r['rig_floor_rmse_m'])} | {r['rmse_over_floor']:.2f} | "
             f"{mm(r['chamfer_m_mean'])} / {mm(r['chamfer_m_p95'])} / {mm(r['chamfer_m_worst'])} | "
             f"{r['normal_consistency_mean']:.4f} / {r['normal_consistency_p5']:.4f} / {r['normal_consistency_worst']:.4f}"
-            f" | {mm(r['jitter_m'])} ({mm(r['gt_jitter_m'])}) | {mm(r['accel_error_m'])} | {r['fps']:.2f} | "
-            f"{r['cpu_s_per_frame']:.2f} | {r['iterations_mean']:.1f} |")
+            f" | {mm(r['jitter_m'])} ({mm(r['gt_jitter_m'])}) | {mm(r['accel_error_m'])} | {num(r['fps'])} | "
+            f"{num(r['cpu_s_per_frame'])} | {r['iterations_mean']:.1f} |")
     lines += ["", "## Criteria", ""] + verdicts(rows) + ["", "## Notes", ""] + [f"- {n}" for n in notes]
     (out.with_suffix(".md")).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

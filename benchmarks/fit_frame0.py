@@ -1,0 +1,159 @@
+"""Where the paper's loss has its minimum at frame 0, and where the fit stops.
+
+Frame 0 has no flow term: L = 2.0 L_M + 0.1 L_N (the paper's weights). For each scene and
+cue set, frame 0 of the training sequence is fitted (the `fit` stage's settings from
+config/config.yaml) from two starts:
+
+* the rig floor: the rig's least-squares pose for the ground-truth garment (not available
+  in practice; where the loss's own minimum near the truth is);
+* the simulated start: the rig's simulated pose of the sequence at frame 0 (what the `fit`
+  stage starts from), with the paper's loss alone and with the config's first-frame
+  proximal term (``fit/first_frame_prior``, the pipeline's default).
+
+For every pose the table gives the vertex RMSE against the ground truth and the paper's
+loss evaluated with the same cues (without the proximal term), so one can read whether the
+fit from the simulated start stops in a local minimum (its loss above the fit from the
+floor) and how far the loss's minimum near the truth is from the rig floor. Cue sets: the
+pipeline's masks, the ground-truth masks, each with the shipped (degraded) normal maps, and
+the ground-truth masks with ground-truth normals. Writes benchmarks/fit_frame0.md. Not a test.
+
+    .venv/bin/python benchmarks/fit_frame0.py --scenes skirt:walk,dress:sway --views 8
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from anidress_core import fit as FIT  # noqa: E402
+from anidress_core.camera import load_cameras  # noqa: E402
+from anidress_core.config import load_config  # noqa: E402
+from anidress_core.geometry import lbs  # noqa: E402
+from anidress_core.io import files  # noqa: E402
+from anidress_core.io.mesh import read_mesh  # noqa: E402
+from anidress_core.metrics import mesh as MM  # noqa: E402
+from anidress_core.rig import fit_transforms  # noqa: E402
+from anidress_core.stages.fit import _CueReader, fit_config, gt_correspondence, select_views  # noqa: E402
+from anidress_core.stages.rig import load_rig  # noqa: E402
+from anidress_core.stages.scene import load_body, load_sequence_motion, read_scene  # noqa: E402
+from benchutil import cpu_model  # noqa: E402
+
+CUE_SETS = {
+    "pipeline masks, shipped normals": ("results/{scene}/{seq}/masks", "data/{scene}/{seq}/normals"),
+    "GT masks, shipped normals": ("data/{scene}/{seq}/gt/masks", "data/{scene}/{seq}/normals"),
+    "GT masks, GT normals": ("data/{scene}/{seq}/gt/masks", "data/{scene}/{seq}/gt/normals"),
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", default="skirt:walk,dress:sway", help="scene:sequence pairs")
+    ap.add_argument("--views", type=int, default=8)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", default="benchmarks/fit_frame0.md")
+    a = ap.parse_args()
+    os.chdir(REPO)
+    torch.set_num_threads(a.threads)
+    params = load_config("config/config.yaml")["fit"]
+    default = fit_config(params)  # the pipeline's settings (first-frame proximal term included)
+    paper = replace(default, w_prior_first=0.0, w_photo=0.0)
+    lines = [
+        "# Garment fit, frame 0: where the paper's loss has its minimum, where the fit stops",
+        "",
+        f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
+        f"- command: `.venv/bin/python benchmarks/fit_frame0.py {' '.join(sys.argv[1:])}`",
+        f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs, torch {torch.__version__} ({a.threads} threads), "
+        f"Python {platform.python_version()}",
+        f"- frame 0 of each training sequence, {a.views} views; loss = the paper's frame-0 loss "
+        f"{paper.w_mask} L_M + {paper.w_normal} L_N (no flow at frame 0), evaluated on the same cues for every pose "
+        f"and without the proximal term; fits use config/config.yaml's `fit` settings; `+ prior` = the config's "
+        f"first-frame proximal term (weight {default.w_prior_first}) towards the simulated start.",
+        "- rows: `rig floor` and `simulated start` are poses, not fits; `fit from X` = the Levenberg-Marquardt fit "
+        "of frame 0 started there.",
+        "",
+        "| scene/seq | cues | pose | vertex RMSE mm | x rig floor | loss | w_M L_M | w_N L_N | LM evaluations |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    findings = []
+    for pair in a.scenes.split(","):
+        scene, seq = pair.split(":")
+        d = Path("data") / scene
+        info = read_scene(d)
+        names = select_views(info["cameras"]["train"], a.views)
+        cams = load_cameras(d / seq / "intri.yml", d / seq / "extri.yml", names=names)
+        views = FIT.Views.from_cameras(cams)
+        art = load_rig(f"results/{scene}/rig.npz", dtype=torch.float64)
+        rig = FIT.RigParts.make(art.model.rest, art.model.weights, art.model.bone_centres, torch.as_tensor(art.faces))
+        body = load_body(d, info)
+        motion = load_sequence_motion(d, seq, info["fps"])
+        posed = body.pose(motion.poses[:1], motion.Rh[:1], motion.Th[:1], motion.shapes)
+        m, _ = files.load_npz(d / seq / "gt" / "meshes.npz", required=("garment_vertices", "garment_faces"))
+        rv, rf, _ = read_mesh(d / "garment" / "template.obj")
+        face, bary, _ = gt_correspondence(art.model.rest.numpy(), rv, rf)
+        Y = MM.barycentric_transfer(torch.as_tensor(m["garment_vertices"][:1]).double(),
+                                    torch.as_tensor(m["garment_faces"].astype(np.int64)), torch.as_tensor(face),
+                                    torch.as_tensor(bary))[0]
+        floor_G = fit_transforms(art.model, Y[None]).double()[0]
+        sim_name = f"seq-{seq}"
+        if sim_name not in art.sequences:
+            raise SystemExit(f"results/{scene}/rig.npz: no simulated sequence {sim_name!r}")
+        sim_G = art.transforms_of(sim_name)[0].double()
+        rmse = lambda X: 1e3 * float(((X - Y) ** 2).sum(-1).mean().sqrt())  # noqa: E731
+        floor_rmse = rmse(lbs(rig.rest, rig.weights, floor_G))
+        for cue_name, (mdir, ndir) in CUE_SETS.items():
+            mdir, ndir = Path(mdir.format(scene=scene, seq=seq)), Path(ndir.format(scene=scene, seq=seq))
+            if not mdir.is_dir():
+                raise SystemExit(f"{mdir}: masks not found (run the pipeline's `masks` rule for {scene}/{seq})")
+            reader = _CueReader(cams, mdir, ndir, None, posed.vertices.double(), body.faces, views,
+                                torch.device("cpu"), num_frames=1)
+            cues = reader.cues(0)
+            reader.close()
+
+            def loss(X):
+                total, terms = FIT.loss_terms(rig, views, cues, X, None, paper)
+                return float(total), paper.w_mask * float(terms["mask"]), paper.w_normal * float(terms["normal"])
+
+            poses = {"rig floor": (lbs(rig.rest, rig.weights, floor_G), None),
+                     "simulated start": (lbs(rig.rest, rig.weights, sim_G), None)}
+            t0 = time.perf_counter()
+            for name, start, cfg in (("fit from rig floor", floor_G, paper), ("fit from simulated start", sim_G, paper),
+                                     ("fit from simulated start + prior (pipeline)", sim_G, default)):
+                r = FIT.fit_frame(rig, views, cues, start, cfg, None, first=True)
+                poses[name] = (r.verts.detach(), r.iterations)
+            print(f"{scene}/{seq} {cue_name}: {time.perf_counter() - t0:.0f} s", flush=True)
+            res = {}
+            for name, (X, its) in poses.items():
+                e, (ls, lm, ln) = rmse(X), loss(X)
+                res[name] = (e, ls)
+                lines.append(f"| {scene}/{seq} | {cue_name} | {name} | {e:.1f} | {e / floor_rmse:.2f} | {ls:.4f} | "
+                             f"{lm:.4f} | {ln:.4f} | {'' if its is None else its} |")
+            ff, fs = res["fit from rig floor"], res["fit from simulated start"]
+            if abs(fs[1] - ff[1]) <= 0.01 * ff[1]:
+                verdict = "as low as the fit from the floor (within 1 %): the loss does not tell them apart"
+            elif fs[1] > ff[1]:
+                verdict = "above the fit from the floor: a local minimum"
+            else:
+                verdict = "below the fit from the floor: the loss prefers it"
+            findings.append(
+                f"- {scene}/{seq}, {cue_name}: fitted from the rig floor, frame 0 ends at {ff[0]:.1f} mm = "
+                f"{ff[0] / floor_rmse:.2f} x the rig floor{' (above 1.5 x)' if ff[0] > 1.5 * floor_rmse else ''}; "
+                f"from the simulated start at {fs[0]:.1f} mm, with loss {fs[1]:.5f} against {ff[1]:.5f}, {verdict}.")
+    lines += ["", "## Reading", ""] + findings
+    Path(a.out).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
