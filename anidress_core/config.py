@@ -9,12 +9,13 @@ first, so ``cameras: {}`` (or no ``cameras`` key at all) gets every camera defau
 from __future__ import annotations
 
 import copy
+import functools
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-__all__ = ["ConfigError", "validate_config", "load_config", "default_schema_path", "scene_config"]
+__all__ = ["ConfigError", "validate_config", "load_config", "default_schema_path", "scene_config", "section_defaults"]
 
 
 class ConfigError(ValueError):
@@ -84,6 +85,25 @@ def validate_config(config: dict, schema: dict) -> dict:
         if len(set(names)) != len(names):
             raise ConfigError(f"invalid configuration:\n  scenes/{name}/sequences: duplicate names {names}")
     return filled
+
+
+@functools.lru_cache(maxsize=4)
+def _schema(path: str) -> dict:
+    return yaml.safe_load(Path(path).read_text())
+
+
+def section_defaults(name: str, params: dict | None = None, schema_path: str | Path | None = None) -> dict:
+    """A deep copy of the config section ``name`` (``params``, e.g. a raw dict of a caller)
+    with the schema's defaults filled at every depth, so code reading a section has one
+    source for its defaults, the schema. Fills only, does not validate (callers add keys of
+    their own, e.g. ``frames``); :func:`validate_config` validates whole configs."""
+    schema_path = Path(schema_path) if schema_path else default_schema_path()
+    if not schema_path.is_file():
+        raise FileNotFoundError(f"{schema_path}: config schema not found")
+    schema = _schema(str(schema_path))
+    if name not in schema.get("properties", {}):
+        raise ConfigError(f"{schema_path}: no config section {name!r}")
+    return _fill(copy.deepcopy(dict(params or {})), schema["properties"][name], schema)
 
 
 def load_config(path: str | Path, schema_path: str | Path | None = None) -> dict:

@@ -938,7 +938,6 @@ def silhouette_crossings(uv: Tensor, z: Tensor, faces: Tensor, fragments: Fragme
     f64 = torch.float64
     uv = uv.detach().to(f64)
     z = z.detach().to(f64)
-    V = uv.shape[1]
     empty_i = torch.zeros(0, dtype=torch.int64, device=dev)
     empty_xy = torch.zeros(0, 2, dtype=f64, device=dev)
     empty = SilhouetteCrossings(empty_i, empty_i, empty_i, empty_i.view(0, 2), empty_xy, empty_xy)

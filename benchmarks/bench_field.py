@@ -365,8 +365,8 @@ def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose
              f"{params['sampler']['body_only_garment_dilate_m']} m), step {params['sampler']['step_m']} m")
     for n in notes:
         L.append(f"- {n}")
-    L.append(f"- loss: MSE" + (" + 0.2 LPIPS" if lp else f" only -- LPIPS weights unavailable ({lp.reason})"))
-    L.append(f"- LPIPS / DISTS columns: " + ("measured" if lp and ds else
+    L.append("- loss: MSE" + (" + 0.2 LPIPS" if lp else f" only -- LPIPS weights unavailable ({lp.reason})"))
+    L.append("- LPIPS / DISTS columns: " + ("measured" if lp and ds else
                                                f"n/a -- {'' if lp else lp.reason + '; '}{'' if ds else ds.reason}"))
     L.append(f"- novel view: test cameras {results['full']['nv']['cameras']} on every {stride}-th "
              f"training frame; novel pose: all 12 cameras on every {stride}-th frame of "

@@ -21,7 +21,6 @@ band update) / simulated frame steps (settle included), like ours.
 """
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np

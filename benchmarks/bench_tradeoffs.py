@@ -292,7 +292,7 @@ def main():
              f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs, torch "
              f"{torch.__version__}; load average (1 min) at the start and after each sweep: "
              + ", ".join(f"{x:.2f}" for x in loads),
-             *([f"- merged (--merge): the rows of the other sweeps come from the earlier run: "
+             *(["- merged (--merge): the rows of the other sweeps come from the earlier run: "
                 + "; ".join(l[2:] for l in prev_md if l.startswith(("- date:", "- command:", "- machine:")))]
                if args.merge and prev_md else []),
              "- each row: the config's defaults except the knob; `error` is lower-is-better (the field's row holds "

@@ -42,7 +42,7 @@ from anidress_core.io import files  # noqa: E402
 from anidress_core.io.mesh import read_mesh  # noqa: E402
 from anidress_core.metrics import mesh as MM  # noqa: E402
 from anidress_core.rig import fit_transforms  # noqa: E402
-from anidress_core.stages.fit import _CueReader, fit_config, gt_correspondence, select_views  # noqa: E402
+from anidress_core.stages.fit import CueReader, fit_config, gt_correspondence, select_views  # noqa: E402
 from anidress_core.stages.rig import load_rig  # noqa: E402
 from anidress_core.stages.scene import load_body, load_sequence_motion, read_scene  # noqa: E402
 from benchutil import cpu_model  # noqa: E402
@@ -94,7 +94,7 @@ def main() -> None:
     for name, cfg, oracle in (("chain (the paper's L_of; the default)", paper, False),
                               ("oracle targets (from the rig floor of t-1)", paper, True),
                               ("chain + L_ph (variant photo)", FIT.config_for(paper, "photo"), False)):
-        reader = _CueReader(cams, d / a.seq / "gt" / "masks", d / a.seq / "normals", d / a.seq / "gt" / "flows",
+        reader = CueReader(cams, d / a.seq / "gt" / "masks", d / a.seq / "normals", d / a.seq / "gt" / "flows",
                             posed.vertices.double(), body.faces, views, torch.device("cpu"), num_frames=T,
                             seq_dir=d / a.seq if cfg.w_photo > 0 else None)
         t0 = time.perf_counter()

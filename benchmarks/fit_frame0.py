@@ -45,7 +45,7 @@ from anidress_core.io import files  # noqa: E402
 from anidress_core.io.mesh import read_mesh  # noqa: E402
 from anidress_core.metrics import mesh as MM  # noqa: E402
 from anidress_core.rig import fit_transforms  # noqa: E402
-from anidress_core.stages.fit import _CueReader, fit_config, gt_correspondence, select_views  # noqa: E402
+from anidress_core.stages.fit import CueReader, fit_config, gt_correspondence, select_views  # noqa: E402
 from anidress_core.stages.rig import load_rig  # noqa: E402
 from anidress_core.stages.scene import load_body, load_sequence_motion, read_scene  # noqa: E402
 from benchutil import cpu_model  # noqa: E402
@@ -116,7 +116,7 @@ def main() -> None:
             mdir, ndir = Path(mdir.format(scene=scene, seq=seq)), Path(ndir.format(scene=scene, seq=seq))
             if not mdir.is_dir():
                 raise SystemExit(f"{mdir}: masks not found (run the pipeline's `masks` rule for {scene}/{seq})")
-            reader = _CueReader(cams, mdir, ndir, None, posed.vertices.double(), body.faces, views,
+            reader = CueReader(cams, mdir, ndir, None, posed.vertices.double(), body.faces, views,
                                 torch.device("cpu"), num_frames=1)
             cues = reader.cues(0)
             reader.close()

@@ -51,3 +51,18 @@ def test_unknown_run_scene_and_bad_file(tmp_path):
         load_config(bad)
     with pytest.raises(FileNotFoundError, match="missing.yaml"):
         load_config(tmp_path / "missing.yaml")
+
+
+def test_section_defaults_are_the_validated_configs():
+    from anidress_core.config import section_defaults
+    from anidress_core.stages.fit import fit_config
+
+    full = validate_config({"run_scenes": ["s"], "scenes": {"s": {}}}, SCHEMA)
+    assert section_defaults("fit") == full["fit"]
+    assert section_defaults("fit", {"weights": {"flow": 1.5}, "frames": 7})["weights"] == \
+        {**full["fit"]["weights"], "flow": 1.5}  # nested keys filled, the caller's kept
+    # a caller with a raw dict gets the same fit settings as the workflow (one source of defaults)
+    assert fit_config({}) == fit_config(full["fit"])
+    assert fit_config({}).w_prior_first == SCHEMA["properties"]["fit"]["properties"]["first_frame_prior"]["default"]
+    with pytest.raises(ConfigError, match="no config section 'nope'"):
+        section_defaults("nope")

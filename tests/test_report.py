@@ -1,7 +1,6 @@
 """The HTML report (anidress_core.stages.report): content from the pipeline's files, and a
 real headless browser (Debian chromium) loading it without errors."""
 import csv
-import json
 import os
 import re
 import shutil

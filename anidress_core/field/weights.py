@@ -205,7 +205,6 @@ def sample_channels(volume: Tensor, box: Tensor, pts: Tensor, chans: Tensor) -> 
 
 def sample_channels_reference(volume: Tensor, box: Tensor, pts: Tensor, chans: Tensor) -> Tensor:
     """Slow reference of :func:`sample_channels` through ``F.grid_sample`` of every channel."""
-    C = volume.shape[0]
     g = (pts - box[0]) / (box[1] - box[0]) * 2 - 1  # (N, M, 3) in [-1, 1], (x, y, z)
     allc = F.grid_sample(volume[None], g[None, :, :, None].to(volume.dtype), mode="bilinear",
                          padding_mode="zeros", align_corners=True)[0, :, :, :, 0]  # (C, N, M)

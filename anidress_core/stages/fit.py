@@ -45,13 +45,14 @@ import torch
 
 from .. import fit as FIT
 from ..camera import load_cameras
+from ..config import section_defaults
 from ..io import files
 from ..synth import LABEL_GARMENT
 from .cues import image_path
 from .rig import load_rig
 from .scene import load_body, load_sequence_motion, read_scene
 
-__all__ = ["fit_config", "select_views", "run_fit", "load_garment_poses", "run_fit_eval", "FIT_METRIC_COLUMNS"]
+__all__ = ["fit_config", "select_views", "CueReader", "gt_correspondence", "run_fit", "load_garment_poses", "run_fit_eval", "FIT_METRIC_COLUMNS"]
 
 log = logging.getLogger("anidress.fit")
 
@@ -63,19 +64,20 @@ FIT_METRIC_COLUMNS = (
 
 
 def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
-    """FitConfig of the config section ``fit`` (weights, iteration limits, tolerances), for an ablation."""
-    w = params.get("weights", {})
+    """FitConfig of the config section ``fit`` (weights, iteration limits, tolerances), for an ablation.
+
+    Keys missing from ``params`` take the schema's defaults (workflow/schemas/config.schema.yaml),
+    the same as a validated config's.
+    """
+    p = section_defaults("fit", dict(params))
+    w, v = p["weights"], p["vertex"]
     base = FIT.FitConfig(
-        w_mask=float(w.get("mask", 2.0)), w_normal=float(w.get("normal", 0.1)), w_flow=float(w.get("flow", 3.0)),
-        w_photo=float(w.get("photo", 0.0)), photo_blur=float(params.get("photo_blur", 0.5)),
-        photo_scale=float(params.get("photo_scale", 0.05)),
-        max_iters=int(params.get("max_iters", 20)), max_iters_first=int(params.get("max_iters_first", 60)),
-        rel_tol=float(params.get("rel_tol", 1e-3)), step_tol=float(params.get("step_tol", 1e-5)),
-        damping=float(params.get("damping", 1e-4)), vis_depth_tol=float(params.get("visibility_depth_tol", 0.005)),
-        vertex_lr=float(params.get("vertex", {}).get("lr", 1e-3)),
-        vertex_max_iters=int(params.get("vertex", {}).get("max_iters", 60)),
-        vertex_patience=int(params.get("vertex", {}).get("patience", 10)),
-        w_prior_first=float(params.get("first_frame_prior", 0.0)),
+        w_mask=float(w["mask"]), w_normal=float(w["normal"]), w_flow=float(w["flow"]), w_photo=float(w["photo"]),
+        photo_blur=float(p["photo_blur"]), photo_scale=float(p["photo_scale"]),
+        max_iters=int(p["max_iters"]), max_iters_first=int(p["max_iters_first"]), rel_tol=float(p["rel_tol"]),
+        step_tol=float(p["step_tol"]), damping=float(p["damping"]), vis_depth_tol=float(p["visibility_depth_tol"]),
+        vertex_lr=float(v["lr"]), vertex_max_iters=int(v["max_iters"]), vertex_patience=int(v["patience"]),
+        w_prior_first=float(p["first_frame_prior"]),
     )
     return FIT.config_for(base, ablation)
 
@@ -93,10 +95,18 @@ def _frame_file(folder: Path, cam: str, t: int, ext: str) -> Path:
     return Path(folder) / cam / f"{t:06d}.{ext}"
 
 
-class _CueReader:
+class CueReader:
     """Reads one frame's cues for the selected cameras (the only file access of the fit).
 
-    The files of frame t + 1 are read by a helper thread while frame t is fitted.
+    cams: the selected cameras; masks_dir: label maps ``<cam>/<t:06d>.png``; normals_dir,
+    flows_dir: EXR folders of the same layout, or None (that term off); body_verts
+    (T, Vb, 3) and body_faces: the posed body, rasterised as the occluder; views:
+    :class:`anidress_core.fit.Views` of ``cams``; num_frames: the last frame read ahead;
+    seq_dir: the sequence folder whose images L_ph reads (None: not read).
+    ``cues(t)`` -> :class:`anidress_core.fit.FrameCues`, ``flow(t)`` -> (flow, valid) of
+    t-1 -> t or None; ``close()`` stops the helper thread. The files of frame t + 1 are
+    read by that thread while frame t is fitted. Used by :func:`run_fit` and the
+    benchmarks.
     """
 
     def __init__(self, cams, masks_dir, normals_dir, flows_dir, body_verts, body_faces, views, device,
@@ -258,7 +268,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     if normals_dir is None:
         log.info("fit: no normal maps for %s; the normal loss is off (weight 0)", seq)
         cfg = dataclasses.replace(cfg, w_normal=0.0)
-    reader = _CueReader(cams, masks_dir, None if cfg.w_normal == 0 else normals_dir,
+    reader = CueReader(cams, masks_dir, None if cfg.w_normal == 0 else normals_dir,
                         None if cfg.w_flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device,
                         num_frames=T, seq_dir=sdir if cfg.w_photo > 0 else None)
     for cam in names:  # fail early, naming the file

@@ -24,12 +24,10 @@ from __future__ import annotations
 import base64
 import csv
 import datetime
-import json
 import logging
 import math
 import os
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import yaml

@@ -1,11 +1,7 @@
 """Shared fixtures: a tiny synthetic skirt scene on disk and a clean in-memory frame."""
 from __future__ import annotations
 
-from pathlib import Path
-
-import numpy as np
 import pytest
-import torch
 import yaml
 
 from anidress_core.config import default_schema_path, validate_config
