@@ -28,6 +28,15 @@ weights (V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
   with other vertex labels); that stays L_of's job. Measured in benchmarks/fit.md (variant
   ``photo``): the surface (Chamfer) improves in every case measured, the vertex RMSE only on
   the scene it was tuned on, so the default is the paper's loss.
+* L_an, temporal chromaticity anchor (not in the paper; ``w_anchor``, 0 = off): every vertex
+  keeps the chromaticity rgb / (r + g + b) it had in the first frame it was seen (mean over
+  the views that saw it then, inside the eroded garment mask); at later frames each
+  (view, visible vertex) pays a robust Cauchy loss of its chromaticity there (blurred image,
+  bilinear) against that reference. Chromaticity does not change with Lambertian shading
+  under white light, which the colour itself does as the garment turns; a reference that
+  follows the material point is what L_of's chained targets lack (benchmarks/fit_drift.md),
+  so L_an is what holds a vertex on its material point over many frames -- it sees sliding.
+  The reference is only as good as the fit of the frame it comes from (a start error stays).
 
 As in the paper every term is a sum (over views and pixels or targets); all of them are
 divided by one common constant, the number of garment pixels in the masks, so that their
@@ -109,13 +118,20 @@ __all__ = [
 #: benchmarks/fit.md; tuned on the skirt walk: 300 / 1000 / 3000 gave 32.0 / 28.4 / 27.9 mm).
 PHOTO_WEIGHT = 1000.0
 
-#: Ablations of the paper (Fig. 9) and our variant: name -> what changes with respect to the full method.
+#: Weight of L_an in the ``anchor`` variant when the configuration leaves it off (benchmarks/fit.md;
+#: tuned on skirt/walk with ground-truth cues: 1e3 / 1e4 / 1e5 / 3e5 / 1e6 gave 18.3 / 14.4 / 13.5 /
+#: 13.5 / 15.0 mm against 19.6 without it).
+ANCHOR_WEIGHT = 1.0e5
+
+#: Ablations of the paper (Fig. 9) and our variants: name -> what changes with respect to the full method.
 ABLATIONS = {
     "vertex": "(a) direct vertex fitting without the rig (Adam on vertex positions)",
     "no_normal_flow": "(b) no normal and no flow losses (silhouettes only)",
     "no_flow": "(c) no flow loss (silhouettes and normals)",
     "photo": "(ours, a variant) the full loss + multi-view photo-consistency L_ph (weight fit/weights/photo, "
              "else PHOTO_WEIGHT)",
+    "anchor": "(ours, a variant) the full loss + the temporal chromaticity anchor L_an (weight fit/weights/anchor, "
+              "else ANCHOR_WEIGHT)",
 }
 
 
@@ -173,9 +189,14 @@ class FitConfig:
     every vertex seen by two or more views, in each of them, against its mean over them (robust
     Cauchy loss); places textured surface points in depth at every frame (module docstring)."""
     photo_blur: float = 0.5
-    """Gaussian blur (pixels, standard deviation) of the images for L_ph."""
+    """Gaussian blur (pixels, standard deviation) of the images for L_ph and L_an."""
     photo_scale: float = 0.05
     """Cauchy scale of L_ph (colour difference, RGB in [0, 1]): rho(r) = s^2 log(1 + |r|^2 / s^2)."""
+    w_anchor: float = 0.0
+    """Weight of L_an, the temporal chromaticity anchor (not in the paper; 0 = off): each
+    vertex's chromaticity against the one it had when first seen (module docstring)."""
+    anchor_scale: float = 0.05
+    """Cauchy scale of L_an (chromaticity difference; rgb / (r + g + b), each in [0, 1])."""
     normalisation: str = "paper"
     """'paper': each term is the paper's sum (over pixels, flow targets), all divided by one
     common constant, the number of garment pixels of the masks; 'per_term': each term is a
@@ -186,13 +207,13 @@ class FitConfig:
             raise ValueError(f"FitConfig.normalisation must be 'paper' or 'per_term', got {self.normalisation!r}")
         if self.method not in ("rig", "vertex"):
             raise ValueError(f"FitConfig.method must be 'rig' or 'vertex', got {self.method!r}")
-        for k in ("w_mask", "w_normal", "w_flow", "w_photo"):
+        for k in ("w_mask", "w_normal", "w_flow", "w_photo", "w_anchor"):
             v = getattr(self, k)
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"FitConfig.{k} must be finite and >= 0, got {v}")
-        if not (self.photo_blur >= 0 and self.photo_scale > 0):
-            raise ValueError(f"FitConfig: photo_blur must be >= 0 and photo_scale > 0, got {self.photo_blur}, "
-                             f"{self.photo_scale}")
+        if not (self.photo_blur >= 0 and self.photo_scale > 0 and self.anchor_scale > 0):
+            raise ValueError(f"FitConfig: photo_blur must be >= 0, photo_scale and anchor_scale > 0, got "
+                             f"{self.photo_blur}, {self.photo_scale}, {self.anchor_scale}")
         if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex_max_iters < 1:
             raise ValueError("FitConfig: iteration limits must be >= 1")
         for k in ("levels", "levels_first"):
@@ -207,13 +228,15 @@ def config_for(base: FitConfig, ablation: str | None) -> FitConfig:
     if ablation in (None, "", "full"):
         return base
     if ablation == "vertex":
-        return replace(base, method="vertex")
+        return replace(base, method="vertex", w_photo=0.0, w_anchor=0.0)
     if ablation == "no_normal_flow":
-        return replace(base, w_normal=0.0, w_flow=0.0, w_photo=0.0)
+        return replace(base, w_normal=0.0, w_flow=0.0, w_photo=0.0, w_anchor=0.0)
     if ablation == "no_flow":
-        return replace(base, w_flow=0.0, w_photo=0.0)
+        return replace(base, w_flow=0.0, w_photo=0.0, w_anchor=0.0)
     if ablation == "photo":
         return replace(base, w_photo=base.w_photo if base.w_photo > 0 else PHOTO_WEIGHT)
+    if ablation == "anchor":
+        return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT)
     raise ValueError(f"unknown ablation {ablation!r}; choose from {sorted(ABLATIONS)}")
 
 
@@ -465,6 +488,47 @@ def _pixel_ok(region: Tensor, uv: Tensor) -> Tensor:
     return inside & region[cam, row.clamp(0, H - 1).long(), col.clamp(0, W - 1).long()]
 
 
+#: Added to r + g + b before dividing (colours in [0, 1]): dark pixels have a chromaticity near 0
+#: instead of an unstable ratio.
+CHROMA_EPS = 0.05
+
+
+def chromaticity(image: Tensor) -> Tensor:
+    """(..., 3) -> (..., 3): rgb / (r + g + b + CHROMA_EPS), unchanged by a Lambertian shading factor
+    (white light) on pixels well above black."""
+    image = image.double()
+    return image / (image.sum(-1, keepdim=True) + CHROMA_EPS)
+
+
+class AnchorRef(NamedTuple):
+    """L_an's references: each vertex's chromaticity in the first frame it was seen."""
+
+    chroma: Tensor  # (V, 3)
+    seen: Tensor  # (V,) bool: has a reference
+
+
+def update_anchor(ref: AnchorRef | None, verts: Tensor, views: Views, fragments: raster.Fragments, image: Tensor,
+                  mask: Tensor, cfg: FitConfig) -> AnchorRef:
+    """Give the vertices without a reference one from this frame: the mean chromaticity
+    (blurred image (C, H, W, 3), bilinear) over the views in which the vertex of ``verts`` (V, 3) is
+    visible (``fragments``, whole images) and lies inside the eroded garment ``mask`` (C, H, W).
+    Vertices that already have a reference keep it; vertices seen nowhere stay without one."""
+    feat = photo_features(chromaticity(image), cfg.photo_blur)[:, :3]
+    K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
+    uv, _ = raster.project_vertices(verts.detach(), K, E)
+    soft = mask.double() if mask.is_floating_point() else mask.bool().double()
+    vis = raster.visible_vertices(verts.detach(), K, E, fragments, cfg.vis_depth_tol)
+    vis &= _pixel_ok(_eroded(torch.where(torch.isfinite(soft), soft, torch.zeros_like(soft)), cfg.flow_margin_px), uv)
+    w = vis.to(uv.dtype)[..., None]
+    n = w.sum(0)  # (V, 1)
+    mean = (_sample(feat, uv) * w).sum(0) / n.clamp_min(1)
+    seen_now = n[:, 0] > 0
+    if ref is None:
+        return AnchorRef(torch.where(seen_now[:, None], mean, torch.zeros_like(mean)), seen_now)
+    new = seen_now & ~ref.seen
+    return AnchorRef(torch.where(new[:, None], mean, ref.chroma.to(mean.dtype)), ref.seen | new)
+
+
 def apply_increment(transforms: Tensor, centres: Tensor, delta: Tensor) -> Tensor:
     """Compose per-bone increments onto transforms.
 
@@ -545,6 +609,8 @@ class _Problem(NamedTuple):
     photo: Tensor | None = None  # (C, 9, H, W) photo_features of the images, or None (L_ph off)
     photo_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
     n_photo: float = 1.0
+    anchor_feat: Tensor | None = None  # (C, 9, H, W) photo_features of the chromaticity, or None (L_an off)
+    anchor: AnchorRef | None = None
 
 
 class _Eval(NamedTuple):
@@ -556,6 +622,7 @@ class _Eval(NamedTuple):
     sil: "_SilData"
     nrm: "_NormalData | None"
     pho: "_PhotoData | None" = None
+    anc: "_PhotoData | None" = None
 
 
 class _SilData(NamedTuple):
@@ -604,7 +671,7 @@ def _check_cues(views: Views, cues: FrameCues) -> None:
 
 
 def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig,
-                  prior: Tensor | None = None) -> _Problem:
+                  prior: Tensor | None = None, anchor: AnchorRef | None = None) -> _Problem:
     _check_cues(views, cues)
     soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
     soft = torch.where(torch.isfinite(soft), soft.clamp(0, 1), torch.zeros_like(soft))
@@ -618,6 +685,12 @@ def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTarget
     photo = region = None
     if cfg.w_photo > 0 and cues.image is not None:
         photo = photo_features(cues.image, cfg.photo_blur)
+    anchor_feat = None
+    if cfg.w_anchor > 0 and cues.image is not None and anchor is not None and bool(anchor.seen.any()):
+        anchor_feat = photo_features(chromaticity(cues.image), cfg.photo_blur)
+    else:
+        anchor = None
+    if photo is not None or anchor_feat is not None:
         region = _eroded(soft, cfg.flow_margin_px)
     if cfg.normalisation == "paper":  # the paper's sums over pixels / targets, one common scale
         n_px = float(max(float(soft.sum()), 1.0))
@@ -633,7 +706,7 @@ def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTarget
         occluder=occ, flow=flow, n_flow=n_flow, cfg=cfg,
         prior=None if prior is None or cfg.w_prior_first == 0 else prior.detach().double(),
         w_prior=cfg.w_prior_first / rig.rest.shape[0],
-        photo=photo, photo_region=region, n_photo=n_photo,
+        photo=photo, photo_region=region, n_photo=n_photo, anchor_feat=anchor_feat, anchor=anchor,
     )
 
 
@@ -805,10 +878,12 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
     if pb.prior is not None:
         terms["prior"] = float(((verts - pb.prior) ** 2).sum()) / verts.shape[0]
     # 5. multi-view photo-consistency: colours of the vertices seen twice or more against their mean
-    pho = None
-    terms["photo"] = 0.0
+    pho = anc = vis_col = None
+    terms["photo"] = terms["anchor"] = 0.0
+    if pb.photo is not None or pb.anchor_feat is not None:  # vertices whose colour counts
+        vis_col = raster.visible_vertices(verts, K, E, frags, cfg.vis_depth_tol) & _pixel_ok(pb.photo_region, uv)
     if pb.photo is not None:
-        vis = raster.visible_vertices(verts, K, E, frags, cfg.vis_depth_tol) & _pixel_ok(pb.photo_region, uv)
+        vis = vis_col
         smp = _sample(pb.photo, uv)  # (C, V, 9)
         vis, ref = _photo_reference(vis, smp[..., :3])
         c, vv = vis.nonzero(as_tuple=True)
@@ -818,9 +893,18 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
         e = (r * r).sum(-1)
         terms["photo"] = float((s2 * torch.log1p(e / s2)).sum()) / pb.n_photo
         pho = _PhotoData(c, vv, r, torch.stack([smp[:, 3:6], smp[:, 6:9]], -1), 1.0 / (1.0 + e / s2))
+    # 6. temporal chromaticity anchor: each visible vertex's chromaticity against its reference
+    if pb.anchor_feat is not None:
+        c, vv = (vis_col & pb.anchor.seen[None]).nonzero(as_tuple=True)
+        smp = _sample(pb.anchor_feat, uv)[c, vv]  # (N, 9)
+        r = smp[:, :3] - pb.anchor.chroma.to(smp.dtype)[vv]
+        s2 = cfg.anchor_scale ** 2
+        e = (r * r).sum(-1)
+        terms["anchor"] = float((s2 * torch.log1p(e / s2)).sum()) / pb.n_photo
+        anc = _PhotoData(c, vv, r, torch.stack([smp[:, 3:6], smp[:, 6:9]], -1), 1.0 / (1.0 + e / s2))
     loss = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
-    loss += cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"]
-    return _Eval(loss, terms, verts, frags, uv, sil, nrm, pho)
+    loss += cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"] + cfg.w_anchor * terms["anchor"]
+    return _Eval(loss, terms, verts, frags, uv, sil, nrm, pho, anc)
 
 
 def _photo_reference(vis: Tensor, colours: Tensor) -> tuple[Tensor, Tensor]:
@@ -958,7 +1042,15 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
         blocks.index_add_(0, lay.diag[ph.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
         gx.index_add_(0, ph.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, ph.residual))
         any_vertex_term = True
-    # 5. proximal term: residual sqrt(w / V) (x - x_start), identity Jacobian on each vertex
+    # 5. chromaticity anchor (IRLS), the same form with a fixed reference (exact Jacobian)
+    if ev.anc is not None and cfg.w_anchor > 0 and ev.anc.cam.numel():
+        an = ev.anc
+        Jr = an.grad @ Puv[an.cam, an.vert]  # (N, 3, 3)
+        w = (cfg.w_anchor / pb.n_photo) * an.weight
+        blocks.index_add_(0, lay.diag[an.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
+        gx.index_add_(0, an.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, an.residual))
+        any_vertex_term = True
+    # 6. proximal term: residual sqrt(w / V) (x - x_start), identity Jacobian on each vertex
     if pb.prior is not None:
         blocks.index_add_(0, lay.diag, pb.w_prior * torch.eye(3, dtype=blocks.dtype, device=blocks.device).expand(V, 3, 3))
         gx += pb.w_prior * (verts - pb.prior)
@@ -972,15 +1064,15 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
 
 def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow: FlowTargets | None = None,
                cfg: FitConfig = FitConfig(), fragments: raster.Fragments | None = None,
-               prior: Tensor | None = None) -> tuple[Tensor, dict]:
+               prior: Tensor | None = None, anchor: AnchorRef | None = None) -> tuple[Tensor, dict]:
     """Differentiable (autograd) total loss of a mesh ``verts`` (V, 3) and its unweighted terms.
 
     The same loss :func:`fit_frame` minimises, built from :func:`raster.silhouette`,
     :func:`raster.render_face_normals` and :func:`raster.project_vertices`, for the
     vertex ablation and to check the Gauss-Newton gradients. ``fragments``: visibility
-    to hold fixed (default: rasterise ``verts``).
+    to hold fixed (default: rasterise ``verts``); anchor: L_an's references (None: L_an off).
     """
-    pb = _make_problem(rig, views, cues, flow, cfg, prior)
+    pb = _make_problem(rig, views, cues, flow, cfg, prior, anchor)
     K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
     if fragments is None:
         fragments = raster.occlude(raster.rasterize(verts.detach(), rig.faces, K, E, views.height, views.width,
@@ -1010,8 +1102,17 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
         r = (col - ref.to(col.dtype)[None])[vis]
         s2 = cfg.photo_scale ** 2
         terms["photo"] = (s2 * torch.log1p((r * r).sum(-1) / s2)).sum() / pb.n_photo
+    terms["anchor"] = lm.new_zeros(())
+    if pb.anchor_feat is not None:  # chromaticity against each vertex's reference (visibility held fixed)
+        uv, _ = raster.project_vertices(verts, K, E)
+        with torch.no_grad():
+            vis = raster.visible_vertices(verts.detach(), K, E, fragments, cfg.vis_depth_tol)
+            vis &= _pixel_ok(pb.photo_region, uv.detach()) & pb.anchor.seen[None]
+        r = (_sample(pb.anchor_feat[:, :3], uv) - pb.anchor.chroma.to(uv.dtype)[None])[vis]
+        s2 = cfg.anchor_scale ** 2
+        terms["anchor"] = (s2 * torch.log1p((r * r).sum(-1) / s2)).sum() / pb.n_photo
     total = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
-    total = total + cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"]
+    total = total + cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"] + cfg.w_anchor * terms["anchor"]
     return total, terms
 
 
@@ -1147,14 +1248,16 @@ def _vertex_adam(pb: _Problem, cues: FrameCues, start_verts: Tensor, transforms:
 
 
 def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: FitConfig = FitConfig(),
-              flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None
-              ) -> FrameFit:
+              flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None,
+              anchor: AnchorRef | None = None) -> FrameFit:
     """Fit one frame.
 
     init: (B, 4, 4) starting bone transforms (frame t-1's result, or the first frame's
     start); flow: targets from :func:`flow_targets` (None at the first frame or without
     flow); first: use ``max_iters_first``. For ``cfg.method == 'vertex'`` the start mesh is
     ``init_verts`` (V, 3) (default: LBS of ``init``) and ``init`` is returned unchanged.
+    anchor: L_an's references (:func:`update_anchor`; used when ``cfg.w_anchor`` > 0 and the cues
+    carry images).
     Never returns non-finite poses: steps with a non-finite loss are rejected.
     """
     init = torch.as_tensor(init, device=rig.rest.device).double()
@@ -1184,7 +1287,7 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         res = _vertex_adam(pb, cues, x_start, init, cfg.vertex_max_iters * (3 if first else 1))
     else:
         for f in cfg.levels_first if first else cfg.levels:
-            pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg, prior)
+            pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg, prior, anchor)
             res = _lm(pb, G, cfg.max_iters_first if first else cfg.max_iters)
             G, spent = res.transforms, spent + res.iterations
         res.iterations = spent  # the curve and terms are those of the full resolution
@@ -1200,10 +1303,11 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                  cfg: FitConfig = FitConfig(), progress: bool = True, log=None) -> list[FrameFit]:
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
 
-    cues_of(t) -> :class:`FrameCues` (with ``image`` for L_ph); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
+    cues_of(t) -> :class:`FrameCues` (with ``image`` for L_ph and L_an); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
     or None) of t-1 -> t, or None (no flow for that frame: L_of off there, logged);
     init: (B, 4, 4) start of frame 0. Returns one :class:`FrameFit` per frame (with the
-    wall time of each in ``terms['wall_s']``).
+    wall time of each in ``terms['wall_s']``). L_an's references are taken from each frame's
+    result (:func:`update_anchor`) and used from the next frame on.
     """
     from tqdm import tqdm
 
@@ -1211,6 +1315,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     G = torch.as_tensor(init, device=rig.rest.device).double()
     x_prev = None
     prev_mask = None
+    anchor = None
     for t in tqdm(range(num_frames), desc="fit", unit="frame", disable=not progress):
         t0 = time.perf_counter()
         cues = cues_of(t)
@@ -1224,7 +1329,9 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                 prev = out[-1]
                 targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.vis_depth_tol,
                                        cfg.flow_margin_px)
-        res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev)
+        res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor)
+        if cfg.w_anchor > 0 and cues.image is not None:
+            anchor = update_anchor(anchor, res.verts, views, res.fragments, cues.image, cues.mask, cfg)
         res.terms["wall_s"] = time.perf_counter() - t0
         res.terms["flow_targets"] = 0 if targets is None else int(targets.cam.numel())
         out.append(res)

@@ -1,14 +1,16 @@
 """Where the garment fit's error comes from: chained flow targets against re-anchored ones.
 
 With ground-truth masks and flows (synthetic scene) and frame 0 started on the rig floor
-(the rig's best pose for the ground truth), the fit of frames t > 0 is run three ways:
+(the rig's best pose for the ground truth), the fit of frames t > 0 is run four ways:
 
 * ``chain``: the paper's L_of -- flow targets from the previous frame's *fitted* mesh
   (what `fit` does);
 * ``oracle``: flow targets from the previous frame's *rig floor* mesh (not available in
   practice; isolates what the chaining costs);
 * ``chain + L_ph``: as ``chain`` with the multi-view photo-consistency term on (variant
-  ``photo``).
+  ``photo``);
+* ``chain + L_an``: as ``chain`` with the temporal chromaticity anchor on (variant
+  ``anchor``; references from the frame each vertex is first seen in).
 
 Writes benchmarks/fit_drift.md (per-frame vertex RMSE against the ground truth, every
 other frame) and prints it. Not a test.
@@ -54,6 +56,8 @@ def main() -> None:
     ap.add_argument("--seq", default="walk")
     ap.add_argument("--frames", type=int, default=22)
     ap.add_argument("--views", type=int, default=8)
+    ap.add_argument("--rig", default="results/{scene}/rig.npz", help="rig file ({scene}: the scene's name)")
+    ap.add_argument("--runs", default="chain,oracle,photo,anchor", help="which of chain, oracle, photo, anchor to run")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default="benchmarks/fit_drift.md")
     a = ap.parse_args()
@@ -64,7 +68,7 @@ def main() -> None:
     names = select_views(info["cameras"]["train"], a.views)
     cams = load_cameras(d / a.seq / "intri.yml", d / a.seq / "extri.yml", names=names)
     views = FIT.Views.from_cameras(cams)
-    art = load_rig(f"results/{a.scene}/rig.npz", dtype=torch.float64)
+    art = load_rig(a.rig.format(scene=a.scene), dtype=torch.float64)
     rig = FIT.RigParts.make(art.model.rest, art.model.weights, art.model.bone_centres, torch.as_tensor(art.faces))
     body = load_body(d, info)
     motion = load_sequence_motion(d, a.seq, info["fps"])
@@ -90,16 +94,28 @@ def main() -> None:
                                                with_bary=False), occ)
 
     runs = {}
-    paper = replace(base, w_photo=0.0)
-    for name, cfg, oracle in (("chain (the paper's L_of; the default)", paper, False),
-                              ("oracle targets (from the rig floor of t-1)", paper, True),
-                              ("chain + L_ph (variant photo)", FIT.config_for(paper, "photo"), False)):
+    paper = replace(base, w_photo=0.0, w_anchor=0.0)
+    wanted = set(a.runs.split(","))
+    for key, name, cfg, oracle in (("chain", "chain (the paper's L_of; the default)", paper, False),
+                                   ("oracle", "oracle targets (from the rig floor of t-1)", paper, True),
+                                   ("photo", "chain + L_ph (variant photo)", FIT.config_for(paper, "photo"), False),
+                                   ("anchor", "chain + L_an (variant anchor)", FIT.config_for(paper, "anchor"), False)):
+        if key not in wanted:
+            continue
         reader = CueReader(cams, d / a.seq / "gt" / "masks", d / a.seq / "normals", d / a.seq / "gt" / "flows",
                             posed.vertices.double(), body.faces, views, torch.device("cpu"), num_frames=T,
-                            seq_dir=d / a.seq if cfg.w_photo > 0 else None)
+                            seq_dir=d / a.seq if (cfg.w_photo > 0 or cfg.w_anchor > 0) else None)
         t0 = time.perf_counter()
         cues = reader.cues(0)
         prev = FIT.fit_frame(rig, views, cues, floor_G[0], cfg, None, first=True)
+        anchor = None  # L_an's references (variant anchor), as fit_sequence keeps them
+
+        def update(anchor, prev, cues):
+            if cfg.w_anchor == 0:
+                return None
+            return FIT.update_anchor(anchor, prev.verts, views, prev.fragments, cues.image, cues.mask, cfg)
+
+        anchor = update(anchor, prev, cues)
         out, mask_prev, G = [rmse(prev.verts, 0)], cues.mask, prev.transforms
         for t in range(1, T):
             cues = reader.cues(t)
@@ -107,7 +123,8 @@ def main() -> None:
             src_x, src_f = (floor_X[t - 1], fragments(floor_X[t - 1], t - 1)) if oracle else (prev.verts, prev.fragments)
             targets = FIT.flow_targets(src_x, views, src_f, flow, valid, mask_prev, cfg.vis_depth_tol,
                                        cfg.flow_margin_px)
-            prev = FIT.fit_frame(rig, views, cues, G, cfg, targets)
+            prev = FIT.fit_frame(rig, views, cues, G, cfg, targets, anchor=anchor)
+            anchor = update(anchor, prev, cues)
             out.append(rmse(prev.verts, t))
             mask_prev, G = cues.mask, prev.transforms
         reader.close()
@@ -122,7 +139,9 @@ def main() -> None:
         f"- command: `.venv/bin/python benchmarks/fit_drift.py {' '.join(sys.argv[1:])}`",
         f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs, torch {torch.__version__} ({a.threads} threads), "
         f"Python {platform.python_version()}",
-        f"- {a.scene}/{a.seq}, first {T} frames, {len(names)} views {names}; ground-truth masks and flows, shipped "
+        f"- {a.scene}/{a.seq} ({info['image_size'][0]}x{info['image_size'][1]}), rig "
+        f"`{a.rig.format(scene=a.scene)}`, first {T} frames, "
+        f"{len(names)} views {names}; ground-truth masks and flows, shipped "
         "(degraded) normals; frame 0 starts on the rig floor (the rig's least-squares pose for the ground truth); "
         "fit settings of config/config.yaml.",
         "",

@@ -50,10 +50,10 @@ from anidress_core.stages.rig import load_rig  # noqa: E402
 from anidress_core.stages.scene import load_body, load_sequence_motion, read_scene  # noqa: E402
 from benchutil import cpu_model  # noqa: E402
 
-CUE_SETS = {
-    "pipeline masks, shipped normals": ("results/{scene}/{seq}/masks", "data/{scene}/{seq}/normals"),
-    "GT masks, shipped normals": ("data/{scene}/{seq}/gt/masks", "data/{scene}/{seq}/normals"),
-    "GT masks, GT normals": ("data/{scene}/{seq}/gt/masks", "data/{scene}/{seq}/gt/normals"),
+CUE_SETS = {  # name: (label, masks folder, normals folder)
+    "pipeline": ("pipeline masks, shipped normals", "results/{scene}/{seq}/masks", "data/{scene}/{seq}/normals"),
+    "gt_masks": ("GT masks, shipped normals", "data/{scene}/{seq}/gt/masks", "data/{scene}/{seq}/normals"),
+    "gt": ("GT masks, GT normals", "data/{scene}/{seq}/gt/masks", "data/{scene}/{seq}/gt/normals"),
 }
 
 
@@ -61,6 +61,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="skirt:walk,dress:sway", help="scene:sequence pairs")
     ap.add_argument("--views", type=int, default=8)
+    ap.add_argument("--rig", default="results/{scene}/rig.npz", help="rig file ({scene}: the scene's name)")
+    ap.add_argument("--cue-sets", default=",".join(CUE_SETS), help="comma-separated keys of CUE_SETS")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default="benchmarks/fit_frame0.md")
     a = ap.parse_args()
@@ -76,25 +78,31 @@ def main() -> None:
         f"- command: `.venv/bin/python benchmarks/fit_frame0.py {' '.join(sys.argv[1:])}`",
         f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs, torch {torch.__version__} ({a.threads} threads), "
         f"Python {platform.python_version()}",
-        f"- frame 0 of each training sequence, {a.views} views; loss = the paper's frame-0 loss "
+        f"- rig: `{a.rig}`; frame 0 of each training sequence, {a.views} views; loss = the paper's frame-0 loss "
         f"{paper.w_mask} L_M + {paper.w_normal} L_N (no flow at frame 0), evaluated on the same cues for every pose "
         f"and without the proximal term; fits use config/config.yaml's `fit` settings; `+ prior` = the config's "
         f"first-frame proximal term (weight {default.w_prior_first}) towards the simulated start.",
         "- rows: `rig floor` and `simulated start` are poses, not fits; `fit from X` = the Levenberg-Marquardt fit "
         "of frame 0 started there.",
         "",
-        "| scene/seq | cues | pose | vertex RMSE mm | x rig floor | loss | w_M L_M | w_N L_N | LM evaluations |",
+        "| scene/seq, image size | cues | pose | vertex RMSE mm | x rig floor | loss | w_M L_M | w_N L_N | LM evaluations |",
         "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     findings = []
+    cue_sets = [c.strip() for c in a.cue_sets.split(",")]
+    for c in cue_sets:
+        if c not in CUE_SETS:
+            raise SystemExit(f"--cue-sets: unknown cue set {c!r} (known: {list(CUE_SETS)})")
     for pair in a.scenes.split(","):
         scene, seq = pair.split(":")
         d = Path("data") / scene
         info = read_scene(d)
         names = select_views(info["cameras"]["train"], a.views)
+        label = f"{scene}/{seq} {info['image_size'][0]}x{info['image_size'][1]}"
         cams = load_cameras(d / seq / "intri.yml", d / seq / "extri.yml", names=names)
         views = FIT.Views.from_cameras(cams)
-        art = load_rig(f"results/{scene}/rig.npz", dtype=torch.float64)
+        rig_path = a.rig.format(scene=scene)
+        art = load_rig(rig_path, dtype=torch.float64)
         rig = FIT.RigParts.make(art.model.rest, art.model.weights, art.model.bone_centres, torch.as_tensor(art.faces))
         body = load_body(d, info)
         motion = load_sequence_motion(d, seq, info["fps"])
@@ -108,11 +116,12 @@ def main() -> None:
         floor_G = fit_transforms(art.model, Y[None]).double()[0]
         sim_name = f"seq-{seq}"
         if sim_name not in art.sequences:
-            raise SystemExit(f"results/{scene}/rig.npz: no simulated sequence {sim_name!r}")
+            raise SystemExit(f"{rig_path}: no simulated sequence {sim_name!r}")
         sim_G = art.transforms_of(sim_name)[0].double()
         rmse = lambda X: 1e3 * float(((X - Y) ** 2).sum(-1).mean().sqrt())  # noqa: E731
         floor_rmse = rmse(lbs(rig.rest, rig.weights, floor_G))
-        for cue_name, (mdir, ndir) in CUE_SETS.items():
+        for cue_set in cue_sets:
+            cue_name, mdir, ndir = CUE_SETS[cue_set]
             mdir, ndir = Path(mdir.format(scene=scene, seq=seq)), Path(ndir.format(scene=scene, seq=seq))
             if not mdir.is_dir():
                 raise SystemExit(f"{mdir}: masks not found (run the pipeline's `masks` rule for {scene}/{seq})")
@@ -132,12 +141,12 @@ def main() -> None:
                                      ("fit from simulated start + prior (pipeline)", sim_G, default)):
                 r = FIT.fit_frame(rig, views, cues, start, cfg, None, first=True)
                 poses[name] = (r.verts.detach(), r.iterations)
-            print(f"{scene}/{seq} {cue_name}: {time.perf_counter() - t0:.0f} s", flush=True)
+            print(f"{label} {cue_name}: {time.perf_counter() - t0:.0f} s", flush=True)
             res = {}
             for name, (X, its) in poses.items():
                 e, (ls, lm, ln) = rmse(X), loss(X)
                 res[name] = (e, ls)
-                lines.append(f"| {scene}/{seq} | {cue_name} | {name} | {e:.1f} | {e / floor_rmse:.2f} | {ls:.4f} | "
+                lines.append(f"| {label} | {cue_name} | {name} | {e:.1f} | {e / floor_rmse:.2f} | {ls:.4f} | "
                              f"{lm:.4f} | {ln:.4f} | {'' if its is None else its} |")
             ff, fs = res["fit from rig floor"], res["fit from simulated start"]
             if abs(fs[1] - ff[1]) <= 0.01 * ff[1]:
@@ -147,7 +156,7 @@ def main() -> None:
             else:
                 verdict = "below the fit from the floor: the loss prefers it"
             findings.append(
-                f"- {scene}/{seq}, {cue_name}: fitted from the rig floor, frame 0 ends at {ff[0]:.1f} mm = "
+                f"- {label}, {cue_name}: fitted from the rig floor, frame 0 ends at {ff[0]:.1f} mm = "
                 f"{ff[0] / floor_rmse:.2f} x the rig floor{' (above 1.5 x)' if ff[0] > 1.5 * floor_rmse else ''}; "
                 f"from the simulated start at {fs[0]:.1f} mm, with loss {fs[1]:.5f} against {ff[1]:.5f}, {verdict}.")
     lines += ["", "## Reading", ""] + findings

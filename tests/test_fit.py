@@ -225,6 +225,84 @@ def test_photo_consistency_sharpens_the_first_frame_shape():
     assert sum(photo) < 0.85 * sum(plain), (photo, plain)
 
 
+def test_anchor_reference_and_gradient():
+    """update_anchor gives each vertex the chromaticity of the first frame it is seen in and keeps
+    it; the Gauss-Newton gradient of L_an equals autograd's (an image with a linear chromaticity:
+    r + g + b constant)."""
+    C, H, W = 4, 64, 64
+    rig, views = toy(C=C, H=H, W=W, n_theta=40, n_h=12)
+    G = torch.eye(4, dtype=torch.float64).expand(rig.weights.shape[1], 4, 4).clone()
+    cues, x, fr = render(rig, views, G)
+    cfg = fit.FitConfig(photo_blur=0.0)
+    flat = torch.tensor([0.6, 0.3, 0.1], dtype=torch.float64).expand(C, H, W, 3)
+    a = fit.update_anchor(None, x, views, fr, flat, cues.mask, cfg)
+    vis = raster.visible_vertices(x, views.K, views.world_to_cam, fr, cfg.vis_depth_tol).any(0)
+    assert 0 < int(a.seen.sum()) <= int(vis.sum()) and not bool((a.seen & ~vis).any())
+    torch.testing.assert_close(a.chroma[a.seen], (flat[0, 0, 0] / (1.0 + fit.CHROMA_EPS)).expand(int(a.seen.sum()), 3))
+    # a later frame: the seen vertices keep their reference, newly seen ones get this frame's
+    b = fit.update_anchor(a._replace(seen=a.seen & (torch.arange(a.seen.numel()) % 2 == 0)), x, views, fr,
+                          flat.flip(-1), cues.mask, cfg)
+    even = torch.arange(a.seen.numel()) % 2 == 0
+    torch.testing.assert_close(b.chroma[a.seen & even], a.chroma[a.seen & even])
+    torch.testing.assert_close(b.chroma[a.seen & ~even], (flat[0, 0, 0].flip(-1) / (1.0 + fit.CHROMA_EPS))
+                               .expand(int((a.seen & ~even).sum()), 3))
+    assert torch.equal(b.seen, a.seen)
+
+    yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    img = torch.stack([0.3 + 0.004 * xx, 0.3 + 0.003 * yy, 0.3 - 0.004 * xx - 0.003 * yy], -1)[None].expand(C, -1, -1, -1)
+    g = torch.Generator().manual_seed(13)
+    Gt = pose(rig, g, 0.15, 0.03)
+    cues, _, _ = render(rig, views, Gt)
+    cues = cues._replace(image=img.clone())
+    ref = fit.AnchorRef(0.33 + 0.05 * torch.rand(rig.rest.shape[0], 3, generator=g, dtype=torch.float64),
+                        torch.rand(rig.rest.shape[0], generator=g) < 0.8)
+    G0 = pose(rig, g, 0.03, 0.01, Gt)
+    cfg = fit.FitConfig(w_mask=0.0, w_normal=0.0, w_flow=0.0, w_anchor=50.0, photo_blur=0.0, anchor_scale=0.02)
+    pb = fit._make_problem(rig, views, cues, None, cfg, anchor=ref)
+    ev = fit._evaluate(pb, lbs(rig.rest, rig.weights, G0))
+    assert ev.anc is not None and ev.anc.cam.numel() > 40 and ev.loss > 0
+    _, gvec = fit._gauss_newton(pb, ev, G0)
+    d = torch.zeros(gvec.numel(), dtype=torch.float64, requires_grad=True)
+    xd = lbs(rig.rest, rig.weights, fit.apply_increment(G0, rig.centres, d.view(-1, 6)))
+    total, terms = fit.loss_terms(rig, views, cues, xd, None, cfg, fragments=ev.fragments, anchor=ref)
+    assert abs(float(total.detach()) - ev.loss) < 1e-10 * ev.loss and float(terms["anchor"].detach()) > 0
+    (grad,) = torch.autograd.grad(total, d)  # Cauchy: the IRLS gradient is the exact gradient
+    torch.testing.assert_close(grad, 2 * gvec, rtol=1e-5, atol=1e-8 * float(gvec.abs().max()))
+
+
+def test_anchor_sees_a_garment_sliding_about_its_axis():
+    """A textured cone turning about its own axis: masks and normals do not change, so without
+    flow the paper's loss cannot follow it; the chromaticity anchor (references from frame 0)
+    does. Frame 0 starts at the truth."""
+    rig, views = toy(C=4, H=80, W=80)
+
+    def colour_of(p):
+        th = torch.atan2(p[:, 1], p[:, 0])
+        return torch.stack([0.5 + 0.4 * torch.sin(4 * th), 0.5 + 0.4 * torch.cos(3 * th + 8 * p[:, 2]),
+                            0.5 + 0.3 * torch.sin(2 * th - 12 * p[:, 2])], -1)
+
+    B = rig.weights.shape[1]
+
+    def turned(a):
+        R = torch.eye(4, dtype=torch.float64)
+        R[0, 0], R[0, 1], R[1, 0], R[1, 1] = math.cos(a), -math.sin(a), math.sin(a), math.cos(a)
+        return R.expand(B, 4, 4).clone()
+
+    angles = [0.0, 0.06, 0.12, 0.18]
+    frames = [textured(rig, views, turned(a), colour_of) for a in angles]
+    G0 = turned(0.0)
+    err = {}
+    for name, cfg in (("paper", fit.FitConfig()), ("anchor", fit.FitConfig(w_anchor=fit.ANCHOR_WEIGHT))):
+        res = fit.fit_sequence(rig, views, len(angles), lambda t: frames[t][0], lambda t: None, G0, cfg,
+                               progress=False)
+        err[name] = [rmse(r.verts, frames[t][1]) for t, r in enumerate(res)]
+        assert all(torch.isfinite(r.transforms).all() for r in res)
+    assert res[-1].terms["anchor"] > 0
+    # the paper's loss stays near the start (the turn is 0.18 rad x ~0.25 m = ~45 mm at the hem)
+    assert err["paper"][-1] > 0.03, err  # measured: 47 mm
+    assert err["anchor"][-1] < 0.2 * err["paper"][-1], err  # measured: 3.5 mm
+
+
 def test_flow_targets_follow_the_flow_and_skip_invalid_pixels():
     rig, views = toy(C=2, H=48, W=48)
     g = torch.Generator().manual_seed(3)
@@ -354,6 +432,11 @@ def test_ablation_configs_and_vertex_fit():
     ph = fit.FitConfig(w_photo=10.0)
     assert fit.config_for(ph, "photo") == ph and fit.config_for(base, "photo").w_photo == fit.PHOTO_WEIGHT
     assert fit.config_for(ph, "no_flow").w_photo == 0 and fit.config_for(ph, "no_normal_flow").w_photo == 0
+    an = fit.FitConfig(w_anchor=10.0, w_photo=5.0)
+    assert fit.config_for(an, "anchor") == an and fit.config_for(base, "anchor").w_anchor == fit.ANCHOR_WEIGHT
+    for abl in ("vertex", "no_flow", "no_normal_flow"):  # the paper's ablations: the paper's loss, no term of ours
+        c = fit.config_for(an, abl)
+        assert c.w_anchor == 0 and c.w_photo == 0
     with pytest.raises(ValueError):
         fit.config_for(base, "nope")
     rig, views = toy(C=3, H=48, W=48, n_theta=20, n_h=6)
@@ -431,6 +514,7 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     assert a["curve"].shape[0] == 4 and a["iterations"].shape == (4,) and (a["flow_targets"][1:] > 0).all()
     assert a["flow_targets"][0] == 0 and len(meta["cameras"]) == 3
     assert meta["config"]["w_photo"] == 0.0 and (a["loss_photo"] == 0).all()  # the paper's loss by default
+    assert meta["config"]["w_anchor"] == 0.0 and (a["loss_anchor"] == 0).all()
     assert h["meta"]["first_frame_start"].startswith("rig transforms of the simulated sequence seq-walk")
     # the fitted transforms reproduce the fitted vertices through the rig (the field stage's contract)
     from anidress_core.stages.rig import load_rig
@@ -444,6 +528,10 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
                    seq / "normals", params, res / "walk" / "photo.npz", ablation="photo", progress=False)
     assert meta["config"]["w_photo"] == fit.PHOTO_WEIGHT
     assert (load_garment_poses(res / "walk" / "photo.npz")[0]["loss_photo"] > 0).all()
+    meta = run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
+                   seq / "normals", params, res / "walk" / "anchor.npz", ablation="anchor", progress=False)
+    an = load_garment_poses(res / "walk" / "anchor.npz")[0]["loss_anchor"]
+    assert meta["config"]["w_anchor"] == fit.ANCHOR_WEIGHT and an[0] == 0 and (an[1:] > 0).all()  # refs from frame 0
     run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
             None, params, res / "walk" / "no_flow.npz", ablation="no_flow", progress=False)
     summ = run_fit_eval(data, "walk", res / "rig.npz", {"full": res / "walk" / "garment_poses.npz",

@@ -9,7 +9,8 @@
   ``<normals_dir>/<cam>/<frame:06d>.exr`` (camera-space unit normals; no folder = normal
   loss off), ``<flows_dir>/<cam>/<frame:06d>.exr`` (channels X, Y, valid: forward flow
   frame-1 -> frame on frame-1's grid; none for frame 0);
-* with the photo-consistency term on (``weights/photo`` > 0) the training images
+* with the photo-consistency term or the chromaticity anchor on (``weights/photo`` or
+  ``weights/anchor`` > 0) the training images
   ``<seq>/images/<cam>/<frame:06d>.{png,jpg}``;
 * the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
 * ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start.
@@ -19,7 +20,8 @@ and writes ``garment_poses.npz`` (:func:`load_garment_poses`):
 * ``transforms`` (T, B, 4, 4) float32: bone transforms rest -> world, the rig's convention
   ``x = sum_b W[i, b] (M[b, :3, :3] rest_i + M[b, :3, 3])``;
 * ``verts`` (T, V, 3) float32 fitted meshes, ``faces`` (F, 3) int64;
-* ``loss``, ``loss_mask``, ``loss_normal``, ``loss_flow``, ``loss_photo`` (T,) float64: weighted total and
+* ``loss``, ``loss_mask``, ``loss_normal``, ``loss_flow``, ``loss_photo``, ``loss_anchor`` (T,) float64:
+  weighted total and
   unweighted terms at the result; ``iterations`` (T,) int64; ``converged`` (T,) bool;
   ``wall_s`` (T,) float64 per frame (cue loading included); ``flow_targets`` (T,) int64;
 * ``curve`` (T, L) float64: weighted loss after each accepted step, NaN-padded;
@@ -52,14 +54,15 @@ from .cues import image_path
 from .rig import load_rig
 from .scene import load_body, load_sequence_motion, read_scene
 
-__all__ = ["fit_config", "select_views", "CueReader", "gt_correspondence", "run_fit", "load_garment_poses", "run_fit_eval", "FIT_METRIC_COLUMNS"]
+__all__ = ["fit_config", "select_views", "CueReader", "gt_correspondence", "run_fit", "load_garment_poses",
+           "run_fit_eval", "FIT_METRIC_COLUMNS"]
 
 log = logging.getLogger("anidress.fit")
 
 FIT_METRIC_COLUMNS = (
     "method", "frame", "vertex_rmse_m", "rig_floor_rmse_m", "chamfer_m", "normal_consistency", "jitter_m",
-    "gt_jitter_m", "accel_error_m", "loss", "loss_mask", "loss_normal", "loss_flow", "loss_photo", "iterations",
-    "wall_s",
+    "gt_jitter_m", "accel_error_m", "loss", "loss_mask", "loss_normal", "loss_flow", "loss_photo", "loss_anchor",
+    "iterations", "wall_s",
 )
 
 
@@ -73,6 +76,7 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
     w, v = p["weights"], p["vertex"]
     base = FIT.FitConfig(
         w_mask=float(w["mask"]), w_normal=float(w["normal"]), w_flow=float(w["flow"]), w_photo=float(w["photo"]),
+        w_anchor=float(w["anchor"]), anchor_scale=float(p["anchor_scale"]),
         photo_blur=float(p["photo_blur"]), photo_scale=float(p["photo_scale"]),
         max_iters=int(p["max_iters"]), max_iters_first=int(p["max_iters_first"]), rel_tol=float(p["rel_tol"]),
         step_tol=float(p["step_tol"]), damping=float(p["damping"]), vis_depth_tol=float(p["visibility_depth_tol"]),
@@ -102,7 +106,7 @@ class CueReader:
     flows_dir: EXR folders of the same layout, or None (that term off); body_verts
     (T, Vb, 3) and body_faces: the posed body, rasterised as the occluder; views:
     :class:`anidress_core.fit.Views` of ``cams``; num_frames: the last frame read ahead;
-    seq_dir: the sequence folder whose images L_ph reads (None: not read).
+    seq_dir: the sequence folder whose images L_ph and L_an read (None: not read).
     ``cues(t)`` -> :class:`anidress_core.fit.FrameCues`, ``flow(t)`` -> (flow, valid) of
     t-1 -> t or None; ``close()`` stops the helper thread. The files of frame t + 1 are
     read by that thread while frame t is fitted. Used by :func:`run_fit` and the
@@ -115,7 +119,7 @@ class CueReader:
 
         self.cams, self.views, self.device = cams, views, device
         self.masks_dir, self.normals_dir, self.flows_dir = Path(masks_dir), normals_dir, flows_dir
-        self.seq_dir = seq_dir  # images for L_ph (None: not read)
+        self.seq_dir = seq_dir  # images for L_ph / L_an (None: not read)
         self.body_verts, self.body_faces = body_verts, body_faces
         self.H, self.W = cams.height, cams.width
         self.bad_values = 0
@@ -263,14 +267,15 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             log.info("fit: the rig has no simulated sequence %s; frame 0 starts from the body-skinned template",
                      sim_name)
     log.info("fit %s/%s (%s): %d frames, %d views %s, %d vertices, %d bones, weights M %.2f N %.2f of %.2f "
-             "ph %.1f, start: %s, device %s", scene_dir.name, seq, method, T, len(names), names, rig.rest.shape[0],
-             rig.weights.shape[1], cfg.w_mask, cfg.w_normal, cfg.w_flow, cfg.w_photo, start_used, device)
+             "ph %.1f an %.0f, start: %s, device %s", scene_dir.name, seq, method, T, len(names), names,
+             rig.rest.shape[0], rig.weights.shape[1], cfg.w_mask, cfg.w_normal, cfg.w_flow, cfg.w_photo, cfg.w_anchor,
+             start_used, device)
     if normals_dir is None:
         log.info("fit: no normal maps for %s; the normal loss is off (weight 0)", seq)
         cfg = dataclasses.replace(cfg, w_normal=0.0)
     reader = CueReader(cams, masks_dir, None if cfg.w_normal == 0 else normals_dir,
                         None if cfg.w_flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device,
-                        num_frames=T, seq_dir=sdir if cfg.w_photo > 0 else None)
+                        num_frames=T, seq_dir=sdir if (cfg.w_photo > 0 or cfg.w_anchor > 0) else None)
     for cam in names:  # fail early, naming the file
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():
@@ -314,6 +319,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "loss": np.array([r.loss for r in res]), "loss_mask": np.array([r.terms["mask"] for r in res]),
         "loss_normal": np.array([r.terms["normal"] for r in res]), "loss_flow": np.array([r.terms["flow"] for r in res]),
         "loss_photo": np.array([r.terms.get("photo", 0.0) for r in res]),
+        "loss_anchor": np.array([r.terms.get("anchor", 0.0) for r in res]),
         "iterations": np.array([r.iterations for r in res], np.int64),
         "converged": np.array([r.converged for r in res], bool),
         "wall_s": np.array([r.terms["wall_s"] for r in res]),
@@ -420,7 +426,8 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
                 "loss": float(f["loss"][t]), "loss_mask": float(f.get("loss_mask", np.full(T, np.nan))[t]),
                 "loss_normal": float(f.get("loss_normal", np.full(T, np.nan))[t]),
                 "loss_flow": float(f.get("loss_flow", np.full(T, np.nan))[t]),
-                "loss_photo": float(f.get("loss_photo", np.full(T, np.nan))[t]), "iterations": int(f["iterations"][t]),
+                "loss_photo": float(f.get("loss_photo", np.full(T, np.nan))[t]),
+                "loss_anchor": float(f.get("loss_anchor", np.full(T, np.nan))[t]), "iterations": int(f["iterations"][t]),
                 "wall_s": float(f.get("wall_s", np.full(T, np.nan))[t]),
             })
         summary["methods"][name] = {"vertex_rmse_m": float(rm.mean()), "rig_floor_rmse_m": float(floor_t.mean()),
