@@ -70,7 +70,7 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     params = load_config("config/config.yaml")["fit"]
     default = fit_config(params)  # the pipeline's settings (first-frame proximal term included)
-    paper = replace(default, w_prior_first=0.0, w_photo=0.0)
+    paper = replace(default, w_prior_first=0.0, w_photo=0.0, w_anchor=0.0)
     lines = [
         "# Garment fit, frame 0: where the paper's loss has its minimum, where the fit stops",
         "",
