@@ -886,28 +886,31 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
     if pb.photo is not None or pb.anchor_feat is not None:  # vertices whose colour counts
         vis_col = raster.visible_vertices(verts, K, E, frags, cfg.vis_depth_tol) & _pixel_ok(pb.photo_region, uv)
     if pb.photo is not None:
-        vis = vis_col
         smp = _sample(pb.photo, uv)  # (C, V, 9)
-        vis, ref = _photo_reference(vis, smp[..., :3])
+        vis, ref = _photo_reference(vis_col, smp[..., :3])
         c, vv = vis.nonzero(as_tuple=True)
-        smp = smp[c, vv]  # (N, 9)
-        r = smp[:, :3] - ref[vv].to(smp.dtype)
-        s2 = cfg.photo_scale ** 2
-        e = (r * r).sum(-1)
-        terms["photo"] = float((s2 * torch.log1p(e / s2)).sum()) / pb.n_photo
-        pho = _PhotoData(c, vv, r, torch.stack([smp[:, 3:6], smp[:, 6:9]], -1), 1.0 / (1.0 + e / s2))
+        value, pho = _cauchy_colour(c, vv, smp[c, vv], ref, cfg.photo_scale)
+        terms["photo"] = value / pb.n_photo
     # 6. temporal chromaticity anchor: each visible vertex's chromaticity against its reference
     if pb.anchor_feat is not None:
         c, vv = (vis_col & pb.anchor.seen[None]).nonzero(as_tuple=True)
-        smp = _sample(pb.anchor_feat, uv)[c, vv]  # (N, 9)
-        r = smp[:, :3] - pb.anchor.chroma.to(smp.dtype)[vv]
-        s2 = cfg.anchor_scale ** 2
-        e = (r * r).sum(-1)
-        terms["anchor"] = float((s2 * torch.log1p(e / s2)).sum()) / pb.n_photo
-        anc = _PhotoData(c, vv, r, torch.stack([smp[:, 3:6], smp[:, 6:9]], -1), 1.0 / (1.0 + e / s2))
+        value, anc = _cauchy_colour(c, vv, _sample(pb.anchor_feat, uv)[c, vv], pb.anchor.chroma, cfg.anchor_scale)
+        terms["anchor"] = value / pb.n_photo
     loss = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
     loss += cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"] + cfg.w_anchor * terms["anchor"]
     return _Eval(loss, terms, verts, frags, uv, sil, nrm, pho, anc)
+
+
+def _cauchy_colour(cam: Tensor, vert: Tensor, samples: Tensor, reference: Tensor, scale: float
+                   ) -> tuple[float, _PhotoData]:
+    """L_ph's and L_an's common form: samples (N, 9) of photo_features at the (cam, vert) pairs
+    (N,) against each vertex's reference (V, 3); the Cauchy loss sum s^2 log(1 + |r|^2 / s^2) and
+    what the Gauss-Newton blocks need (residuals, colour gradients, IRLS weights)."""
+    r = samples[:, :3] - reference.to(samples.dtype)[vert]
+    s2 = scale ** 2
+    e = (r * r).sum(-1)
+    return (float((s2 * torch.log1p(e / s2)).sum()),
+            _PhotoData(cam, vert, r, torch.stack([samples[:, 3:6], samples[:, 6:9]], -1), 1.0 / (1.0 + e / s2)))
 
 
 def _photo_reference(vis: Tensor, colours: Tensor) -> tuple[Tensor, Tensor]:
@@ -1037,22 +1040,15 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
         blocks.index_add_(0, lay.diag[fl.vert], w * Pf.transpose(1, 2) @ Pf)
         gx.index_add_(0, fl.vert, w * torch.einsum("nij,ni->nj", Pf, r))
         any_vertex_term = True
-    # 4. photo-consistency (IRLS): residual sqrt(weight) (colour - reference), d colour / d x = dI/duv duv/dx
-    if ev.pho is not None and cfg.w_photo > 0 and ev.pho.cam.numel():
-        ph = ev.pho
-        Jr = ph.grad @ Puv[ph.cam, ph.vert]  # (N, 3, 3)
-        w = (cfg.w_photo / pb.n_photo) * ph.weight
-        blocks.index_add_(0, lay.diag[ph.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
-        gx.index_add_(0, ph.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, ph.residual))
-        any_vertex_term = True
-    # 5. chromaticity anchor (IRLS), the same form with a fixed reference (exact Jacobian)
-    if ev.anc is not None and cfg.w_anchor > 0 and ev.anc.cam.numel():
-        an = ev.anc
-        Jr = an.grad @ Puv[an.cam, an.vert]  # (N, 3, 3)
-        w = (cfg.w_anchor / pb.n_photo) * an.weight
-        blocks.index_add_(0, lay.diag[an.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
-        gx.index_add_(0, an.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, an.residual))
-        any_vertex_term = True
+    # 4. photo-consistency and 5. chromaticity anchor (IRLS): residual sqrt(weight) (colour - reference),
+    # d colour / d x = dI/duv duv/dx (the anchor's reference is fixed: exact)
+    for cd, wt in ((ev.pho, cfg.w_photo), (ev.anc, cfg.w_anchor)):
+        if cd is not None and wt > 0 and cd.cam.numel():
+            Jr = cd.grad @ Puv[cd.cam, cd.vert]  # (N, 3, 3)
+            w = (wt / pb.n_photo) * cd.weight
+            blocks.index_add_(0, lay.diag[cd.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
+            gx.index_add_(0, cd.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, cd.residual))
+            any_vertex_term = True
     # 6. proximal term: residual sqrt(w / V) (x - x_start), identity Jacobian on each vertex
     if pb.prior is not None:
         blocks.index_add_(0, lay.diag, pb.w_prior * torch.eye(3, dtype=blocks.dtype, device=blocks.device).expand(V, 3, 3))
