@@ -37,17 +37,10 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from anidress_core import fit as FIT  # noqa: E402
 from anidress_core import raster  # noqa: E402
-from anidress_core.camera import load_cameras  # noqa: E402
 from anidress_core.config import load_config  # noqa: E402
 from anidress_core.geometry import lbs  # noqa: E402
-from anidress_core.io import files  # noqa: E402
-from anidress_core.io.mesh import read_mesh  # noqa: E402
-from anidress_core.metrics import mesh as MM  # noqa: E402
-from anidress_core.rig import fit_transforms  # noqa: E402
-from anidress_core.stages.fit import CueReader, fit_config, gt_correspondence, select_views  # noqa: E402
-from anidress_core.stages.rig import load_rig  # noqa: E402
-from anidress_core.stages.scene import load_body, load_sequence_motion, read_scene  # noqa: E402
-from benchutil import cpu_model  # noqa: E402
+from anidress_core.stages.fit import CueReader, fit_config  # noqa: E402
+from benchutil import cpu_model, fit_scene  # noqa: E402
 
 
 def main() -> None:
@@ -64,23 +57,10 @@ def main() -> None:
     os.chdir(REPO)
     torch.set_num_threads(a.threads)
     d = Path("data") / a.scene
-    info = read_scene(d)
-    names = select_views(info["cameras"]["train"], a.views)
-    cams = load_cameras(d / a.seq / "intri.yml", d / a.seq / "extri.yml", names=names)
-    views = FIT.Views.from_cameras(cams)
-    art = load_rig(a.rig.format(scene=a.scene), dtype=torch.float64)
-    rig = FIT.RigParts.make(art.model.rest, art.model.weights, art.model.bone_centres, torch.as_tensor(art.faces))
-    body = load_body(d, info)
-    motion = load_sequence_motion(d, a.seq, info["fps"])
-    posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
     T = a.frames
-    m, _ = files.load_npz(d / a.seq / "gt" / "meshes.npz", required=("garment_vertices", "garment_faces"))
-    rv, rf, _ = read_mesh(d / "garment" / "template.obj")
-    face, bary, _ = gt_correspondence(art.model.rest.numpy(), rv, rf)
-    Y = MM.barycentric_transfer(torch.as_tensor(m["garment_vertices"][:T]).double(),
-                                torch.as_tensor(m["garment_faces"].astype(np.int64)), torch.as_tensor(face),
-                                torch.as_tensor(bary))
-    floor_G = fit_transforms(art.model, Y).double()
+    sc = fit_scene(a.scene, a.seq, a.views, a.rig.format(scene=a.scene), T)
+    info, names, cams, views, rig = sc.info, sc.names, sc.cams, sc.views, sc.rig
+    body, posed, Y, floor_G = sc.body, sc.posed, sc.Y, sc.floor_G
     floor_X = lbs(rig.rest, rig.weights, floor_G)
     params = load_config("config/config.yaml")["fit"]
     base = fit_config(params)

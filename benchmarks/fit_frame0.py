@@ -30,7 +30,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,17 +37,10 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from anidress_core import fit as FIT  # noqa: E402
-from anidress_core.camera import load_cameras  # noqa: E402
 from anidress_core.config import load_config  # noqa: E402
 from anidress_core.geometry import lbs  # noqa: E402
-from anidress_core.io import files  # noqa: E402
-from anidress_core.io.mesh import read_mesh  # noqa: E402
-from anidress_core.metrics import mesh as MM  # noqa: E402
-from anidress_core.rig import fit_transforms  # noqa: E402
-from anidress_core.stages.fit import CueReader, fit_config, gt_correspondence, select_views  # noqa: E402
-from anidress_core.stages.rig import load_rig  # noqa: E402
-from anidress_core.stages.scene import load_body, load_sequence_motion, read_scene  # noqa: E402
-from benchutil import cpu_model  # noqa: E402
+from anidress_core.stages.fit import CueReader, fit_config  # noqa: E402
+from benchutil import cpu_model, fit_scene  # noqa: E402
 
 CUE_SETS = {  # name: (label, masks folder, normals folder)
     "pipeline": ("pipeline masks, shipped normals", "results/{scene}/{seq}/masks", "data/{scene}/{seq}/normals"),
@@ -95,25 +87,12 @@ def main() -> None:
             raise SystemExit(f"--cue-sets: unknown cue set {c!r} (known: {list(CUE_SETS)})")
     for pair in a.scenes.split(","):
         scene, seq = pair.split(":")
-        d = Path("data") / scene
-        info = read_scene(d)
-        names = select_views(info["cameras"]["train"], a.views)
-        label = f"{scene}/{seq} {info['image_size'][0]}x{info['image_size'][1]}"
-        cams = load_cameras(d / seq / "intri.yml", d / seq / "extri.yml", names=names)
-        views = FIT.Views.from_cameras(cams)
         rig_path = a.rig.format(scene=scene)
-        art = load_rig(rig_path, dtype=torch.float64)
-        rig = FIT.RigParts.make(art.model.rest, art.model.weights, art.model.bone_centres, torch.as_tensor(art.faces))
-        body = load_body(d, info)
-        motion = load_sequence_motion(d, seq, info["fps"])
-        posed = body.pose(motion.poses[:1], motion.Rh[:1], motion.Th[:1], motion.shapes)
-        m, _ = files.load_npz(d / seq / "gt" / "meshes.npz", required=("garment_vertices", "garment_faces"))
-        rv, rf, _ = read_mesh(d / "garment" / "template.obj")
-        face, bary, _ = gt_correspondence(art.model.rest.numpy(), rv, rf)
-        Y = MM.barycentric_transfer(torch.as_tensor(m["garment_vertices"][:1]).double(),
-                                    torch.as_tensor(m["garment_faces"].astype(np.int64)), torch.as_tensor(face),
-                                    torch.as_tensor(bary))[0]
-        floor_G = fit_transforms(art.model, Y[None]).double()[0]
+        sc = fit_scene(scene, seq, a.views, rig_path, frames=1)
+        info, cams, views, art, rig, body = sc.info, sc.cams, sc.views, sc.art, sc.rig, sc.body
+        label = f"{scene}/{seq} {info['image_size'][0]}x{info['image_size'][1]}"
+        posed_verts = sc.posed.vertices[:1]
+        Y, floor_G = sc.Y[0], sc.floor_G[0]
         sim_name = f"seq-{seq}"
         if sim_name not in art.sequences:
             raise SystemExit(f"{rig_path}: no simulated sequence {sim_name!r}")
@@ -125,7 +104,7 @@ def main() -> None:
             mdir, ndir = Path(mdir.format(scene=scene, seq=seq)), Path(ndir.format(scene=scene, seq=seq))
             if not mdir.is_dir():
                 raise SystemExit(f"{mdir}: masks not found (run the pipeline's `masks` rule for {scene}/{seq})")
-            reader = CueReader(cams, mdir, ndir, None, posed.vertices.double(), body.faces, views,
+            reader = CueReader(cams, mdir, ndir, None, posed_verts.double(), body.faces, views,
                                 torch.device("cpu"), num_frames=1)
             cues = reader.cues(0)
             reader.close()

@@ -54,7 +54,7 @@ from .cues import image_path
 from .rig import load_rig
 from .scene import load_body, load_sequence_motion, read_scene
 
-__all__ = ["fit_config", "select_views", "CueReader", "gt_correspondence", "run_fit", "load_garment_poses",
+__all__ = ["fit_config", "select_views", "CueReader", "gt_correspondence", "gt_template_vertices", "run_fit", "load_garment_poses",
            "run_fit_eval", "FIT_METRIC_COLUMNS"]
 
 log = logging.getLogger("anidress.fit")
@@ -355,6 +355,34 @@ def gt_correspondence(rest: np.ndarray, gt_rest: np.ndarray, gt_faces: np.ndarra
     return cp.face, cp.bary, cp.distance
 
 
+def gt_template_vertices(scene_dir: str | os.PathLike, seq: str, rest: torch.Tensor, frames: int | None = None):
+    """The synthetic ground truth of ``seq`` in the rig template's topology (see :func:`run_fit_eval`).
+
+    rest: (V, 3) the template the rig is built on. Returns Y (T, V, 3) float64 (each template
+    vertex's closest point on the ground-truth rest mesh, carried through every frame), the
+    ground-truth meshes (T, Vg, 3) and faces (Fg, 3), and the correspondence distances (V,).
+    frames: only the first ``frames`` frames. Raises if ``garment/template.obj`` and the
+    ground truth differ in topology.
+    """
+    from ..io.mesh import read_mesh
+    from ..metrics import mesh as MM
+
+    scene_dir = Path(scene_dir)
+    gt_path = scene_dir / seq / "gt" / "meshes.npz"
+    a, _ = files.load_npz(gt_path, required=("garment_vertices", "garment_faces"))
+    gt = torch.as_tensor(a["garment_vertices"][:frames]).double()
+    gt_faces = torch.as_tensor(a["garment_faces"].astype(np.int64))
+    obj = scene_dir / "garment" / "template.obj"
+    rest_v, rest_f, _ = read_mesh(obj)
+    if rest_v.shape[0] != gt.shape[1] or rest_f.shape != tuple(gt_faces.shape) or \
+            not np.array_equal(rest_f, gt_faces.numpy()):
+        raise files.ArtifactError(f"{obj}: its topology ({rest_v.shape[0]} vertices, {rest_f.shape[0]} faces) differs "
+                                  f"from {gt_path} ({gt.shape[1]} vertices, {gt_faces.shape[0]} faces)")
+    face, bary, dist = gt_correspondence(torch.as_tensor(rest).double().cpu().numpy(), rest_v, rest_f)
+    Y = MM.barycentric_transfer(gt, gt_faces, torch.as_tensor(face), torch.as_tensor(bary))  # (T, V, 3)
+    return Y, gt, gt_faces, dist
+
+
 def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike,
                  fits: Mapping[str, str | os.PathLike], out_csv: str | os.PathLike, samples: int = 20000,
                  seed: int = 0) -> dict:
@@ -368,27 +396,14 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
     ground truth. The rig floor is the RMSE of ``rig.fit_transforms`` on those meshes.
     Returns a summary (per method: mean vertex RMSE etc.).
     """
-    from ..io.mesh import read_mesh
     from ..metrics import mesh as MM
     from ..rig import fit_transforms, reconstruct
 
-    scene_dir = Path(scene_dir)
-    gt_path = scene_dir / seq / "gt" / "meshes.npz"
-    a, _ = files.load_npz(gt_path, required=("garment_vertices", "garment_faces"))
-    gt = torch.as_tensor(a["garment_vertices"]).double()
-    gt_faces = torch.as_tensor(a["garment_faces"].astype(np.int64))
-    obj = scene_dir / "garment" / "template.obj"
-    rest_v, rest_f, _ = read_mesh(obj)
-    if rest_v.shape[0] != gt.shape[1] or rest_f.shape != tuple(gt_faces.shape) or \
-            not np.array_equal(rest_f, gt_faces.numpy()):
-        raise files.ArtifactError(f"{obj}: its topology ({rest_v.shape[0]} vertices, {rest_f.shape[0]} faces) differs "
-                                  f"from {gt_path} ({gt.shape[1]} vertices, {gt_faces.shape[0]} faces)")
+    gt_path = Path(scene_dir) / seq / "gt" / "meshes.npz"
     art = load_rig(rig_npz, dtype=torch.float64)
-    rest = art.model.rest.numpy()
-    face, bary, dist = gt_correspondence(rest, rest_v, rest_f)
+    Y, gt, gt_faces, dist = gt_template_vertices(scene_dir, seq, art.model.rest)
     log.info("fit_eval %s: template -> ground-truth rest correspondence, distance mean %.2f mm, max %.2f mm",
              seq, 1e3 * float(dist.mean()), 1e3 * float(dist.max()))
-    Y = MM.barycentric_transfer(gt, gt_faces, torch.as_tensor(face), torch.as_tensor(bary))  # (T, V, 3)
     floor_M = fit_transforms(art.model, Y)
     floor = MM.vertex_rmse(reconstruct(art.model.rest, art.model.weights, floor_M), Y)
     gt_cache: dict[int, MM.SurfaceSamples] = {}
