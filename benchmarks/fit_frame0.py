@@ -42,6 +42,23 @@ from anidress_core.geometry import lbs  # noqa: E402
 from anidress_core.stages.fit import CueReader, fit_config  # noqa: E402
 from benchutil import cpu_model, fit_scene  # noqa: E402
 
+
+def error_parts(X: torch.Tensor, Y: torch.Tensor, faces) -> tuple[float, float, float]:
+    """RMS (mm) of the vertex error X - Y (V, 3) along the ground truth's vertex normals, across
+    them (tangential: the material sliding along the surface, what no image cue sees at frame 0
+    without a texture model), and of X's distance to the ground-truth surface (mesh Y, faces)."""
+    import numpy as np
+    import trimesh
+
+    m = trimesh.Trimesh(Y.numpy(), np.asarray(faces), process=False)
+    n = torch.as_tensor(np.array(m.vertex_normals), dtype=Y.dtype)
+    d = X - Y
+    dn = (d * n).sum(-1)
+    dt = d - dn[:, None] * n
+    _, dist, _ = trimesh.proximity.closest_point(m, X.numpy())
+    return (1e3 * float(dn.pow(2).mean().sqrt()), 1e3 * float(dt.pow(2).sum(-1).mean().sqrt()),
+            1e3 * float(np.sqrt(np.mean(dist ** 2))))
+
 CUE_SETS = {  # name: (label, masks folder, normals folder)
     "pipeline": ("pipeline masks, shipped normals", "results/{scene}/{seq}/masks", "data/{scene}/{seq}/normals"),
     "gt_masks": ("GT masks, shipped normals", "data/{scene}/{seq}/gt/masks", "data/{scene}/{seq}/normals"),
@@ -62,7 +79,9 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     params = load_config("config/config.yaml")["fit"]
     default = fit_config(params)  # the pipeline's settings (first-frame proximal term included)
-    paper = replace(default, w_prior_first=0.0, w_photo=0.0, w_anchor=0.0)
+    default = replace(default, w_photo=0.0, w_anchor=0.0)  # frame 0: L_an has no reference yet
+    paper = replace(default, w_prior_first=0.0)
+    photo = replace(default, w_photo=FIT.PHOTO_WEIGHT)
     lines = [
         "# Garment fit, frame 0: where the paper's loss has its minimum, where the fit stops",
         "",
@@ -76,9 +95,15 @@ def main() -> None:
         f"first-frame proximal term (weight {default.w_prior_first}) towards the simulated start.",
         "- rows: `rig floor` and `simulated start` are poses, not fits; `fit from X` = the Levenberg-Marquardt fit "
         "of frame 0 started there.",
+        "- error parts: the vertex error split along the ground truth's vertex normals (`normal`) and across them "
+        "(`tangential`: material sliding along the surface, which a correct surface can still have), and the RMS "
+        "distance of the vertices to the ground-truth surface (`to surface`).",
+        f"- `+ L_ph`: the same fit with our multi-view photo-consistency term (weight {FIT.PHOTO_WEIGHT:g}, "
+        "variant `photo`), which places the textured surface in depth.",
         "",
-        "| scene/seq, image size | cues | pose | vertex RMSE mm | x rig floor | loss | w_M L_M | w_N L_N | LM evaluations |",
-        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| scene/seq, image size | cues | pose | vertex RMSE mm | x rig floor | normal mm | tangential mm | "
+        "to surface mm | loss | w_M L_M | w_N L_N | LM evaluations |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     findings = []
     cue_sets = [c.strip() for c in a.cue_sets.split(",")]
@@ -105,7 +130,7 @@ def main() -> None:
             if not mdir.is_dir():
                 raise SystemExit(f"{mdir}: masks not found (run the pipeline's `masks` rule for {scene}/{seq})")
             reader = CueReader(cams, mdir, ndir, None, posed_verts.double(), body.faces, views,
-                                torch.device("cpu"), num_frames=1)
+                                torch.device("cpu"), num_frames=1, seq_dir=Path(f"data/{scene}/{seq}"))
             cues = reader.cues(0)
             reader.close()
 
@@ -117,15 +142,17 @@ def main() -> None:
                      "simulated start": (lbs(rig.rest, rig.weights, sim_G), None)}
             t0 = time.perf_counter()
             for name, start, cfg in (("fit from rig floor", floor_G, paper), ("fit from simulated start", sim_G, paper),
-                                     ("fit from simulated start + prior (pipeline)", sim_G, default)):
+                                     ("fit from simulated start + prior (pipeline)", sim_G, default),
+                                     ("fit from simulated start + prior + L_ph", sim_G, photo)):
                 r = FIT.fit_frame(rig, views, cues, start, cfg, None, first=True)
                 poses[name] = (r.verts.detach(), r.iterations)
             print(f"{label} {cue_name}: {time.perf_counter() - t0:.0f} s", flush=True)
             res = {}
             for name, (X, its) in poses.items():
                 e, (ls, lm, ln) = rmse(X), loss(X)
-                res[name] = (e, ls)
-                lines.append(f"| {label} | {cue_name} | {name} | {e:.1f} | {e / floor_rmse:.2f} | {ls:.4f} | "
+                res[name] = (e, ls) + error_parts(X, Y, rig.faces)
+                lines.append(f"| {label} | {cue_name} | {name} | {e:.1f} | {e / floor_rmse:.2f} | "
+                             f"{res[name][2]:.1f} | {res[name][3]:.1f} | {res[name][4]:.1f} | {ls:.4f} | "
                              f"{lm:.4f} | {ln:.4f} | {'' if its is None else its} |")
             ff, fs = res["fit from rig floor"], res["fit from simulated start"]
             if abs(fs[1] - ff[1]) <= 0.01 * ff[1]:
@@ -138,6 +165,12 @@ def main() -> None:
                 f"- {label}, {cue_name}: fitted from the rig floor, frame 0 ends at {ff[0]:.1f} mm = "
                 f"{ff[0] / floor_rmse:.2f} x the rig floor{' (above 1.5 x)' if ff[0] > 1.5 * floor_rmse else ''}; "
                 f"from the simulated start at {fs[0]:.1f} mm, with loss {fs[1]:.5f} against {ff[1]:.5f}, {verdict}.")
+            ss, fp, fph, fl = (res[k] for k in ("simulated start", "fit from simulated start + prior (pipeline)",
+                                                "fit from simulated start + prior + L_ph", "rig floor"))
+            findings.append(
+                f"  Tangential error (material sliding): simulated start {ss[3]:.1f} mm, after the pipeline's fit "
+                f"{fp[3]:.1f}, with L_ph {fph[3]:.1f} (rig floor {fl[3]:.1f}); distance to the true surface: "
+                f"{ss[4]:.1f} -> {fp[4]:.1f} -> {fph[4]:.1f} mm (rig floor {fl[4]:.1f}).")
     lines += ["", "## Reading", ""] + findings
     Path(a.out).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
