@@ -433,23 +433,31 @@ def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragme
     return FlowTargets(c, v, (uv[c, v] + fs[c, v]).double())
 
 
+def _blurred(image: Tensor, blur: float) -> Tensor:
+    """(C, ch, H, W) float64: the image (C, H, W, ch) (non-finite values as 0) blurred by a
+    separable Gaussian of ``blur`` pixels (replicated border); ``blur`` 0: unchanged."""
+    x = image.permute(0, 3, 1, 2).double()
+    x = torch.where(torch.isfinite(x), x, torch.zeros_like(x))
+    if blur <= 0:
+        return x
+    C, ch, H, W = x.shape
+    r = max(1, int(math.ceil(3 * blur)))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=x.dtype, device=x.device) / blur) ** 2)
+    k = (k / k.sum()).view(1, 1, -1)
+    y = x.reshape(C * ch, 1, H, W)
+    y = Fnn.conv2d(Fnn.pad(y, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    y = Fnn.conv2d(Fnn.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+    return y.view(C, ch, H, W)
+
+
 def photo_features(image: Tensor, blur: float) -> Tensor:
     """(C, 9, H, W): the image (C, H, W, 3) blurred by a Gaussian of ``blur`` pixels (channels
     0-2) and its derivatives along x (3-5) and y (6-8), central differences (one-sided at the
     border). L_ph samples these bilinearly at vertex projections; the
     derivative channels are its Gauss-Newton Jacobian (smoother than the bilinear
     interpolant's own piecewise-constant derivative)."""
-    x = image.permute(0, 3, 1, 2).double()
-    x = torch.where(torch.isfinite(x), x, torch.zeros_like(x))
-    C, ch, H, W = x.shape
-    if blur > 0:
-        r = max(1, int(math.ceil(3 * blur)))
-        k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=x.dtype, device=x.device) / blur) ** 2)
-        k = (k / k.sum()).view(1, 1, -1)
-        y = x.reshape(C * ch, 1, H, W)
-        y = Fnn.conv2d(Fnn.pad(y, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-        y = Fnn.conv2d(Fnn.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
-        x = y.view(C, ch, H, W)
+    x = _blurred(image, blur)
+    H, W = x.shape[-2:]
     gx = torch.zeros_like(x)
     gy = torch.zeros_like(x)
     if W > 1:
@@ -470,6 +478,40 @@ def _sample(feat: Tensor, uv: Tensor) -> Tensor:
     out = Fnn.grid_sample(feat.to(uv.dtype), grid[:, None], mode="bilinear", padding_mode="border",
                           align_corners=True)
     return out[:, :, 0].permute(0, 2, 1)
+
+
+def _sample_blurred(image: Tensor, cam: Tensor, uv: Tensor, blur: float) -> Tensor:
+    """``_sample(_blurred(image, blur), uv)`` at N points only: (N, ch) for image (C, H, W, ch),
+    cam (N,) and pixel positions uv (N, 2), without filtering whole images.
+
+    The bilinear sample of the Gaussian-blurred image is one separable stencil on the
+    (2r + 2)^2 pixels around the point (r = ceil(3 blur)): per axis the weights
+    (1 - f) g[o] + f g[o - 1], o = -r .. r + 1, with the replicated border of both
+    filters (indices clamped) and the sample position clamped to the image like
+    ``grid_sample``'s border padding."""
+    C, H, W, ch = image.shape
+    dt = torch.float64
+    r = max(1, int(math.ceil(3 * blur))) if blur > 0 else 0
+    if blur > 0:
+        g = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=dt, device=uv.device) / blur) ** 2)
+        g = g / g.sum()
+    else:
+        g = torch.ones(1, dtype=dt, device=uv.device)
+    off = torch.arange(-r, r + 2, device=uv.device)  # (S,) S = 2r + 2
+
+    def axis(x, size):  # -> (N, S) pixel indices and weights along one axis
+        x = torch.where(torch.isfinite(x), x.to(dt), torch.zeros_like(x, dtype=dt)).clamp(0, max(size - 1, 0))
+        x0 = torch.floor(x)
+        f = (x - x0)[:, None]
+        gpad = torch.cat([g.new_zeros(1), g, g.new_zeros(1)])  # g[o] at gpad[o + r + 1]
+        w = (1 - f) * gpad[off + r + 1][None] + f * gpad[off + r][None]
+        return (x0.long()[:, None] + off[None]).clamp(0, size - 1), w
+
+    cols, wc = axis(uv[:, 0], W)
+    rows, wr = axis(uv[:, 1], H)
+    pix = image[cam[:, None, None], rows[:, :, None], cols[:, None, :]].to(dt)  # (N, S, S, ch)
+    pix = torch.where(torch.isfinite(pix), pix, torch.zeros_like(pix))
+    return torch.einsum("nabc,na,nb->nc", pix, wr, wc)
 
 
 def _eroded(mask: Tensor, margin: int) -> Tensor:
@@ -515,20 +557,25 @@ def update_anchor(ref: AnchorRef | None, verts: Tensor, views: Views, fragments:
     """Give the vertices without a reference one from this frame: the mean chromaticity
     (blurred image (C, H, W, 3), bilinear) over the views in which the vertex of ``verts`` (V, 3) is
     visible (``fragments``, whole images) and lies inside the eroded garment ``mask`` (C, H, W).
-    Vertices that already have a reference keep it; vertices seen nowhere stay without one."""
-    feat = photo_features(chromaticity(image), cfg.photo_blur)[:, :3]
+    Vertices that already have a reference keep it; vertices seen nowhere stay without one.
+    Only the new references' pixels are read (:func:`_sample_blurred`)."""
     K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
     uv, _ = raster.project_vertices(verts.detach(), K, E)
     soft = mask.double() if mask.is_floating_point() else mask.bool().double()
     vis = raster.visible_vertices(verts.detach(), K, E, fragments, cfg.vis_depth_tol)
     vis &= _pixel_ok(_eroded(torch.where(torch.isfinite(soft), soft, torch.zeros_like(soft)), cfg.flow_margin_px), uv)
-    w = vis.to(uv.dtype)[..., None]
-    n = w.sum(0)  # (V, 1)
-    mean = (_sample(feat, uv) * w).sum(0) / n.clamp_min(1)
-    seen_now = n[:, 0] > 0
+    seen_now = vis.any(0)
+    new = seen_now if ref is None else seen_now & ~ref.seen
+    if ref is not None and not bool(new.any()):
+        return ref
+    c, v = (vis & new[None]).nonzero(as_tuple=True)
+    V = verts.shape[0]
+    total = torch.zeros(V, 3, dtype=torch.float64, device=uv.device).index_add_(
+        0, v, _sample_blurred(chromaticity(image), c, uv[c, v], cfg.photo_blur))
+    mean = total / torch.zeros(V, dtype=torch.float64, device=uv.device).index_add_(
+        0, v, torch.ones_like(v, dtype=torch.float64)).clamp_min(1)[:, None]
     if ref is None:
         return AnchorRef(torch.where(seen_now[:, None], mean, torch.zeros_like(mean)), seen_now)
-    new = seen_now & ~ref.seen
     return AnchorRef(torch.where(new[:, None], mean, ref.chroma.to(mean.dtype)), ref.seen | new)
 
 
@@ -1129,26 +1176,29 @@ def _flow_align(rig: RigParts, views: Views, flow: FlowTargets, transforms: Tens
     Every step must lower L_of, else the pose before it is kept.
     """
     G = transforms.double().clone()
-    V = rig.rest.shape[0]
+    # only the U vertices with a target count: the rig restricted to them (skin_jacobian and
+    # lbs read rest, weights and centres only)
+    used, slot = torch.unique(flow.vert, return_inverse=True)
+    U = used.numel()
+    sub = rig._replace(rest=rig.rest[used], weights=rig.weights[used])
 
     def cost(M):
-        uv, _ = raster.project_vertices(lbs(rig.rest, rig.weights, M), views.K, views.world_to_cam)
-        d = uv[flow.cam, flow.vert] - flow.target
+        uv, _ = raster.project_vertices(lbs(sub.rest, sub.weights, M), views.K, views.world_to_cam)
+        d = uv[flow.cam, slot] - flow.target
         return float((d * d).sum())
 
     c = cost(G)
     for _ in range(iters):
-        x = lbs(rig.rest, rig.weights, G)
-        Jx = skin_jacobian(rig, G).reshape(3 * V, -1)  # (3V, P)
+        x = lbs(sub.rest, sub.weights, G)  # (U, 3)
+        J3 = skin_jacobian(sub, G).to(JACOBIAN_DTYPE)  # (U, 3, P)
         uv, Puv = projection_jacobian(x, views)
-        Pf = Puv[flow.cam, flow.vert]  # (N, 2, 3)
-        r = uv[flow.cam, flow.vert] - flow.target
-        blocks = torch.zeros(V, 3, 3, dtype=x.dtype, device=x.device).index_add_(0, flow.vert, Pf.transpose(1, 2) @ Pf)
-        gx = torch.zeros(V, 3, dtype=x.dtype, device=x.device).index_add_(0, flow.vert,
-                                                                         torch.einsum("nij,ni->nj", Pf, r))
-        J3 = Jx.view(V, 3, -1)
-        H = torch.einsum("vjp,vjk,vkq->pq", J3, blocks, J3)
-        g = Jx.t() @ gx.reshape(-1)
+        Pf = Puv[flow.cam, slot]  # (N, 2, 3)
+        r = uv[flow.cam, slot] - flow.target
+        blocks = torch.zeros(U, 3, 3, dtype=x.dtype, device=x.device).index_add_(0, slot, Pf.transpose(1, 2) @ Pf)
+        gx = torch.zeros(U, 3, dtype=x.dtype, device=x.device).index_add_(0, slot, torch.einsum("nij,ni->nj", Pf, r))
+        BJ = torch.einsum("vjk,vkq->vjq", blocks.to(J3.dtype), J3).reshape(3 * U, -1)  # (3U, P)
+        H = (J3.reshape(3 * U, -1).t() @ BJ).double()
+        g = (J3.reshape(3 * U, -1).t() @ gx.reshape(-1).to(J3.dtype)).double()
         d = H.diagonal()
         delta, info = torch.linalg.solve_ex(H + torch.diag(1e-3 * d + 1e-9 * float(d.max().clamp_min(1e-30))), -g)
         if int(info) != 0 or not bool(torch.isfinite(delta).all()):

@@ -201,6 +201,23 @@ def test_photo_features_and_photo_consistency_gradient():
     torch.testing.assert_close(grad, 2 * gvec, rtol=1e-5, atol=1e-8 * float(gvec.abs().max()))
 
 
+def test_sample_blurred_matches_filtering_the_whole_image():
+    """_sample_blurred (the stencil at the points only, used by update_anchor) equals the
+    reference: blur the whole image (_blurred), then sample it bilinearly (_sample) -- inside,
+    on and beyond the border, and with a NaN pixel."""
+    g = torch.Generator().manual_seed(21)
+    C, H, W = 3, 17, 23
+    img = torch.rand(C, H, W, 3, generator=g, dtype=torch.float64)
+    img[1, 4, 5, 0] = float("nan")
+    uv = torch.rand(C, 40, 2, generator=g, dtype=torch.float64) * torch.tensor([W + 3.0, H + 3.0]) - 1.5
+    uv[0, :3] = torch.tensor([[W - 1.0, H - 1.0], [0.0, 0.0], [W - 1.0, 3.5]], dtype=torch.float64)
+    cam = torch.arange(C).repeat_interleave(uv.shape[1])
+    for blur in (0.0, 0.5, 1.3):
+        ref = fit._sample(fit._blurred(img, blur), uv)  # (C, V, 3)
+        got = fit._sample_blurred(img, cam, uv.reshape(-1, 2), blur).view(C, -1, 3)
+        torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
+
+
 def test_photo_consistency_sharpens_the_first_frame_shape():
     """On a textured garment, multi-view photo-consistency pins the shape better than masks and
     normals alone (the first frame, no flow): mean vertex error over three random starts."""
