@@ -30,7 +30,6 @@ import csv
 import datetime
 import os
 import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,7 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
-from benchutil import cpu_model
+from benchutil import cpu_model, git_rev
+
+# the code whose uncommitted changes the git revision of a run's table flags
+CODE_PATHS = ("anidress_core/cues", "anidress_core/stages/cues.py")
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -63,16 +65,6 @@ def machine() -> str:
 
     return (f"{cpu}, {os.cpu_count()} logical CPUs; Python {platform.python_version()}, OpenCV {cv2.__version__}, "
             f"torch {torch.__version__}, numpy {np.__version__}")
-
-
-def git_rev() -> str:
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "anidress_core/cues", "anidress_core/stages/cues.py"],
-                               cwd=ROOT, capture_output=True, text=True).stdout
-        return rev.strip() + (" (cue code modified)" if dirty.strip() else "")
-    except OSError:
-        return "?"
 
 
 def load() -> str:
@@ -485,7 +477,7 @@ def write(rows: list[dict], args, started: str | None, load_before: str | None, 
                 w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
     cmd = ".venv/bin/python benchmarks/bench_cues.py " + " ".join(sys.argv[1:])
     if header is None:
-        head = [f"Command: `{cmd.strip()}`  ", f"Date: {started}  ", f"Git revision: {git_rev()}  ",
+        head = [f"Command: `{cmd.strip()}`  ", f"Date: {started}  ", f"Git revision: {git_rev(CODE_PATHS)}  ",
                 f"Machine: {machine()}; torch and OpenCV set to 1 thread  ",
                 f"Load average (1, 5, 15 min) before the run: {load_before}; after: {load()}  "]
     else:

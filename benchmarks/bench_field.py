@@ -40,8 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
-from benchutil import cpu_model
+from benchutil import cpu_model, git_rev
 import torch
+
+# the code whose uncommitted changes the git revision of a run's table flags
+CODE_PATHS = ("anidress_core", "benchmarks/bench_field.py")
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -66,16 +69,6 @@ def machine() -> str:
 def load() -> str:
     try:
         return " / ".join(open("/proc/loadavg").read().split()[:3])
-    except OSError:
-        return "?"
-
-
-def git_rev() -> str:
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "anidress_core", "benchmarks/bench_field.py"],
-                               cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        return rev + (" + working tree" if dirty else "")
     except OSError:
         return "?"
 
@@ -350,7 +343,7 @@ def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose
     L.append("# Pose-driven radiance field benchmark (`anidress_core.field`): full vs body_only\n")
     L.append(f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}")
     cmd = " ".join(a for a in sys.argv[1:] if a != "--finish")
-    L.append(f"- command: `.venv/bin/python benchmarks/bench_field.py {cmd}` (git {git_rev()})"
+    L.append(f"- command: `.venv/bin/python benchmarks/bench_field.py {cmd}` (git {git_rev(CODE_PATHS)})"
              + (" -- this table was written by a second invocation with `--finish`, which waited for the two "
                 "variant workers the first one had started and ran the sampling ablations meanwhile" if args.finish
                 else ""))
@@ -444,7 +437,7 @@ def collect(args) -> None:
     L.append("# Pose-driven radiance field benchmark (`anidress_core.field`): full vs body_only\n")
     L.append(f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}")
     L.append(f"- command: `.venv/bin/python benchmarks/bench_field.py --render-stride {ctx['stride']} --ablation-steps "
-             f"{args.ablation_steps}` (git {git_rev()}); this file was written by `--collect` from the artifacts the run "
+             f"{args.ablation_steps}` (git {git_rev(CODE_PATHS)}); this file was written by `--collect` from the artifacts the run "
              "had produced when the session's time ran out -- **a partial benchmark**: what is missing is marked "
              "NOT MEASURED")
     L.append(f"- machine: {machine()}; load average now {load()} (the machine was shared with other jobs at a load "

@@ -23,7 +23,6 @@ import csv
 import datetime
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -33,11 +32,16 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
 from anidress_core.config import load_config  # noqa: E402
 from anidress_core.stages import setup_logging  # noqa: E402
 from anidress_core.stages.fit import load_garment_poses, run_fit, run_fit_eval  # noqa: E402
 from anidress_core.stages.scene import read_scene  # noqa: E402
+from benchutil import git_rev  # noqa: E402
+
+# the code whose uncommitted changes the git revision of a run's table flags
+CODE_PATHS = ("anidress_core/fit.py", "anidress_core/raster.py", "anidress_core/stages/fit.py")
 
 METHODS = ["full", "photo", "anchor", "vertex", "no_normal_flow", "no_flow"]
 LABEL = {"sim": "reference: simulation only (rig driven by the simulated poses, no fit)",
@@ -82,16 +86,6 @@ def write_sim_poses(rig_npz: str, seq: str, frames: int, out: Path) -> None:
                    meta={"method": "sim", "description": LABEL["sim"], "rig": rig_npz, "sequence": seq, "frames": T,
                          "fps": float("nan"), "wall_fit_s": float("nan"), "cpu_fit_s": float("nan"),
                          "torch_threads": torch.get_num_threads(), "source": f"rig.transforms_of({name!r})"})
-
-
-def git_rev() -> str:
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "anidress_core/fit.py", "anidress_core/raster.py",
-                                "anidress_core/stages/fit.py"], cwd=REPO, capture_output=True, text=True).stdout
-        return rev.strip() + (" + working tree" if dirty.strip() else "")
-    except OSError:
-        return "unknown"
 
 
 def stats(x: np.ndarray, worst="max") -> tuple[float, float, float]:
@@ -245,7 +239,7 @@ def write(rows, notes, args, command, load0, load1) -> None:
         "# Garment fitting benchmark (`anidress_core.fit`) against the synthetic ground truth",
         "",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
-        f"- command: `{command}` (git {git_rev()})",
+        f"- command: `{command}` (git {git_rev(CODE_PATHS)})",
         f"- machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, torch "
         f"{torch.__version__} ({args.threads} threads), Python {platform.python_version()}; shared machine, load "
         f"average (1/5/15 min) at start {load0[0]:.2f}/{load0[1]:.2f}/{load0[2]:.2f}, at end "

@@ -17,6 +17,22 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine() or "unknown"
 
 
+def git_rev(paths=("anidress_core",)) -> str:
+    """Short HEAD commit of the repository, with " + working tree" when any of ``paths``
+    (relative to the repository root) has uncommitted changes; "?" without git."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True).stdout
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", *paths], cwd=root, capture_output=True,
+                               text=True).stdout
+    except OSError:
+        return "?"
+    return (rev.strip() or "?") + (" + working tree" if dirty.strip() else "")
+
+
 def fit_scene(scene: str, seq: str, views: int, rig_path: str, frames: int | None = None):
     """What the fit benchmarks (fit_drift, fit_frame0) need of a synthetic scene, run from the
     repository root: scene info, the selected cameras and their ``fit.Views``, the rig (artifact
