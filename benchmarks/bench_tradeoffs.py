@@ -14,7 +14,7 @@ in this process, one after another, work files under benchmarks/runs/tradeoffs/:
 * rig: bones B in {10, 15, 20, 25, 30} -> the rig's reconstruction RMSE on the simulations
   (stage rig) and the fitted garment's vertex RMSE against ground truth with that rig
   (stage fit, first ``--fit-frames`` frames of the training sequence);
-* fit: training views {4, 8}; iteration limit / tolerance {10 / 1e-2, 20 / 1e-3, 40 / 1e-4};
+* fit: training views {4, 8}; evaluations per frame t > 0 {3, 5, 10, 20} (config tolerance);
   -> vertex RMSE (mm) vs fitting time;
 * flow: method {dis_ultrafast, dis_fast, dis_medium, farneback, deepflow} -> garment
   end-point error (px) vs time per image (tvl1, ~1.3 s per pair here, is in benchmarks/cues.md);
@@ -31,7 +31,6 @@ import csv
 import datetime
 import os
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -41,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from benchutil import cpu_model  # noqa: E402
+from benchutil import cpu_model, git_rev  # noqa: E402
 
 from anidress_core.config import load_config  # noqa: E402
 from anidress_core.io import files  # noqa: E402
@@ -143,7 +142,8 @@ def sweep_fit(cfg, scene, rows, args):
                           over, WORK / scene / ("fit_default" if over is base else f"fit_views{views}"))
         dv = cfg["fit"]["views"] in (0, views) and views == 8
         _row(rows, "fit", "views", views, t, rm, "fitted vertex RMSE (mm)", dv)
-    for it, tol in ((10, 1e-2), (20, 1e-3), (40, 1e-4)):
+    tol0 = cfg["fit"]["rel_tol"]  # the evaluation cap per frame t > 0 is what trades time for error here
+    for it, tol in ((3, tol0), (5, tol0), (10, tol0), (20, tol0)):
         dflt = it == cfg["fit"]["max_iters"] and tol == cfg["fit"]["rel_tol"]
         over = base if dflt else dict(base, max_iters=it, rel_tol=tol)
         rm, t = _fit_rmse(cfg, data, seq, res / "rig.npz", res / "template.npz", masks, flows, normals,
@@ -282,13 +282,12 @@ def main():
             w = csv.DictWriter(fh, fieldnames=FIELDS)
             w.writeheader()
             w.writerows(rows)
-    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
     md = ROOT / "benchmarks" / "tradeoffs.md"
     prev_md = md.read_text().splitlines() if md.is_file() else []
     lines = ["# Run time against error (`benchmarks/bench_tradeoffs.py`)", "",
              f"- date: {started.isoformat(timespec='seconds')}",
              f"- command: `.venv/bin/python benchmarks/bench_tradeoffs.py --scene {args.scene} --only {args.only} "
-             f"--fit-frames {args.fit_frames}{' --quick' if args.quick else ''}` (git {rev.strip()} + working tree)",
+             f"--fit-frames {args.fit_frames}{' --quick' if args.quick else ''}` (git {git_rev()})",
              f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs, torch "
              f"{torch.__version__}; load average (1 min) at the start and after each sweep: "
              + ", ".join(f"{x:.2f}" for x in loads),
@@ -307,7 +306,8 @@ def main():
     lines += ["", "## Defaults and the Pareto front", "",
               "One chart per stage and error (CPU seconds, log scale, against the error; lower-left is "
               "better); the dashed line is the Pareto front, the config's defaults are outlined.", ""]
-    for n, key in enumerate(dict.fromkeys((r["stage"], r["error_metric"]) for r in rows)):
+    written, per_stage = set(), {}
+    for key in dict.fromkeys((r["stage"], r["error_metric"]) for r in rows):
         rs = [r for r in rows if (r["stage"], r["error_metric"]) == key]
         front = set(pareto_front([(r["cpu_s"], r["error"]) for r in rs]))
         for i, r in enumerate(rs):
@@ -322,9 +322,14 @@ def main():
         svg = scatter_chart([{"x": r["cpu_s"], "y": r["error"], "label": f"{r['knob']}={r['value']}",
                               "group": r["knob"], "highlight": bool(r["is_default"])} for r in rs],
                             f"{key[0]}: {key[1]}", "CPU s", key[1])
-        name = f"tradeoffs_{n}_{key[0]}.svg"
+        k = per_stage[key[0]] = per_stage.get(key[0], -1) + 1  # a stable name: stage (and metric number)
+        name = f"tradeoffs_{key[0]}{'' if k == 0 else f'_{k}'}.svg"
         (ROOT / "benchmarks" / name).write_text(svg)
+        written.add(name)
         lines += ["", f"![{key[0]}: {key[1]} against CPU time]({name})", ""]
+    for old in (ROOT / "benchmarks").glob("tradeoffs_*.svg"):  # charts of an earlier run's layout
+        if old.name not in written:
+            old.unlink()
     md.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
