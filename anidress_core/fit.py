@@ -135,6 +135,7 @@ ABLATIONS = {
              "else PHOTO_WEIGHT)",
     "anchor": "(ours, a variant) the full loss + the temporal chromaticity anchor L_an (weight fit/weights/anchor, "
               "else ANCHOR_WEIGHT)",
+    "anchor_smooth": "(ours, a variant) as anchor, then the poses filtered over time (fit/smooth_passes, else 1 pass)",
 }
 
 
@@ -200,6 +201,10 @@ class FitConfig:
     vertex's chromaticity against the one it had when first seen (module docstring)."""
     anchor_scale: float = 0.05
     """Cauchy scale of L_an (chromaticity difference; rgb / (r + g + b), each in [0, 1])."""
+    smooth_passes: int = 0
+    """After the whole sequence is fitted: passes of the temporal filter (1, 2, 1) / 4 over the bone
+    transforms (:func:`smooth_transforms`; not in the paper; 0 = off). Offline, like the rest of
+    the fit; the per-frame loss terms stay those of the unfiltered fit."""
     normalisation: str = "paper"
     """'paper': each term is the paper's sum (over pixels, flow targets), all divided by one
     common constant, the number of garment pixels of the masks; 'per_term': each term is a
@@ -217,6 +222,8 @@ class FitConfig:
         if not (self.photo_blur >= 0 and self.photo_scale > 0 and self.anchor_scale > 0):
             raise ValueError(f"FitConfig: photo_blur must be >= 0, photo_scale and anchor_scale > 0, got "
                              f"{self.photo_blur}, {self.photo_scale}, {self.anchor_scale}")
+        if int(self.smooth_passes) != self.smooth_passes or self.smooth_passes < 0:
+            raise ValueError(f"FitConfig.smooth_passes must be an integer >= 0, got {self.smooth_passes}")
         if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex_max_iters < 1:
             raise ValueError("FitConfig: iteration limits must be >= 1")
         for k in ("levels", "levels_first"):
@@ -231,15 +238,18 @@ def config_for(base: FitConfig, ablation: str | None) -> FitConfig:
     if ablation in (None, "", "full"):
         return base
     if ablation == "vertex":
-        return replace(base, method="vertex", w_photo=0.0, w_anchor=0.0)
+        return replace(base, method="vertex", w_photo=0.0, w_anchor=0.0, smooth_passes=0)
     if ablation == "no_normal_flow":
-        return replace(base, w_normal=0.0, w_flow=0.0, w_photo=0.0, w_anchor=0.0)
+        return replace(base, w_normal=0.0, w_flow=0.0, w_photo=0.0, w_anchor=0.0, smooth_passes=0)
     if ablation == "no_flow":
-        return replace(base, w_flow=0.0, w_photo=0.0, w_anchor=0.0)
+        return replace(base, w_flow=0.0, w_photo=0.0, w_anchor=0.0, smooth_passes=0)
     if ablation == "photo":
         return replace(base, w_photo=base.w_photo if base.w_photo > 0 else PHOTO_WEIGHT)
     if ablation == "anchor":
         return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT)
+    if ablation == "anchor_smooth":
+        return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT,
+                       smooth_passes=max(int(base.smooth_passes), 1))
     raise ValueError(f"unknown ablation {ablation!r}; choose from {sorted(ABLATIONS)}")
 
 
@@ -1347,6 +1357,32 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     return res
 
 
+def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
+    """Temporal filter of bone transforms (T, B, 4, 4) -> (T, B, 4, 4) (not in the paper).
+
+    Each pass replaces every inner frame by (G[t-1] + 2 G[t] + G[t+1]) / 4 (the first and last
+    frames are kept) and projects the rotation block back onto SO(3) (the closest rotation,
+    by SVD). Skinning is linear in the transforms, so before the projection the skinned
+    vertices are the same filter of the fitted vertices; the projection changes them only by
+    the spread of the three rotations (second order). A rotation at constant angular velocity
+    and a translation at constant velocity pass unchanged. Cuts the frame-to-frame jitter of
+    per-frame fits (benchmarks/fit.md, variant anchor_smooth).
+    """
+    G = torch.as_tensor(transforms).clone()
+    if G.ndim != 4 or G.shape[-2:] != (4, 4):
+        raise ValueError(f"smooth_transforms: transforms must be (T, B, 4, 4), got {tuple(G.shape)}")
+    for _ in range(int(passes)):
+        if G.shape[0] < 3:
+            break
+        inner = 0.25 * G[:-2] + 0.5 * G[1:-1] + 0.25 * G[2:]
+        U, _, Vh = torch.linalg.svd(inner[..., :3, :3])
+        d = torch.sign(torch.linalg.det(U @ Vh))
+        U = torch.cat([U[..., :2], U[..., 2:] * d[..., None, None]], -1)
+        inner[..., :3, :3] = U @ Vh
+        G[1:-1] = inner
+    return G
+
+
 def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
                  cfg: FitConfig = FitConfig(), progress: bool = True, log=None) -> list[FrameFit]:
@@ -1387,4 +1423,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
         G = res.transforms
         x_prev = res.verts if cfg.method == "vertex" else None
         prev_mask = cues.mask
+    if cfg.smooth_passes > 0 and cfg.method == "rig" and len(out) >= 3:
+        Gs = smooth_transforms(torch.stack([r.transforms for r in out]), cfg.smooth_passes)
+        for r, g in zip(out, Gs):
+            r.transforms, r.verts = g, lbs(rig.rest, rig.weights, g)
     return out

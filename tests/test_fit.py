@@ -218,6 +218,41 @@ def test_sample_blurred_matches_filtering_the_whole_image():
         torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
 
 
+def test_smooth_transforms_keeps_steady_motion_and_damps_jitter():
+    """The temporal filter of the bone transforms: a rotation at constant angular velocity plus a
+    translation at constant velocity pass unchanged (the end frames always); alternating noise
+    on top is damped; rotations stay rotations; the skinned vertices match filtering the
+    vertices themselves up to the rotation projection (second order in the frame-to-frame spread)."""
+    from anidress_core.geometry import axis_angle_to_matrix
+
+    T, B = 9, 3
+    g = torch.Generator().manual_seed(31)
+    axis = torch.nn.functional.normalize(torch.randn(B, 3, generator=g, dtype=torch.float64), dim=-1)
+    t = torch.arange(T, dtype=torch.float64)[:, None, None]
+    G = torch.eye(4, dtype=torch.float64).expand(T, B, 4, 4).clone()
+    G[..., :3, :3] = axis_angle_to_matrix(0.05 * t * axis[None])  # constant angular velocity
+    G[..., :3, 3] = 0.01 * t * torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    torch.testing.assert_close(fit.smooth_transforms(G, 2), G, rtol=0, atol=1e-12)
+    noisy = G.clone()
+    sign = (-1.0) ** torch.arange(T, dtype=torch.float64)[:, None, None]
+    noisy[..., :3, 3] += 0.004 * sign
+    noisy[..., :3, :3] = axis_angle_to_matrix(0.02 * sign * axis[None]) @ noisy[..., :3, :3]
+    sm = fit.smooth_transforms(noisy, 1)
+    torch.testing.assert_close(sm[[0, -1]], noisy[[0, -1]])
+    R = sm[..., :3, :3]
+    torch.testing.assert_close(R @ R.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(T, B, 3, 3))
+    assert bool((torch.linalg.det(R) > 0).all())
+    err = lambda X: float((X[1:-1] - G[1:-1]).abs().max())  # noqa: E731
+    assert err(sm) < 0.1 * err(noisy)  # alternating noise: (1, 2, 1)/4 removes it (to second order)
+    rig, _ = toy(C=1, H=8, W=8, n_theta=12, n_h=4)
+    Gr = noisy[:, :1].expand(T, rig.weights.shape[1], 4, 4)
+    x = torch.stack([lbs(rig.rest, rig.weights, m) for m in Gr])
+    xs = torch.stack([lbs(rig.rest, rig.weights, m) for m in fit.smooth_transforms(Gr, 1)])
+    torch.testing.assert_close(xs[1:-1], 0.25 * x[:-2] + 0.5 * x[1:-1] + 0.25 * x[2:], rtol=0, atol=2e-3)
+    with pytest.raises(ValueError, match="T, B, 4, 4"):
+        fit.smooth_transforms(G[0])
+
+
 def test_photo_consistency_sharpens_the_first_frame_shape():
     """On a textured garment, multi-view photo-consistency pins the shape better than masks and
     normals alone (the first frame, no flow): mean vertex error over three random starts."""

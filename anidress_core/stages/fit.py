@@ -82,7 +82,7 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
         max_iters=int(p["max_iters"]), max_iters_first=int(p["max_iters_first"]), rel_tol=float(p["rel_tol"]),
         step_tol=float(p["step_tol"]), damping=float(p["damping"]), vis_depth_tol=float(p["visibility_depth_tol"]),
         vertex_lr=float(v["lr"]), vertex_max_iters=int(v["max_iters"]), vertex_patience=int(v["patience"]),
-        w_prior_first=float(p["first_frame_prior"]),
+        w_prior_first=float(p["first_frame_prior"]), smooth_passes=int(p["smooth_passes"]),
     )
     return FIT.config_for(base, ablation)
 
