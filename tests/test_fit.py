@@ -441,6 +441,12 @@ def test_empty_masks_nan_cues_and_missing_flow_give_finite_poses(caplog):
     assert res[1].terms["flow_targets"] == 0 and res[2].terms["flow_targets"] > 0
     for r in res:
         assert torch.isfinite(r.transforms).all() and torch.isfinite(r.verts).all() and math.isfinite(r.loss)
+    # with the temporal filter on: the same per-frame fits, then smooth_transforms over the sequence
+    sm = fit.fit_sequence(rig, views, 3, cues_of, flow_of, start,
+                          fit.FitConfig(max_iters=5, max_iters_first=5, smooth_passes=1), progress=False)
+    want = fit.smooth_transforms(torch.stack([r.transforms for r in res]), 1)
+    torch.testing.assert_close(torch.stack([r.transforms for r in sm]), want)
+    torch.testing.assert_close(sm[1].verts, lbs(rig.rest, rig.weights, want[1]))
     # all masks empty: still finite (the silhouette pushes the garment out of the views or stays)
     empty = fit.FrameCues(torch.zeros_like(frames[0][0].mask), None, frames[0][0].occluder)
     r = fit.fit_frame(rig, views, empty, start, fit.FitConfig(max_iters_first=5), first=True)

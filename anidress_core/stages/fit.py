@@ -61,8 +61,7 @@ log = logging.getLogger("anidress.fit")
 
 FIT_METRIC_COLUMNS = (
     "method", "frame", "vertex_rmse_m", "rig_floor_rmse_m", "chamfer_m", "rig_floor_chamfer_m", "normal_consistency",
-    "jitter_m",
-    "gt_jitter_m", "accel_error_m", "loss", "loss_mask", "loss_normal", "loss_flow", "loss_photo", "loss_anchor",
+    "jitter_m", "gt_jitter_m", "accel_error_m", "loss", "loss_mask", "loss_normal", "loss_flow", "loss_photo", "loss_anchor",
     "iterations", "wall_s",
 )
 
@@ -312,7 +311,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
         "transforms_note": "vertex ablation: rig transforms fitted to the fitted vertices" if cfg.method == "vertex"
-        else "fitted bone transforms",
+        else ("fitted bone transforms" + (f", then smooth_transforms ({cfg.smooth_passes} passes); the per-frame "
+                                          "losses are those of the fit before it" if cfg.smooth_passes else "")),
     }
     files.save_npz(out_npz, {
         "transforms": tf.float().cpu().numpy(), "verts": vs.float().cpu().numpy(),
