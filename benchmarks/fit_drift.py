@@ -51,6 +51,8 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=8)
     ap.add_argument("--rig", default="results/{scene}/rig.npz", help="rig file ({scene}: the scene's name)")
     ap.add_argument("--runs", default="chain,oracle,photo,anchor", help="which of chain, oracle, photo, anchor to run")
+    ap.add_argument("--cues", default="ground_truth", choices=["ground_truth", "pipeline"],
+                    help="masks and flows: the scene's true ones (gt/) or the pipeline's (results/<scene>/<seq>/)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default="benchmarks/fit_drift.md")
     a = ap.parse_args()
@@ -82,7 +84,11 @@ def main() -> None:
                                    ("anchor", "chain + L_an (variant anchor)", FIT.config_for(paper, "anchor"), False)):
         if key not in wanted:
             continue
-        reader = CueReader(cams, d / a.seq / "gt" / "masks", d / a.seq / "normals", d / a.seq / "gt" / "flows",
+        cue_dir = d / a.seq / "gt" if a.cues == "ground_truth" else Path("results") / a.scene / a.seq
+        for sub in ("masks", "flows"):
+            if not (cue_dir / sub).is_dir():
+                raise SystemExit(f"{cue_dir / sub}: not found (the pipeline's cues: run the masks / flows rules)")
+        reader = CueReader(cams, cue_dir / "masks", d / a.seq / "normals", cue_dir / "flows",
                             posed.vertices.double(), body.faces, views, torch.device("cpu"), num_frames=T,
                             seq_dir=d / a.seq if (cfg.w_photo > 0 or cfg.w_anchor > 0) else None)
         t0 = time.perf_counter()
@@ -121,7 +127,8 @@ def main() -> None:
         f"Python {platform.python_version()}",
         f"- {a.scene}/{a.seq} ({info['image_size'][0]}x{info['image_size'][1]}), rig "
         f"`{a.rig.format(scene=a.scene)}`, first {T} frames, "
-        f"{len(names)} views {names}; ground-truth masks and flows, shipped "
+        f"{len(names)} views {names}; "
+        f"{'ground-truth' if a.cues == 'ground_truth' else 'the pipeline' + chr(39) + 's'} masks and flows, shipped "
         "(degraded) normals; frame 0 starts on the rig floor (the rig's least-squares pose for the ground truth); "
         "fit settings of config/config.yaml.",
         "",
