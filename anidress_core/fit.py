@@ -443,6 +443,16 @@ def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragme
     return FlowTargets(c, v, (uv[c, v] + fs[c, v]).double())
 
 
+def _gaussian_taps(blur: float, device=None) -> tuple[int, Tensor]:
+    """Radius r = ceil(3 blur) (at least 1) and the normalised float64 taps (2r + 1,) of a
+    Gaussian of ``blur`` pixels; ``blur`` 0: (0, [1])."""
+    if blur <= 0:
+        return 0, torch.ones(1, dtype=torch.float64, device=device)
+    r = max(1, int(math.ceil(3 * blur)))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float64, device=device) / blur) ** 2)
+    return r, k / k.sum()
+
+
 def _blurred(image: Tensor, blur: float) -> Tensor:
     """(C, ch, H, W) float64: the image (C, H, W, ch) (non-finite values as 0) blurred by a
     separable Gaussian of ``blur`` pixels (replicated border); ``blur`` 0: unchanged."""
@@ -451,9 +461,8 @@ def _blurred(image: Tensor, blur: float) -> Tensor:
     if blur <= 0:
         return x
     C, ch, H, W = x.shape
-    r = max(1, int(math.ceil(3 * blur)))
-    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=x.dtype, device=x.device) / blur) ** 2)
-    k = (k / k.sum()).view(1, 1, -1)
+    r, k = _gaussian_taps(blur, x.device)
+    k = k.view(1, 1, -1)
     y = x.reshape(C * ch, 1, H, W)
     y = Fnn.conv2d(Fnn.pad(y, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
     y = Fnn.conv2d(Fnn.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
@@ -501,12 +510,7 @@ def _sample_blurred(image: Tensor, cam: Tensor, uv: Tensor, blur: float) -> Tens
     ``grid_sample``'s border padding."""
     C, H, W, ch = image.shape
     dt = torch.float64
-    r = max(1, int(math.ceil(3 * blur))) if blur > 0 else 0
-    if blur > 0:
-        g = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=dt, device=uv.device) / blur) ** 2)
-        g = g / g.sum()
-    else:
-        g = torch.ones(1, dtype=dt, device=uv.device)
+    r, g = _gaussian_taps(blur, uv.device)
     off = torch.arange(-r, r + 2, device=uv.device)  # (S,) S = 2r + 2
 
     def axis(x, size):  # -> (N, S) pixel indices and weights along one axis
@@ -1368,6 +1372,8 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
     and a translation at constant velocity pass unchanged. Cuts the frame-to-frame jitter of
     per-frame fits (benchmarks/fit.md, variant anchor_smooth).
     """
+    from .rig.decompose import _kabsch_svd  # the closest rotation (the rig's rigid-fit helper)
+
     G = torch.as_tensor(transforms).clone()
     if G.ndim != 4 or G.shape[-2:] != (4, 4):
         raise ValueError(f"smooth_transforms: transforms must be (T, B, 4, 4), got {tuple(G.shape)}")
@@ -1375,10 +1381,7 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
         if G.shape[0] < 3:
             break
         inner = 0.25 * G[:-2] + 0.5 * G[1:-1] + 0.25 * G[2:]
-        U, _, Vh = torch.linalg.svd(inner[..., :3, :3])
-        d = torch.sign(torch.linalg.det(U @ Vh))
-        U = torch.cat([U[..., :2], U[..., 2:] * d[..., None, None]], -1)
-        inner[..., :3, :3] = U @ Vh
+        inner[..., :3, :3] = _kabsch_svd(inner[..., :3, :3])
         G[1:-1] = inner
     return G
 
