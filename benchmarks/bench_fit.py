@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime
+import functools
 import os
 import platform
 import sys
@@ -89,6 +90,7 @@ def write_sim_poses(rig_npz: str, seq: str, frames: int, out: Path) -> None:
                          "torch_threads": torch.get_num_threads(), "source": f"rig.transforms_of({name!r})"})
 
 
+@functools.lru_cache(maxsize=None)
 def chamfer_bias(scene: str, seq: str, samples: int) -> float:
     """The Chamfer of the ground-truth garment of frame 0 against itself (two independent
     sample sets of ``samples`` points): what the Chamfer column reads for a perfect fit."""
