@@ -338,7 +338,19 @@ class Views(NamedTuple):
         if bool((cams.dist.abs() > 1e-9).any()):
             raise ValueError(f"fit: cameras {cams.names} have lens distortion, which the rasteriser does not "
                              "model; undistort the images and cues first")
-        return Views(cams.K.double(), cams.world_to_cam.double(), cams.height, cams.width)
+        # Rotations read from float32 files are orthonormal to ~1e-7 only; the normal term
+        # uses R^T = R^-1 (per-face grouping in world space), so they are projected onto SO(3).
+        from .rig.decompose import _kabsch_svd  # the closest rotation (the rig's rigid-fit helper)
+
+        E = cams.world_to_cam.double().clone()
+        R = _kabsch_svd(E[:, :3, :3])
+        off = (R - E[:, :3, :3]).abs().amax((-2, -1))
+        if bool((off > 1e-4).any()):
+            bad = [n for n, o in zip(cams.names, off.tolist()) if o > 1e-4]
+            raise ValueError(f"fit: cameras {bad} have a world_to_cam rotation that is not a rotation "
+                             f"(off by up to {float(off.max()):.2g})")
+        E[:, :3, :3] = R
+        return Views(cams.K.double(), E, cams.height, cams.width)
 
 
 class FrameCues(NamedTuple):
@@ -707,10 +719,9 @@ class _PhotoData(NamedTuple):
 
 
 class _NormalData(NamedTuple):
-    cam: Tensor  # (U,)
-    face: Tensor  # (U,)
-    count: Tensor  # (U,) pixels
-    mean_target: Tensor  # (U, 3)
+    face: Tensor  # (U,) faces with normal pixels in some view
+    count: Tensor  # (U,) their pixels, all views
+    mean_target: Tensor  # (U, 3) mean world-space target (each pixel's s R^T t)
 
 
 def _occluder_or_inf(cues: FrameCues, views: Views) -> Tensor:
@@ -918,7 +929,10 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
     res = soft - pb.mask_flat
     terms["mask"] = float((res * res).sum()) / pb.n_mask
     sil = _SilData(cr.inside_xy, cr.outside_xy, cr.cam, cr.edge, pix, res)
-    # 2. normals of the visible faces, grouped per (camera, face)
+    # 2. normals of the visible faces. A camera normal is n_cam = s R n (n the world unit normal,
+    #    R the camera's rotation, s = +-1 turning it towards the camera), so |n_cam - t|^2 =
+    #    |n - s R^T t|^2: every pixel's target is taken to world space and the residuals are
+    #    grouped per face over all cameras (a face seen by k cameras is one residual, not k).
     nrm = None
     if pb.normals is not None:
         sel = (frags.face_id >= 0) & pb.normal_ok
@@ -928,12 +942,17 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
         key, inv, cnt = torch.unique(c * F + f, return_inverse=True, return_counts=True)
         tgt = pb.normals[c, r, col]  # (P, 3)
         tsum = torch.zeros(key.shape[0], 3, dtype=tgt.dtype, device=tgt.device).index_add(0, inv, tgt)
-        tsq = torch.zeros(key.shape[0], dtype=tgt.dtype, device=tgt.device).index_add(0, inv, (tgt * tgt).sum(-1))
-        nrm = _NormalData(key // F, key % F, cnt.to(tgt.dtype), tsum / cnt[:, None].to(tgt.dtype))
-        n = _visible_face_normals(verts, pb.rig.faces, E, nrm.cam, nrm.face)  # (U, 3)
+        kc, kf = key // F, key % F  # (U,) camera, face of each pair
+        face, finv = torch.unique(kf, return_inverse=True)  # (Fu,) faces seen, (U,) pair -> face
+        n, s = _visible_face_normals(verts, pb.rig.faces, E, face, kc, finv)  # (Fu, 3), (U,)
+        Rt = E[kc, :3, :3].to(tgt.dtype)  # (U, 3, 3)
+        tw = s[:, None] * torch.einsum("uji,uj->ui", Rt, tsum)  # (U, 3) world-space target sums
+        count = torch.zeros(face.shape[0], dtype=tgt.dtype, device=tgt.device).index_add(0, finv, cnt.to(tgt.dtype))
+        twf = torch.zeros(face.shape[0], 3, dtype=tgt.dtype, device=tgt.device).index_add(0, finv, tw)
+        nrm = _NormalData(face, count, twf / count[:, None])
         # sum_p |n_f - t_p|^2 = cnt |n_f|^2 - 2 n_f . sum t + sum |t|^2
-        val = cnt * (n * n).sum(-1) - 2 * (n * tsum).sum(-1) + tsq
-        terms["normal"] = float(val.sum()) / pb.n_normal
+        val = float((count * (n * n).sum(-1) - 2 * (n * twf).sum(-1)).sum()) + float((tgt * tgt).sum())
+        terms["normal"] = val / pb.n_normal
     # 3. flow targets
     if pb.flow is not None:
         d = uv[pb.flow.cam, pb.flow.vert] - pb.flow.target
@@ -986,22 +1005,24 @@ def _photo_reference(vis: Tensor, colours: Tensor) -> tuple[Tensor, Tensor]:
     return vis & (n[:, 0] >= 2)[None], (colours * w).sum(0) / n.clamp_min(1)
 
 
-def _visible_face_normals(verts: Tensor, faces: Tensor, world_to_cam: Tensor, cam: Tensor, face: Tensor) -> Tensor:
-    """Camera-space unit normals (U, 3) of the (camera, face) pairs, turned towards the camera
-    (:func:`raster.face_normals_cam` for the listed pairs only)."""
-    E = world_to_cam[cam].to(verts.dtype)  # (U, 4, 4)
-    tri = torch.einsum("uij,ukj->uki", E[:, :3, :3], verts[faces[face]]) + E[:, None, :3, 3]  # (U, 3, 3)
+def _visible_face_normals(verts: Tensor, faces: Tensor, world_to_cam: Tensor, face: Tensor, cam: Tensor,
+                          pair_face: Tensor) -> tuple[Tensor, Tensor]:
+    """World-space unit normals (Fu, 3) of the faces ``face`` (Fu,), and for each (camera, face)
+    pair -- cameras ``cam`` (U,), ``pair_face`` (U,) indices into ``face`` -- the sign s (U,) that
+    turns the normal towards that camera (camera normal = s R n, as :func:`raster.face_normals_cam`)."""
+    tri = verts[faces[face]]  # (Fu, 3, 3)
     n = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(n.dtype).tiny ** 0.5)
-    away = (n * tri.sum(1)).sum(-1) > 0
-    return torch.where(away[:, None], -n, n)
+    E = world_to_cam.to(verts.dtype)
+    origin = -torch.einsum("cji,cj->ci", E[:, :3, :3], E[:, :3, 3])  # (C, 3) camera centres
+    away = (n[pair_face] * (tri.mean(1)[pair_face] - origin[cam])).sum(-1) > 0
+    return n, torch.where(away, -1.0, 1.0).to(verts.dtype)
 
 
-def _normal_corner_jacobian(tri: Tensor, R: Tensor, flip: Tensor) -> tuple[Tensor, Tensor]:
-    """Camera normal n_cam = s R m/|m|, m = (x1 - x0) x (x2 - x0), and d n_cam / d x_k.
+def _normal_corner_jacobian(tri: Tensor) -> tuple[Tensor, Tensor]:
+    """World unit normal n = m/|m|, m = (x1 - x0) x (x2 - x0), and d n / d x_k.
 
-    tri (U, 3, 3) world corners, R (U, 3, 3) world -> camera, flip (U,) +-1.
-    Returns n_cam (U, 3) and J (U, 3 [component], 3 [corner], 3 [coordinate]).
+    tri (U, 3, 3) corners. Returns n (U, 3) and J (U, 3 [component], 3 [corner], 3 [coordinate]).
     dm/dx0 = [x2 - x1]_x, dm/dx1 = [x0 - x2]_x, dm/dx2 = [x1 - x0]_x;
     d(m/|m|)/dm = (I - n n^T) / |m|.
     """
@@ -1009,8 +1030,7 @@ def _normal_corner_jacobian(tri: Tensor, R: Tensor, flip: Tensor) -> tuple[Tenso
     m = torch.cross(x1 - x0, x2 - x0, dim=-1)
     ln = m.norm(dim=-1, keepdim=True).clamp_min(1e-30)
     n = m / ln
-    P = (torch.eye(3, dtype=tri.dtype, device=tri.device) - n[:, :, None] * n[:, None, :]) / ln[..., None]
-    A = flip[:, None, None] * (R @ P)  # (U, 3, 3)
+    A = (torch.eye(3, dtype=tri.dtype, device=tri.device) - n[:, :, None] * n[:, None, :]) / ln[..., None]
 
     def skew(a):
         x, y, z = a.unbind(-1)
@@ -1018,7 +1038,7 @@ def _normal_corner_jacobian(tri: Tensor, R: Tensor, flip: Tensor) -> tuple[Tenso
         return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).view(*a.shape[:-1], 3, 3)
 
     J = torch.stack([A @ skew(x2 - x1), A @ skew(x0 - x2), A @ skew(x1 - x0)], 2)  # (U, 3, 3, 3)
-    return flip[:, None] * torch.einsum("uij,uj->ui", R, n), J
+    return n, J
 
 
 #: dtype of the large Jacobian products in the Levenberg-Marquardt steps: float32 is ~20 %
@@ -1071,23 +1091,16 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
         w = cfg.w_mask / pb.n_mask
         H += w * (Jp.t() @ Jp).double()
         g += w * (Jp.t() @ s.residual[upix].to(jdtype)).double()
-    # 2. normals: per (camera, face) residual sqrt(count) (n - mean target), on the face's corners
-    if ev.nrm is not None and cfg.w_normal > 0 and ev.nrm.cam.numel():
+    # 2. normals: per face residual sqrt(count) (n - mean world target), on the face's corners
+    if ev.nrm is not None and cfg.w_normal > 0 and ev.nrm.face.numel():
         nd = ev.nrm
         fv = rig.faces[nd.face]  # (U, 3)
-        tri = verts[fv]  # (U, 3, 3)
-        Ec = pb.views.world_to_cam[nd.cam].to(verts.dtype)
-        R = Ec[:, :3, :3]
-        with torch.no_grad():
-            m = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
-            cen = torch.einsum("uij,uj->ui", R, tri.mean(1)) + Ec[:, :3, 3]
-            flip = torch.where((torch.einsum("uij,uj->ui", R, m) * cen).sum(-1) > 0, -1.0, 1.0).to(verts.dtype)
-        n, Jn = _normal_corner_jacobian(tri, R, flip)  # (U, 3), (U, 3 comp, 3 corner, 3 coord)
+        n, Jn = _normal_corner_jacobian(verts[fv])  # (U, 3), (U, 3 comp, 3 corner, 3 coord)
         w = cfg.w_normal / pb.n_normal
         cnt = nd.count
         r = n - nd.mean_target  # residual sqrt(cnt) r, Jacobian sqrt(cnt) Jn
         # block[k, l] = cnt sum_i Jn[i, k]^T Jn[i, l];  g_k = cnt sum_i Jn[i, k]^T r_i
-        blk = torch.einsum("u,uikj,uilm->uk ljm".replace(" ", ""), w * cnt, Jn, Jn)  # (U, 3, 3, 3, 3)
+        blk = torch.einsum("u,uikj,uilm->ukljm", w * cnt, Jn, Jn)  # (U, 3, 3, 3, 3)
         blocks.index_add_(0, lay.face_pair[nd.face].reshape(-1), blk.reshape(-1, 3, 3))
         gk = torch.einsum("u,uikj,ui->ukj", w * cnt, Jn, r)  # (U, 3 corner, 3)
         gx.index_add_(0, fv.reshape(-1), gk.reshape(-1, 3))
