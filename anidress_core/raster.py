@@ -318,7 +318,48 @@ def _merge_groups(counts: list[int]) -> list[int]:
     return target
 
 
-def _raster_keys(
+def _raster_keys_warp(
+    uv: Tensor,
+    z: Tensor,
+    faces: Tensor,
+    fx_fy_sign: Tensor,
+    height: int,
+    width: int,
+    near: float,
+    cull_backfaces: bool,
+) -> Tensor:
+    """:func:`_raster_keys_torch`'s keys (C, H, W) int64 from one Warp kernel
+    (:mod:`anidress_core.raster_kernels`): one thread per (camera, face) over its pixel box."""
+    import warp as wp
+
+    from . import raster_kernels
+
+    C, V = z.shape
+    F = faces.shape[0]
+    dev = uv.device
+    H, W = height, width
+    keys = torch.full((C * H * W,), _KEY_BG, dtype=torch.int64, device=dev)
+    if F == 0 or H == 0 or W == 0 or C == 0:
+        return keys.view(C, H, W)
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"rasterize: the warp backend runs on cpu or cuda, not {dev}; pass backend='torch'")
+    S = torch.round(uv.to(torch.float64) * _SUBPIXEL).clamp_(-_COORD_CLAMP, _COORD_CLAMP)
+    vok = (torch.isfinite(uv).all(-1) & (z >= near)).to(torch.int32).reshape(-1)
+    fbits = max(1, (F - 1).bit_length())
+    wp.init()
+    wdev = "cpu" if dev.type == "cpu" else str(dev)
+    args = [wp.from_torch(S[..., 0].reshape(-1).contiguous()), wp.from_torch(S[..., 1].reshape(-1).contiguous()),
+            wp.from_torch(z.to(torch.float64).reshape(-1).contiguous()), wp.from_torch(vok),
+            wp.from_torch(faces.to(device=dev, dtype=torch.int32).contiguous()),
+            wp.from_torch(fx_fy_sign.to(device=dev, dtype=torch.float64).contiguous()),
+            V, H, W, int(cull_backfaces), fbits, float(2 ** (62 - fbits)) * near, float(2 ** (62 - fbits)),
+            wp.from_torch(keys)]
+    stream = wp.stream_from_torch(dev) if dev.type == "cuda" else None
+    wp.launch(raster_kernels.raster_keys, C * F, inputs=args, device=wdev, stream=stream)
+    return keys.view(C, H, W)
+
+
+def _raster_keys_torch(
     uv: Tensor,
     z: Tensor,
     faces: Tensor,
@@ -496,6 +537,7 @@ def rasterize(
     faces_per_chunk: int = 1 << 14,
     pixels_per_chunk: int = 1 << 18,
     with_bary: bool = True,
+    backend: str = "warp",
 ) -> Fragments:
     """Z-buffer rasterisation of a triangle mesh into C cameras (no gradients).
 
@@ -504,9 +546,12 @@ def rasterize(
     height, width: image size H, W. near: faces with any vertex at z < near are dropped
     (no clipping); depth resolution is that of 1/z quantised on [0, 1/near] with
     62 - log2(F) bits. cull_backfaces: drop faces seen from behind (see the module
-    docstring for the winding). faces_per_chunk, pixels_per_chunk: at most this many
-    face tiles and tile pixels are evaluated at once, which bounds the memory (about
-    60 bytes per tile pixel) whatever the size of the faces.
+    docstring for the winding). backend: ``'warp'`` (one Warp kernel thread per camera and
+    face, :mod:`anidress_core.raster_kernels`; CPU or CUDA) or ``'torch'`` (the batched tensor
+    code below, the reference; same coverage, see ``benchmarks/raster.md`` for the speed).
+    faces_per_chunk, pixels_per_chunk (torch backend): at most this many face tiles and tile
+    pixels are evaluated at once, which bounds the memory (about 60 bytes per tile pixel)
+    whatever the size of the faces.
 
     Returns :class:`Fragments` (C, H, W): face id (-1 background), perspective-correct
     barycentrics, camera z (+inf background). See the module docstring for the method.
@@ -529,14 +574,19 @@ def rasterize(
         raise ValueError(f"rasterize: faces index out of range for {verts.shape[-2]} vertices")
     uv, z = project_vertices(verts, K, world_to_cam)  # (C, V, 2), (C, V)
     sign = torch.sign(K[:, 0, 0] * K[:, 1, 1])
-    keys = _raster_keys(
-        uv, z, faces, sign, height, width, near, cull_backfaces, faces_per_chunk, pixels_per_chunk
-    )
+    if backend == "warp":
+        keys = _raster_keys_warp(uv, z, faces, sign, height, width, near, cull_backfaces)
+    elif backend == "torch":
+        keys = _raster_keys_torch(
+            uv, z, faces, sign, height, width, near, cull_backfaces, faces_per_chunk, pixels_per_chunk
+        )
+    else:
+        raise ValueError(f"rasterize: backend must be 'warp' or 'torch', got {backend!r}")
     fbits = max(1, int(faces.shape[0] - 1).bit_length())
     fg = keys != _KEY_BG
     face_id = torch.where(fg, keys & ((1 << fbits) - 1), torch.full_like(keys, -1))
     if not with_bary:
-        # q = (1/near - 1/z) * zscale, zscale = 2**(62 - fbits) * near (see _raster_keys)
+        # q = (1/near - 1/z) * zscale, zscale = 2**(62 - fbits) * near (see _raster_keys_torch)
         q = (keys >> fbits).to(torch.float64)
         inv_z = 1.0 / near - q / (float(2 ** (62 - fbits)) * near)
         depth = torch.where(fg, 1.0 / inv_z.clamp_min(1e-300), torch.full_like(q, float("inf")))

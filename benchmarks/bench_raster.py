@@ -148,15 +148,25 @@ def main() -> None:
     default_threads = torch.get_num_threads()
     for nt in thread_counts or [default_threads]:
         torch.set_num_threads(nt)
-        # 1. rasterize: 512^2, one camera and a batch of 8
+        # 1. rasterize: 512^2, one camera and a batch of 8; both backends (warp: the default)
         for res, C in ((512, 1), (512, 8), (256, 12)):
             K, E = ring_cameras(C, res, dtype=torch.float32)
-            wall, frags = timed(lambda: rasterize(V, Fc, K, E, res, res), args.repeats)
-            cov = (frags.face_id >= 0).float().mean().item()
-            row("rasterize", "", res, C, wall, notes=f"coverage {100 * cov:.0f} % of pixels")
+            for bary in (True, False):
+                wall_t, fr_t = timed(lambda: rasterize(V, Fc, K, E, res, res, backend="torch", with_bary=bary),
+                                     args.repeats)
+                wall_w, fr_w = timed(lambda: rasterize(V, Fc, K, E, res, res, backend="warp", with_bary=bary),
+                                     args.repeats)
+                cov = (fr_w.face_id >= 0).float().mean().item()
+                same = 100 * (fr_w.face_id == fr_t.face_id).double().mean().item()
+                tag = "" if bary else ", with_bary=False"
+                row(f"rasterize (torch){tag}", "", res, C, wall_t)
+                row(f"rasterize (warp){tag}", "rasterize (torch)", res, C, wall_w, face_agreement_pct=same,
+                    notes=f"{wall_t / wall_w:.2f}x the torch backend's speed; coverage {100 * cov:.0f} % of pixels")
             if res == 512 and C == 1:
-                wall_c, _ = timed(lambda: rasterize(V, Fc, K, E, res, res, cull_backfaces=True), args.repeats)
-                row("rasterize cull_backfaces", "", res, C, wall_c)
+                for be in ("torch", "warp"):
+                    wall_c, _ = timed(lambda: rasterize(V, Fc, K, E, res, res, cull_backfaces=True, backend=be),
+                                      args.repeats)
+                    row(f"rasterize ({be}) cull_backfaces", "", res, C, wall_c)
 
         # 2. render_mesh end to end (texture, 2 lights, ambient)
         g = torch.Generator().manual_seed(0)
@@ -196,9 +206,9 @@ def main() -> None:
         ref_wall = time.perf_counter() - t0
         row("trimesh RayMeshIntersector (rtree)", "", 512, 1, ref_wall,
             notes="the slow reference, float64, rays in batches of 2048, one run")
-        for dtype in (torch.float64, torch.float32):
+        for dtype, be in ((torch.float64, "warp"), (torch.float32, "warp"), (torch.float64, "torch")):
             Vd, Kd, Ed = torch.tensor(mesh.vertices, dtype=dtype), K.to(dtype), E.to(dtype)
-            wall, frags = timed(lambda: rasterize(Vd, Fc, Kd, Ed, 512, 512), args.repeats)
+            wall, frags = timed(lambda: rasterize(Vd, Fc, Kd, Ed, 512, 512, backend=be), args.repeats)
             fid = frags.face_id[0].numpy()
             agree = fid == ref_fid
             both = agree & (fid >= 0)
@@ -206,7 +216,7 @@ def main() -> None:
             d_edge = np.minimum(edge_distance(mesh, K[0], E[0], fid), edge_distance(mesh, K[0], E[0], ref_fid))
             worst = float(d_edge[~agree].max()) if (~agree).any() else 0.0
             row(
-                f"rasterize ({str(dtype)[6:]} input)", "trimesh RayMeshIntersector", 512, 1, wall,
+                f"rasterize ({be}, {str(dtype)[6:]} input)", "trimesh RayMeshIntersector", 512, 1, wall,
                 face_agreement_pct=100 * agree.mean(), depth_err_max_m=float(err.max()),
                 depth_err_median_m=float(np.median(err)),
                 notes=f"{int((~agree).sum())} of {agree.size} pixels differ, all within {worst:.2g} px of a "
@@ -255,6 +265,12 @@ def main() -> None:
             f"{fmt(r['depth_err_max_m'], '.2e')} | {fmt(r['depth_err_median_m'], '.2e')} | {r['notes']} |"
         )
     lines += [
+        "",
+        "Backends: `warp` (the default) is one Warp kernel thread per (camera, face) walking its pixel box",
+        "(`anidress_core/raster_kernels.py`; on the CPU Warp runs it on ONE thread whatever the `threads`",
+        "column says); `torch` is the batched tile code, which uses torch's threads. Both give the same",
+        "face ids (the agreement column) and quantised depths to a unit in the last place. On a many-core",
+        "CPU the torch backend may catch up (`rasterize(..., backend='torch')`).",
         "",
         "The machine is shared: other jobs running at the same time slow torch's parallel",
         "regions down a lot (see the load average above); rerun when it is idle to compare versions.",

@@ -55,7 +55,7 @@ def run_newton(verts, faces, band, gw, body_rest, body_faces, body_weights, tran
     from anidress_core.sim import kernels as K
     from anidress_core.sim import setup as S
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     dev = "cpu"
     gr = np.asarray(verts, np.float64)
     br = np.asarray(body_rest, np.float64)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import warp as wp
 
-wp.config.quiet = True
+wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no greeting or "module loaded" lines
 
 
 @wp.kernel

@@ -129,7 +129,7 @@ def _np(a, dtype) -> np.ndarray:
 def _device(name: str | None) -> str:
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     wp.init()
     if name is not None:
         return name
