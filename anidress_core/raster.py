@@ -23,9 +23,12 @@ Conventions
 Method
 ------
 :func:`rasterize` is a half-space (edge-function) rasteriser [Pineda 1988, "A parallel
-algorithm for polygon rasterization"; Olano & Greer 1997] written as batched tensor
-code, with the discrete/differentiable split of nvdiffrast [Laine et al. 2020,
-"Modular Primitives for High-Performance Differentiable Rendering"]:
+algorithm for polygon rasterization"; Olano & Greer 1997] with the discrete/differentiable
+split of nvdiffrast [Laine et al. 2020, "Modular Primitives for High-Performance
+Differentiable Rendering"]. Steps 1, 2, 4 and 5 below run either as one Warp kernel, a
+thread per (camera, face) walking its pixel box (``backend='warp'``, the default,
+:mod:`anidress_core.raster_kernels`), or as the batched tensor code of step 3
+(``backend='torch'``, the reference); both give the same face ids:
 
 1. Vertices are projected and snapped to a 1/256-pixel fixed-point grid, as GPU
    rasterisers do. Edge functions of snapped vertices at pixel centres are then
@@ -59,8 +62,8 @@ Rasterisation is discrete (no gradients). Interpolation is differentiable:
 ``interpolate(attr, faces, frags, barycentrics(verts, ...))`` gives gradients with
 respect to the vertex positions and attributes inside the faces; :func:`antialias`
 adds the gradients of silhouette edges (nvdiffrast's analytic antialiasing).
-The code is device-agnostic batched torch (tested on CPU), for float32 or float64
-input; the exact edge tests always run in float64.
+Everything runs on CPU or CUDA (tested on CPU), for float32 or float64 input; the exact
+edge tests always run in float64.
 """
 from __future__ import annotations
 
