@@ -1,6 +1,7 @@
 """Garment fitting (anidress_core.fit): exact Gauss-Newton systems, pose recovery, robustness."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -77,6 +78,26 @@ def rmse(a, b):
 # --------------------------------------------------------------------------------------
 # building blocks
 # --------------------------------------------------------------------------------------
+
+
+def test_views_make_camera_rotations_orthonormal_and_reject_non_rotations():
+    """float32 camera files give rotations orthonormal to ~1e-7 only; the fit's normal term
+    needs R^T = R^-1, so from_cameras projects them onto SO(3), and refuses a matrix that is
+    not a rotation at all."""
+    cams = ring_cameras(n=3, radius=2.0, height=1.0, target=(0, 0, 0.8), focal_px=50.0, image_height=48,
+                        image_width=48)  # float32
+    R32 = cams.world_to_cam[:, :3, :3].double()
+    assert float((R32 @ R32.transpose(1, 2) - torch.eye(3)).abs().max()) > 1e-9
+    v = fit.Views.from_cameras(cams)
+    R = v.world_to_cam[:, :3, :3]
+    assert float((R @ R.transpose(1, 2) - torch.eye(3, dtype=R.dtype)).abs().max()) < 1e-14
+    assert float((R - R32).abs().max()) < 1e-6  # the nearest rotation: a round-off change
+    torch.testing.assert_close(v.world_to_cam[:, :3, 3], cams.world_to_cam[:, :3, 3].double())
+    R_bad = cams.R.clone()
+    R_bad[1] *= 1.1
+    bad = dataclasses.replace(cams, R=R_bad)
+    with pytest.raises(ValueError, match="not a rotation"):
+        fit.Views.from_cameras(bad)
 
 
 def test_skin_and_projection_jacobians_match_autograd():
