@@ -334,7 +334,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--flows", help="flows folder <cam>/<frame>.exr (X, Y, valid); none: no flow loss")
     s.add_argument("--normals", help="normal maps folder (default: <scene>/<seq>/normals if present)")
     s.add_argument("--no-normals", action="store_true", help="normal loss off")
-    s.add_argument("--ablation", choices=["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth"],
+    s.add_argument("--ablation", choices=["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth",
+                                              "anchor_texture"],
                    help="run an ablation instead (anidress_core.fit.ABLATIONS)")
     s.add_argument("--views", type=int, help="use N training cameras spread evenly (default: fit/views)")
     s.add_argument("--config", default="config/config.yaml", help="settings: fit (default: %(default)s)")

@@ -102,6 +102,8 @@ __all__ = [
     "chromaticity",
     "AnchorRef",
     "update_anchor",
+    "texture_anchor",
+    "texture_blur_texels",
     "FrameFit",
     "contour_length",
     "flow_targets",
@@ -136,6 +138,8 @@ ABLATIONS = {
     "anchor": "(ours, a variant) the full loss + the temporal chromaticity anchor L_an (weight fit/weights/anchor, "
               "else ANCHOR_WEIGHT)",
     "anchor_smooth": "(ours, a variant) as anchor, then the poses filtered over time (fit/smooth_passes, else 1 pass)",
+    "anchor_texture": "(ours, a variant) as anchor_smooth, with L_an's references from the garment's texture at the "
+                      "template's UVs instead of from the first frame each vertex is seen (texture_anchor)",
 }
 
 
@@ -247,7 +251,7 @@ def config_for(base: FitConfig, ablation: str | None) -> FitConfig:
         return replace(base, w_photo=base.w_photo if base.w_photo > 0 else PHOTO_WEIGHT)
     if ablation == "anchor":
         return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT)
-    if ablation == "anchor_smooth":
+    if ablation in ("anchor_smooth", "anchor_texture"):  # texture: the references' source is the caller's
         return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT,
                        smooth_passes=max(int(base.smooth_passes), 1))
     raise ValueError(f"unknown ablation {ablation!r}; choose from {sorted(ABLATIONS)}")
@@ -603,6 +607,55 @@ def update_anchor(ref: AnchorRef | None, verts: Tensor, views: Views, fragments:
     if ref is None:
         return AnchorRef(torch.where(seen_now[:, None], mean, torch.zeros_like(mean)), seen_now)
     return AnchorRef(torch.where(new[:, None], mean, ref.chroma.to(mean.dtype)), ref.seen | new)
+
+
+def texture_anchor(faces: Tensor, face_uv: Tensor, texture: Tensor, blur_texels: float) -> AnchorRef:
+    """L_an's references from a textured template instead of from the first frame a vertex is seen.
+
+    faces (F, 3), face_uv (F, 3, 2) the template's UVs (OBJ convention, :func:`raster.sample_texture`);
+    a vertex on a UV seam takes the UV of its first face. texture (Ht, Wt, 3) colours in [0, 1].
+    Each vertex's reference is the chromaticity of the texture blurred by a Gaussian of
+    ``blur_texels`` texels (what one image pixel, blurred like the images, covers:
+    :func:`texture_blur_texels`), at its UV. Every vertex gets one (``seen`` all True), so L_an
+    holds each vertex on its own material point from frame 0 on: the material placement that
+    no mask, normal or flow observes (benchmarks/fit_frame0.md) is then seen in the images.
+    """
+    V = int(faces.max()) + 1 if faces.numel() else 0
+    if face_uv.shape != (*faces.shape, 2) or texture.ndim != 3 or texture.shape[-1] != 3:
+        raise ValueError(f"texture_anchor: faces (F, 3), face_uv (F, 3, 2) and texture (Ht, Wt, 3) expected, got "
+                         f"{tuple(faces.shape)}, {tuple(face_uv.shape)}, {tuple(texture.shape)}")
+    first = torch.full((V,), faces.numel(), dtype=torch.int64, device=faces.device)
+    first.scatter_reduce_(0, faces.reshape(-1), torch.arange(faces.numel(), device=faces.device), "amin")
+    if bool((first == faces.numel()).any()):
+        raise ValueError("texture_anchor: some vertices are in no face")
+    uv = face_uv.reshape(-1, 2)[first].double()  # (V, 2)
+    chroma = _blurred(chromaticity(texture.double())[None], blur_texels)[0].permute(1, 2, 0)  # (Ht, Wt, 3)
+    ref = raster.sample_texture(chroma, uv)
+    return AnchorRef(ref, torch.ones(V, dtype=torch.bool, device=ref.device))
+
+
+def texture_blur_texels(rest: Tensor, faces: Tensor, face_uv: Tensor, texture_hw: tuple[int, int], verts: Tensor,
+                        views: Views, image_blur: float) -> float:
+    """The Gaussian (in texels) that makes the texture look like the images at ``verts``:
+    sqrt(1/12 + image_blur^2) pixels (a pixel's box, then the images' blur) times the median
+    metres per pixel of the vertices ``verts`` (V, 3) in the views (camera z / focal), times
+    the template's texels per metre (square root of UV area in texels over rest area, rest
+    (V, 3), faces (F, 3), face_uv (F, 3, 2))."""
+    def area(p):  # (F, 3, k) -> (F,)
+        a, b = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+        if p.shape[-1] == 2:
+            return 0.5 * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).abs()
+        return 0.5 * torch.cross(a, b, dim=-1).norm(dim=-1)
+
+    Ht, Wt = texture_hw
+    uv_area = float(area(face_uv.double() * torch.tensor([Wt, Ht], dtype=torch.float64, device=face_uv.device)).sum())
+    rest_area = float(area(rest.double()[faces]).sum())
+    if not (uv_area > 0 and rest_area > 0):
+        raise ValueError("texture_blur_texels: the template has zero UV or surface area")
+    _, z = raster.project_vertices(verts.double(), views.K.double(), views.world_to_cam.double())  # (C, V)
+    m_per_px = (z / views.K[:, 0, 0, None].double())
+    m_per_px = float(m_per_px[torch.isfinite(m_per_px) & (z > 0)].median())
+    return math.sqrt(1.0 / 12.0 + image_blur ** 2) * m_per_px * math.sqrt(uv_area / rest_area)
 
 
 def apply_increment(transforms: Tensor, centres: Tensor, delta: Tensor) -> Tensor:
@@ -1401,14 +1454,16 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
 
 def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
-                 cfg: FitConfig = FitConfig(), progress: bool = True, log=None) -> list[FrameFit]:
+                 cfg: FitConfig = FitConfig(), progress: bool = True, log=None,
+                 anchor_init: AnchorRef | None = None) -> list[FrameFit]:
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
 
     cues_of(t) -> :class:`FrameCues` (with ``image`` for L_ph and L_an); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
     or None) of t-1 -> t, or None (no flow for that frame: L_of off there, logged);
     init: (B, 4, 4) start of frame 0. Returns one :class:`FrameFit` per frame (with the
     wall time of each in ``terms['wall_s']``). L_an's references are taken from each frame's
-    result (:func:`update_anchor`) and used from the next frame on.
+    result (:func:`update_anchor`) and used from the next frame on; ``anchor_init`` (e.g.
+    :func:`texture_anchor`) gives references from frame 0 on (vertices it covers keep them).
     """
     from tqdm import tqdm
 
@@ -1416,7 +1471,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     G = torch.as_tensor(init, device=rig.rest.device).double()
     x_prev = None
     prev_mask = None
-    anchor = None
+    anchor = anchor_init
     for t in tqdm(range(num_frames), desc="fit", unit="frame", disable=not progress):
         t0 = time.perf_counter()
         cues = cues_of(t)

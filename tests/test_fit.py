@@ -343,6 +343,42 @@ def test_anchor_reference_and_gradient():
     torch.testing.assert_close(grad, 2 * gvec, rtol=1e-5, atol=1e-8 * float(gvec.abs().max()))
 
 
+def test_texture_anchor_samples_the_blurred_texture_chromaticity_at_the_uvs():
+    """texture_anchor: each vertex's reference is the chromaticity of the (blurred) texture at the
+    UV of its first face corner; with no blur, a texel-centre UV reads that texel exactly."""
+    g = torch.Generator().manual_seed(4)
+    tex = torch.rand(16, 20, 3, generator=g, dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [2, 1, 3]])
+    rows, cols = torch.tensor([3, 7, 12, 0]), torch.tensor([5, 19, 2, 11])
+    uv_v = torch.stack([(cols + 0.5) / 20, 1 - (rows + 0.5) / 16], -1).double()  # texel centres (OBJ v up)
+    face_uv = uv_v[faces].clone()
+    face_uv[1, 0] = torch.tensor([0.9, 0.9])  # vertex 2 on a "seam": its first face's UV counts
+    ref = fit.texture_anchor(faces, face_uv, tex, 0.0)
+    assert ref.seen.all() and ref.chroma.shape == (4, 3)
+    torch.testing.assert_close(ref.chroma, fit.chromaticity(tex[rows, cols]))
+    # blurred: a constant texture is unchanged, a varying one is smoothed
+    flat = fit.texture_anchor(faces, face_uv, torch.full((16, 20, 3), 0.4, dtype=torch.float64), 2.0)
+    torch.testing.assert_close(flat.chroma, torch.full((4, 3), 0.4 / 1.25, dtype=torch.float64))
+    blur = fit.texture_anchor(faces, face_uv, tex, 2.0)
+    assert float(blur.chroma.std()) < float(ref.chroma.std())
+    with pytest.raises(ValueError):
+        fit.texture_anchor(faces, face_uv[:, :2], tex, 1.0)
+
+
+def test_texture_blur_matches_the_pixel_footprint():
+    """A unit square textured over the whole texture, seen head-on from 2 m with focal 100 px:
+    one pixel covers 2 cm = 0.02 * 512 texels; times sqrt(1/12 + blur^2)."""
+    rest = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    face_uv = rest[:, :2][faces]
+    K = torch.tensor([[[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]]], dtype=torch.float64)
+    E = torch.eye(4, dtype=torch.float64)[None].clone()
+    E[0, 2, 3] = 2.0
+    views = fit.Views(K, E, 100, 100)
+    b = fit.texture_blur_texels(rest, faces, face_uv, (512, 512), rest, views, 0.5)
+    assert abs(b - math.sqrt(1 / 12 + 0.25) * 0.02 * 512) < 1e-9
+
+
 def test_anchor_sees_a_garment_sliding_about_its_axis():
     """A textured cone turning about its own axis: masks and normals do not change, so without
     flow the paper's loss cannot follow it; the chromaticity anchor (references from frame 0)
@@ -611,6 +647,22 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
                    seq / "normals", params, res / "walk" / "anchor.npz", ablation="anchor", progress=False)
     an = load_garment_poses(res / "walk" / "anchor.npz")[0]["loss_anchor"]
     assert meta["config"]["w_anchor"] == fit.ANCHOR_WEIGHT and an[0] == 0 and (an[1:] > 0).all()  # refs from frame 0
+    # references from the garment texture: L_an is on from frame 0; without a texture, a clear error
+    meta = run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
+                   seq / "normals", params, res / "walk" / "anchor_texture.npz", ablation="anchor_texture",
+                   progress=False)
+    an = load_garment_poses(res / "walk" / "anchor_texture.npz")[0]["loss_anchor"]
+    assert (an > 0).all() and "texture.png" in meta["anchor_reference"]
+    assert meta["config"]["smooth_passes"] == 1
+    tex = data / "garment" / "texture.png"
+    tex.rename(tex.with_suffix(".bak"))
+    try:
+        with pytest.raises(FileNotFoundError, match="texture"):
+            run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
+                    seq / "normals", dict(params, anchor_reference="texture", weights={"anchor": 1.0e5}),
+                    res / "walk" / "x.npz", progress=False)
+    finally:
+        tex.with_suffix(".bak").rename(tex)
     run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
             None, params, res / "walk" / "no_flow.npz", ablation="no_flow", progress=False)
     summ = run_fit_eval(data, "walk", res / "rig.npz", {"full": res / "walk" / "garment_poses.npz",

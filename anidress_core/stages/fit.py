@@ -86,6 +86,37 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
     return FIT.config_for(base, ablation)
 
 
+def garment_texture_path(scene_dir: Path, info: Mapping) -> Path:
+    """The garment template's texture: ``garment_texture`` in scene.yaml, else ``texture.png``
+    beside the template."""
+    if info.get("garment_texture"):
+        return scene_dir / info["garment_texture"]
+    return (scene_dir / info.get("garment_template", "garment/template.obj")).parent / "texture.png"
+
+
+def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.RigParts, views: FIT.Views,
+                      G0: torch.Tensor, image_blur: float, device) -> tuple[FIT.AnchorRef, str]:
+    """L_an's references from the template's UVs and the scene's garment texture
+    (:func:`anidress_core.fit.texture_anchor`), blurred to the images' footprint at the start pose G0."""
+    from ..geometry import lbs
+    from .template import load_template
+
+    path = garment_texture_path(scene_dir, info)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: fit/anchor_reference is 'texture' but the garment has no texture "
+                                f"(set garment_texture in {scene_dir / 'scene.yaml'}, or anchor_reference: images)")
+    tpl = load_template(template_npz)
+    faces = torch.as_tensor(np.asarray(tpl.faces), device=device).long()
+    if tpl.face_uv is None or not torch.equal(faces, rig.faces):
+        raise files.ArtifactError(f"{template_npz}: no UVs, or faces that are not the rig's")
+    face_uv = torch.as_tensor(np.asarray(tpl.face_uv), device=device).double()
+    tex = torch.as_tensor(files.read_image(path), device=device).double()
+    start = lbs(rig.rest, rig.weights, G0.to(device))
+    blur = FIT.texture_blur_texels(rig.rest, faces, face_uv, tuple(tex.shape[:2]), start, views, image_blur)
+    return (FIT.texture_anchor(faces, face_uv, tex, blur),
+            f"{path} ({tex.shape[1]}x{tex.shape[0]}), blurred by {blur:.2f} texels (one image pixel + the images' blur)")
+
+
 def select_views(train: Sequence[str], count: int) -> list[str]:
     """``count`` training cameras spread evenly over the list (0 or >= len: all of them)."""
     train = list(train)
@@ -280,11 +311,20 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():
             raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
-    # 5. fit
+    # 5. L_an's references: from the images (first frame each vertex is seen) or the template's texture
+    anchor_init, anchor_note = None, None
+    ref_mode = {"anchor": "images", "anchor_smooth": "images", "anchor_texture": "texture"}.get(
+        method, params.get("anchor_reference", "images"))
+    if cfg.w_anchor > 0 and ref_mode == "texture":
+        anchor_init, anchor_note = texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.photo_blur,
+                                                     device)
+        log.info("fit: L_an references from the garment texture: %s", anchor_note)
+    # 6. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
     try:
-        res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log)
+        res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
+                               anchor_init=anchor_init)
     finally:
         reader.close()
     wall_fit = time.perf_counter() - t_fit
@@ -306,7 +346,9 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "config": dataclasses.asdict(cfg), "params": dict(params), "scene": scene_dir.name,
         "sequence": seq, "cameras": names, "masks_dir": str(masks_dir), "normals_dir": None if normals_dir is None
         else str(normals_dir), "flows_dir": None if flows_dir is None else str(flows_dir), "cue_source": cue_source,
-        "first_frame_start": start_used, "rig": str(rig_npz), "frames": T, "device": str(device),
+        "first_frame_start": start_used, "anchor_reference": anchor_note or (
+            "images (each vertex's chromaticity where first seen)" if cfg.w_anchor > 0 else None),
+        "rig": str(rig_npz), "frames": T, "device": str(device),
         "wall_fit_s": wall_fit, "wall_total_s": time.perf_counter() - t_start, "fps": T / wall_fit,
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,

@@ -6,7 +6,7 @@
 # normals_dir), or with fit/cues: ground_truth the synthetic scene's true masks and flows
 # and its shipped (degraded) normals -- an upper bound for the fitting alone.
 
-FIT_ABLATIONS = ["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth"]
+FIT_ABLATIONS = ["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth", "anchor_texture"]
 
 
 def _fit_sequences(scene):
@@ -44,9 +44,12 @@ def fit_inputs(wildcards):
     return inp
 
 
-def fit_params():
-    """The settings that shape a fit (the ablation list and eval settings excluded: no rerun when they change)."""
-    return {k: v for k, v in config["fit"].items() if k not in ("ablations", "eval", "threads")}
+def fit_params(scene):
+    """The settings that shape a fit of one scene: the fit section with the scene's own overrides
+    (scenes/<scene>/fit), the ablation list and eval settings excluded (no rerun when they change)."""
+    p = {k: v for k, v in config["fit"].items() if k not in ("ablations", "eval", "threads")}
+    p.update(config["scenes"][scene].get("fit") or {})
+    return p
 
 
 def fit_outputs(scene):
@@ -72,7 +75,7 @@ rule fit:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/fit.tsv"
     params:
-        fit=fit_params(),
+        fit=lambda wc: fit_params(wc.scene),
         cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
         ablation="full",
     threads: 2
@@ -96,7 +99,7 @@ rule fit_ablation:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/fit_ablations/{ablation}.tsv"
     params:
-        fit=fit_params(),
+        fit=lambda wc: fit_params(wc.scene),
         cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
         ablation=lambda wc: wc.ablation,
     threads: 2
