@@ -120,10 +120,15 @@ def main() -> None:
         loss = "?"
         poses = ROOT / "results" / scene / seq / "garment_poses.npz"
         if poses.is_file():  # the loss the pipeline's fit minimised (its header)
-            c = files.load_npz(poses)[1].get("meta", {}).get("config", {})
+            meta = files.load_npz(poses)[1].get("meta", {})
+            c = meta.get("config", {})
             loss = " + ".join(f"{w:g} {name}" for name, w in (("L_M", c.get("w_mask", 0)), ("L_N", c.get("w_normal", 0)),
                                                               ("L_of", c.get("w_flow", 0)), ("L_ph", c.get("w_photo", 0)),
                                                               ("L_an", c.get("w_anchor", 0))) if w)
+            if c.get("w_anchor", 0) and meta.get("anchor_reference"):
+                loss += " (texture references)" if "texture" in meta["anchor_reference"] else " (image references)"
+            if c.get("smooth_passes", 0):
+                loss += f", {c['smooth_passes']} filter pass"
         for method in dict.fromkeys(r["method"] for r in rows):
             rs = [r for r in rows if r["method"] == method]
             col = lambda k: np.array([float(r[k]) for r in rs])  # noqa: E731
