@@ -93,7 +93,7 @@ import torch.nn.functional as Fnn
 from torch import Tensor
 
 from . import raster
-from .geometry import axis_angle_to_matrix, lbs
+from .geometry import axis_angle_to_matrix, lbs, nearest_rotation
 
 __all__ = [
     "FitConfig",
@@ -349,10 +349,8 @@ class Views(NamedTuple):
                              "model; undistort the images and cues first")
         # Rotations read from float32 files are orthonormal to ~1e-7 only; the normal term
         # uses R^T = R^-1 (per-face grouping in world space), so they are projected onto SO(3).
-        from .rig.decompose import _kabsch_svd  # the closest rotation (the rig's rigid-fit helper)
-
         E = cams.world_to_cam.double().clone()
-        R = _kabsch_svd(E[:, :3, :3])
+        R = nearest_rotation(E[:, :3, :3])
         off = (R - E[:, :3, :3]).abs().amax((-2, -1))
         if bool((off > 1e-4).any()):
             bad = [n for n, o in zip(cams.names, off.tolist()) if o > 1e-4]
@@ -1443,8 +1441,6 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
     and a translation at constant velocity pass unchanged. Cuts the frame-to-frame jitter of
     per-frame fits (benchmarks/fit.md, variant anchor_smooth).
     """
-    from .rig.decompose import _kabsch_svd  # the closest rotation (the rig's rigid-fit helper)
-
     G = torch.as_tensor(transforms).clone()
     if G.ndim != 4 or G.shape[-2:] != (4, 4):
         raise ValueError(f"smooth_transforms: transforms must be (T, B, 4, 4), got {tuple(G.shape)}")
@@ -1452,7 +1448,7 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
         if G.shape[0] < 3:
             break
         inner = 0.25 * G[:-2] + 0.5 * G[1:-1] + 0.25 * G[2:]
-        inner[..., :3, :3] = _kabsch_svd(inner[..., :3, :3])
+        inner[..., :3, :3] = nearest_rotation(inner[..., :3, :3])
         G[1:-1] = inner
     return G
 

@@ -23,6 +23,7 @@ __all__ = [
     "quaternion_to_matrix",
     "matrix_to_quaternion",
     "make_transform",
+    "nearest_rotation",
     "invert_transform",
     "transform_points",
     "lbs",
@@ -138,6 +139,18 @@ def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
 def matrix_to_rotation_6d(R: Tensor) -> Tensor:
     """(..., 3, 3) -> (..., 6): the first two columns, concatenated."""
     return torch.cat([R[..., :, 0], R[..., :, 1]], dim=-1)
+
+
+def nearest_rotation(H: Tensor) -> Tensor:
+    """The rotation R (det +1) maximising tr(R^T H) for (..., 3, 3) H (Kabsch): with
+    H = U S V^T, R = U diag(1, 1, det(U V^T)) V^T. For a nearly orthonormal H (e.g. a rotation
+    stored in float32, or an average of rotations) it is the closest rotation."""
+    scale = H.abs().amax((-2, -1), keepdim=True).clamp_min(torch.finfo(H.dtype).tiny)
+    Us, _, Vh = torch.linalg.svd(H / scale)
+    d = torch.linalg.det(Us) * torch.linalg.det(Vh)
+    D = torch.ones(*d.shape, 3, dtype=H.dtype, device=H.device)
+    D[..., 2] = torch.where(d < 0, -torch.ones_like(d), torch.ones_like(d))
+    return (Us * D[..., None, :]) @ Vh
 
 
 def make_transform(R: Tensor, t: Tensor) -> Tensor:

@@ -70,3 +70,25 @@ def test_normals_and_laplacian():
     L = g.uniform_laplacian(f, 4, dtype=torch.float64).to_dense()
     assert torch.allclose(L.sum(1), torch.zeros(4, dtype=torch.float64))
     assert g.edges_of_faces(f).shape == (6, 2)
+
+
+def test_nearest_rotation_is_the_kabsch_rotation():
+    gen = torch.Generator().manual_seed(3)
+    R = g.axis_angle_to_matrix(torch.randn(50, 3, generator=gen, dtype=torch.float64))
+    torch.testing.assert_close(g.nearest_rotation(R), R, rtol=0, atol=1e-14)  # a rotation is kept
+    noisy = R + 1e-4 * torch.randn(50, 3, 3, generator=gen, dtype=torch.float64)
+    Q = g.nearest_rotation(noisy)
+    eye = torch.eye(3, dtype=torch.float64)
+    assert float((Q @ Q.transpose(-1, -2) - eye).abs().max()) < 1e-13
+    assert float((torch.linalg.det(Q) - 1).abs().max()) < 1e-13
+    assert float((Q - R).abs().max()) < 1e-3
+    # it maximises tr(Q^T H): no rotation near it does better
+    H = torch.randn(3, 3, generator=gen, dtype=torch.float64)
+    Q = g.nearest_rotation(H)
+    best = float((Q * H).sum())
+    for _ in range(200):
+        P = g.axis_angle_to_matrix(0.1 * torch.randn(3, generator=gen, dtype=torch.float64)) @ Q
+        assert float((P * H).sum()) <= best + 1e-12
+    # a reflection gives a proper rotation (det +1), not the reflection
+    F = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
+    assert float(torch.linalg.det(g.nearest_rotation(F))) > 0.999

@@ -63,7 +63,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..geometry import edges_of_faces, lbs, make_transform
+from ..geometry import edges_of_faces, lbs, make_transform, nearest_rotation
 
 __all__ = ["RigModel", "ssdr", "fit_transforms", "reconstruct", "rmse"]
 
@@ -267,12 +267,7 @@ def _kabsch_polar(H: Tensor) -> Tensor:
 
 def _kabsch_svd(H: Tensor) -> Tensor:
     """Rotation maximising tr(R^T H) by SVD: H = U S V^T, R = U diag(1, 1, det(U V^T)) V^T."""
-    scale = H.abs().amax((-2, -1), keepdim=True).clamp_min(torch.finfo(H.dtype).tiny)
-    Us, _, Vh = torch.linalg.svd(H / scale)
-    d = _det3(Us) * _det3(Vh)
-    D = torch.ones(*d.shape, 3, dtype=H.dtype, device=H.device)
-    D[..., 2] = torch.where(d < 0, -torch.ones_like(d), torch.ones_like(d))
-    return (Us * D[..., None, :]) @ Vh
+    return nearest_rotation(H)
 
 
 def _procrustes_torch(K: Tensor, Ubb: Tensor, M_old: Tensor, exact: bool = False) -> Tensor:
