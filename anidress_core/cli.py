@@ -131,12 +131,16 @@ def _cmd_fit(args: argparse.Namespace) -> None:
     from .config import load_config
     from .stages.fit import run_fit
 
-    params = dict(load_config(args.config)["fit"])
+    cfg = load_config(args.config)
+    scene = Path(args.scene_dir)
+    params = dict(cfg["fit"])  # + the scene's own overrides (scenes/<scene>/fit), as the workflow's rule fit
+    params.update(((cfg.get("scenes") or {}).get(scene.name) or {}).get("fit") or {})
     if args.views is not None:
         params["views"] = args.views
     if args.threads:
         params["threads"] = args.threads
-    scene = Path(args.scene_dir)
+    if args.anchor_reference:
+        params["anchor_reference"] = args.anchor_reference
     normals = None if args.no_normals else (args.normals or (str(scene / args.seq / "normals")
                                                              if (scene / args.seq / "normals").is_dir() else None))
     run_fit(scene, args.seq, args.rig, args.template, args.masks, args.flows, normals, params, args.out,
@@ -338,7 +342,10 @@ def build_parser() -> argparse.ArgumentParser:
                                               "anchor_texture"],
                    help="run an ablation instead (anidress_core.fit.ABLATIONS)")
     s.add_argument("--views", type=int, help="use N training cameras spread evenly (default: fit/views)")
-    s.add_argument("--config", default="config/config.yaml", help="settings: fit (default: %(default)s)")
+    s.add_argument("--anchor-reference", choices=["images", "texture"],
+                   help="L_an's references (default: fit/anchor_reference, or the scene's scenes/<scene>/fit)")
+    s.add_argument("--config", default="config/config.yaml",
+                   help="settings: fit, then scenes/<scene directory name>/fit (default: %(default)s)")
     s.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's)")
     s.add_argument("-o", "--out", required=True, help="output garment_poses.npz")
     s.add_argument("--quiet", action="store_true", help="no progress bar")

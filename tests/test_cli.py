@@ -43,3 +43,23 @@ def test_cli_runs_template_motion_and_simulate_on_a_tiny_scene(tmp_path):
                  "--config", str(conf), "-o", str(tmp_path / "sim.npz"), "--quiet"]) == 0
     frames = np.load(tmp_path / "sim.npz")["frames"]
     assert frames.shape == (3, 500, 3) and np.isfinite(frames).all()
+
+
+def test_fit_command_applies_the_scene_overrides(monkeypatch, tmp_path):
+    """`anidress fit data/<scene> ...` reads the fit section plus scenes/<scene>/fit, as rule fit does."""
+    import anidress_core.stages.fit as stage
+
+    seen = {}
+    monkeypatch.setattr(stage, "run_fit", lambda *a, **k: seen.update(params=a[7], ablation=k.get("ablation")))
+    scene = tmp_path / "skirt"
+    scene.mkdir()
+    base = ["fit", str(scene), "walk", "--rig", "r.npz", "--template", "t.npz", "--masks", "m", "-o",
+            str(tmp_path / "o.npz"), "--no-normals", "--config", "config/config.yaml"]
+    assert main(base) in (0, None)
+    assert seen["params"]["anchor_reference"] == "texture"  # config.yaml: scenes/skirt/fit
+    assert main(base + ["--anchor-reference", "images"]) in (0, None)
+    assert seen["params"]["anchor_reference"] == "images"
+    other = tmp_path / "dress"
+    other.mkdir()
+    assert main(["fit", str(other)] + base[2:]) in (0, None)
+    assert seen["params"]["anchor_reference"] == "images"  # the top-level fit section
