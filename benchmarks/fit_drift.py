@@ -10,7 +10,9 @@ With ground-truth masks and flows (synthetic scene) and frame 0 started on the r
 * ``chain + L_ph``: as ``chain`` with the multi-view photo-consistency term on (variant
   ``photo``);
 * ``chain + L_an``: as ``chain`` with the temporal chromaticity anchor on (variant
-  ``anchor``; references from the frame each vertex is first seen in).
+  ``anchor``; references from the frame each vertex is first seen in);
+* ``chain + L_an (texture)``: the same with L_an's references from the garment texture at the
+  template's UVs, frame 0 included (variant ``anchor_texture``, without its temporal filter).
 
 Writes benchmarks/fit_drift.md (per-frame vertex RMSE against the ground truth, every
 other frame) and prints it. Not a test.
@@ -39,7 +41,7 @@ from anidress_core import fit as FIT  # noqa: E402
 from anidress_core import raster  # noqa: E402
 from anidress_core.config import load_config  # noqa: E402
 from anidress_core.geometry import lbs  # noqa: E402
-from anidress_core.stages.fit import CueReader, fit_config  # noqa: E402
+from anidress_core.stages.fit import CueReader, fit_config, texture_anchor_of  # noqa: E402
 from benchutil import cpu_model, fit_scene  # noqa: E402
 
 
@@ -50,7 +52,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=22)
     ap.add_argument("--views", type=int, default=8)
     ap.add_argument("--rig", default="results/{scene}/rig.npz", help="rig file ({scene}: the scene's name)")
-    ap.add_argument("--runs", default="chain,oracle,photo,anchor", help="which of chain, oracle, photo, anchor to run")
+    ap.add_argument("--runs", default="chain,oracle,photo,anchor,anchor_texture",
+                    help="which of chain, oracle, photo, anchor, anchor_texture to run")
     ap.add_argument("--cues", default="ground_truth", choices=["ground_truth", "pipeline"],
                     help="masks and flows: the scene's true ones (gt/) or the pipeline's (results/<scene>/<seq>/)")
     ap.add_argument("--threads", type=int, default=2)
@@ -81,7 +84,9 @@ def main() -> None:
     for key, name, cfg, oracle in (("chain", "chain (the paper's L_of; the default)", paper, False),
                                    ("oracle", "oracle targets (from the rig floor of t-1)", paper, True),
                                    ("photo", "chain + L_ph (variant photo)", FIT.config_for(paper, "photo"), False),
-                                   ("anchor", "chain + L_an (variant anchor)", FIT.config_for(paper, "anchor"), False)):
+                                   ("anchor", "chain + L_an (variant anchor)", FIT.config_for(paper, "anchor"), False),
+                                   ("anchor_texture", "chain + L_an on texture references (variant anchor_texture, "
+                                    "unfiltered)", FIT.config_for(paper, "anchor"), False)):
         if key not in wanted:
             continue
         cue_dir = d / a.seq / "gt" if a.cues == "ground_truth" else Path("results") / a.scene / a.seq
@@ -93,12 +98,15 @@ def main() -> None:
                             seq_dir=d / a.seq if (cfg.w_photo > 0 or cfg.w_anchor > 0) else None)
         t0 = time.perf_counter()
         cues = reader.cues(0)
-        prev = FIT.fit_frame(rig, views, cues, floor_G[0], cfg, None, first=True)
         anchor = None  # L_an's references (variant anchor), as fit_sequence keeps them
+        if key == "anchor_texture":  # fixed references for every vertex from frame 0 on
+            anchor, _ = texture_anchor_of(d, info, f"results/{a.scene}/template.npz", rig, views, floor_G[0],
+                                          cfg.photo_blur, torch.device("cpu"))
+        prev = FIT.fit_frame(rig, views, cues, floor_G[0], cfg, None, first=True, anchor=anchor)
 
         def update(anchor, prev, cues):
-            if cfg.w_anchor == 0:
-                return None
+            if cfg.w_anchor == 0 or key == "anchor_texture":
+                return anchor
             return FIT.update_anchor(anchor, prev.verts, views, prev.fragments, cues.image, cues.mask, cfg)
 
         anchor = update(anchor, prev, cues)
