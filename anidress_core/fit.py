@@ -612,7 +612,8 @@ def update_anchor(ref: AnchorRef | None, verts: Tensor, views: Views, fragments:
     return AnchorRef(torch.where(new[:, None], mean, ref.chroma.to(mean.dtype)), ref.seen | new)
 
 
-def texture_anchor(faces: Tensor, face_uv: Tensor, texture: Tensor, blur_texels: float) -> AnchorRef:
+def texture_anchor(faces: Tensor, face_uv: Tensor, texture: Tensor, blur_texels: float,
+                   num_vertices: int | None = None) -> AnchorRef:
     """L_an's references from a textured template instead of from the first frame a vertex is seen.
 
     faces (F, 3), face_uv (F, 3, 2) the template's UVs (OBJ convention, :func:`raster.sample_texture`);
@@ -622,12 +623,15 @@ def texture_anchor(faces: Tensor, face_uv: Tensor, texture: Tensor, blur_texels:
     :func:`texture_blur_texels`), at its UV. Every vertex gets one (``seen`` all True), so L_an
     holds each vertex on its own material point from frame 0 on: the material placement that
     no mask, normal or flow observes (benchmarks/fit_frame0.md) is then seen in the images.
+    num_vertices: V (default: the largest index in ``faces`` + 1); every vertex must be in a face.
     """
-    V = int(faces.max()) + 1 if faces.numel() else 0
+    V = num_vertices if num_vertices is not None else (int(faces.max()) + 1 if faces.numel() else 0)
     if face_uv.shape != (*faces.shape, 2) or texture.ndim != 3 or texture.shape[-1] != 3:
         raise ValueError(f"texture_anchor: faces (F, 3), face_uv (F, 3, 2) and texture (Ht, Wt, 3) expected, got "
                          f"{tuple(faces.shape)}, {tuple(face_uv.shape)}, {tuple(texture.shape)}")
     first = torch.full((V,), faces.numel(), dtype=torch.int64, device=faces.device)
+    if faces.numel() and int(faces.max()) >= V:
+        raise ValueError(f"texture_anchor: faces index vertex {int(faces.max())} of {V}")
     first.scatter_reduce_(0, faces.reshape(-1), torch.arange(faces.numel(), device=faces.device), "amin")
     if bool((first == faces.numel()).any()):
         raise ValueError("texture_anchor: some vertices are in no face")

@@ -363,6 +363,8 @@ def test_texture_anchor_samples_the_blurred_texture_chromaticity_at_the_uvs():
     assert float(blur.chroma.std()) < float(ref.chroma.std())
     with pytest.raises(ValueError):
         fit.texture_anchor(faces, face_uv[:, :2], tex, 1.0)
+    with pytest.raises(ValueError, match="no face"):  # a fifth vertex that no face uses
+        fit.texture_anchor(faces, face_uv, tex, 1.0, num_vertices=5)
 
 
 def test_texture_blur_matches_the_pixel_footprint():

@@ -113,7 +113,7 @@ def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.Rig
     tex = torch.as_tensor(files.read_image(path), device=device).double()
     start = lbs(rig.rest, rig.weights, G0.to(device))
     blur = FIT.texture_blur_texels(rig.rest, faces, face_uv, tuple(tex.shape[:2]), start, views, image_blur)
-    return (FIT.texture_anchor(faces, face_uv, tex, blur),
+    return (FIT.texture_anchor(faces, face_uv, tex, blur, num_vertices=rig.rest.shape[0]),
             f"{path} ({tex.shape[1]}x{tex.shape[0]}), blurred by {blur:.2f} texels (one image pixel + the images' blur)")
 
 
