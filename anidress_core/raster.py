@@ -321,6 +321,22 @@ def _merge_groups(counts: list[int]) -> list[int]:
     return target
 
 
+def _key_layout(num_faces: int, near: float) -> tuple[int, float, float]:
+    """The depth key's layout, shared by both backends and the decoder in :func:`rasterize`:
+    ``key = (q << fbits) | face`` with fbits = bit length of F - 1 (at least 1) and
+    q = (1/near - 1/z) * zscale in [0, qmax], qmax = 2**(62 - fbits), zscale = qmax * near."""
+    fbits = max(1, (num_faces - 1).bit_length())
+    qmax = float(2 ** (62 - fbits))
+    return fbits, qmax * near, qmax
+
+
+def _snap(uv: Tensor, z: Tensor, near: float) -> tuple[Tensor, Tensor]:
+    """Vertices snapped to the 1/256-pixel grid (C, V, 2) float64 (integers, clamped) and
+    (C V,) bool: finite and in front of the near plane."""
+    S = torch.round(uv.to(torch.float64) * _SUBPIXEL).clamp_(-_COORD_CLAMP, _COORD_CLAMP)
+    return S, (torch.isfinite(uv).all(-1) & (z >= near)).reshape(-1)
+
+
 def _raster_keys_warp(
     uv: Tensor,
     z: Tensor,
@@ -346,16 +362,15 @@ def _raster_keys_warp(
         return keys.view(C, H, W)
     if dev.type not in ("cpu", "cuda"):
         raise ValueError(f"rasterize: the warp backend runs on cpu or cuda, not {dev}; pass backend='torch'")
-    S = torch.round(uv.to(torch.float64) * _SUBPIXEL).clamp_(-_COORD_CLAMP, _COORD_CLAMP)
-    vok = (torch.isfinite(uv).all(-1) & (z >= near)).to(torch.int32).reshape(-1)
-    fbits = max(1, (F - 1).bit_length())
+    S, vok = _snap(uv, z, near)
+    fbits, zscale, qmax = _key_layout(F, near)
     wp.init()
     wdev = "cpu" if dev.type == "cpu" else str(dev)
     args = [wp.from_torch(S[..., 0].reshape(-1).contiguous()), wp.from_torch(S[..., 1].reshape(-1).contiguous()),
-            wp.from_torch(z.to(torch.float64).reshape(-1).contiguous()), wp.from_torch(vok),
+            wp.from_torch(z.to(torch.float64).reshape(-1).contiguous()), wp.from_torch(vok.to(torch.int32)),
             wp.from_torch(faces.to(device=dev, dtype=torch.int32).contiguous()),
             wp.from_torch(fx_fy_sign.to(device=dev, dtype=torch.float64).contiguous()),
-            V, H, W, int(cull_backfaces), fbits, float(2 ** (62 - fbits)) * near, float(2 ** (62 - fbits)),
+            V, H, W, int(cull_backfaces), fbits, zscale, qmax,
             wp.from_torch(keys)]
     stream = wp.stream_from_torch(dev) if dev.type == "cuda" else None
     wp.launch(raster_kernels.raster_keys, C * F, inputs=args, device=wdev, stream=stream)
@@ -388,9 +403,8 @@ def _raster_keys_torch(
         return torch.full((C, H, W), _KEY_BG, dtype=torch.int64, device=dev)
 
     # 1. snap to the 1/256 pixel grid (integers held in float64); corner planes (3, C F)
-    S = torch.round(uv.to(f64) * _SUBPIXEL).clamp_(-_COORD_CLAMP, _COORD_CLAMP)
+    S, vok = _snap(uv, z, near)
     Sx, Sy = S[..., 0].reshape(-1), S[..., 1].reshape(-1)  # (C V,)
-    vok = (torch.isfinite(uv).all(-1) & (z >= near)).reshape(-1)
     corner = (faces.t()[:, None, :] + (torch.arange(C, device=dev) * V)[None, :, None]).reshape(3, C * F)
     X, Y = Sx[corner], Sy[corner]  # (3, C F)
 
@@ -471,9 +485,7 @@ def _raster_keys_torch(
     # uses 1/z quantised uniformly on [0, 1/near] (like a GPU z-buffer) to the bits left
     # over by the face id, q = (1/near - 1/z) * zscale, smaller = nearer; q is affine
     # too, so the matrix product below evaluates it directly.
-    fbits = max(1, (F - 1).bit_length())
-    zscale = float(2 ** (62 - fbits)) * near
-    qmax = float(2 ** (62 - fbits))
+    fbits, zscale, qmax = _key_layout(F, near)
     g = -zscale / (Zc * area2)  # (3, Mp)
     ia, ib = -(dY * g).sum(0), (dX * g).sum(0)
     ic = ia * Px0 + ib * Py0 + (e0 * g).sum(0) + qmax
@@ -585,13 +597,13 @@ def rasterize(
         )
     else:
         raise ValueError(f"rasterize: backend must be 'warp' or 'torch', got {backend!r}")
-    fbits = max(1, int(faces.shape[0] - 1).bit_length())
+    fbits, zscale, _ = _key_layout(int(faces.shape[0]), near)
     fg = keys != _KEY_BG
     face_id = torch.where(fg, keys & ((1 << fbits) - 1), torch.full_like(keys, -1))
     if not with_bary:
-        # q = (1/near - 1/z) * zscale, zscale = 2**(62 - fbits) * near (see _raster_keys_torch)
+        # q = (1/near - 1/z) * zscale (_key_layout)
         q = (keys >> fbits).to(torch.float64)
-        inv_z = 1.0 / near - q / (float(2 ** (62 - fbits)) * near)
+        inv_z = 1.0 / near - q / zscale
         depth = torch.where(fg, 1.0 / inv_z.clamp_min(1e-300), torch.full_like(q, float("inf")))
         return Fragments(face_id, None, depth.to(z.dtype))  # type: ignore[arg-type]
     bary, depth = _bary_from_projection(uv, z, faces, face_id)
