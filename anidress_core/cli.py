@@ -128,13 +128,11 @@ def _cmd_cues_eval(args: argparse.Namespace) -> None:
 
 
 def _cmd_fit(args: argparse.Namespace) -> None:
-    from .config import load_config
+    from .config import load_config, scene_section
     from .stages.fit import run_fit
 
-    cfg = load_config(args.config)
     scene = Path(args.scene_dir)
-    params = dict(cfg["fit"])  # + the scene's own overrides (scenes/<scene>/fit), as the workflow's rule fit
-    params.update(((cfg.get("scenes") or {}).get(scene.name) or {}).get("fit") or {})
+    params = scene_section(load_config(args.config), "fit", scene.name)  # as the workflow's rule fit
     if args.views is not None:
         params["views"] = args.views
     if args.threads:

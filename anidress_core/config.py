@@ -15,7 +15,8 @@ from typing import Any
 
 import yaml
 
-__all__ = ["ConfigError", "validate_config", "load_config", "default_schema_path", "scene_config", "section_defaults"]
+__all__ = ["ConfigError", "validate_config", "load_config", "default_schema_path", "scene_config", "section_defaults",
+           "scene_section"]
 
 
 class ConfigError(ValueError):
@@ -131,3 +132,13 @@ def scene_config(config: dict, scene: str) -> dict:
     if scene not in scenes:
         raise ConfigError(f"unknown scene {scene!r}; the config defines {sorted(scenes)}")
     return scenes[scene]
+
+
+def scene_section(config: dict, section: str, scene: str) -> dict:
+    """A copy of the top-level section ``section`` (e.g. ``fit``) with the scene's own
+    overrides (``scenes/<scene>/<section>``) on top; a scene the config does not define gets
+    the top-level section as it is. The workflow's rules and the CLI read a scene's settings
+    through this one function."""
+    out = dict(config.get(section) or {})
+    out.update(((config.get("scenes") or {}).get(scene) or {}).get(section) or {})
+    return out

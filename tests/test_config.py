@@ -66,3 +66,15 @@ def test_section_defaults_are_the_validated_configs():
     assert fit_config({}).w_prior_first == SCHEMA["properties"]["fit"]["properties"]["first_frame_prior"]["default"]
     with pytest.raises(ConfigError, match="no config section 'nope'"):
         section_defaults("nope")
+
+
+def test_scene_section_puts_the_scene_overrides_on_top():
+    from anidress_core.config import scene_section
+
+    cfg = {"fit": {"views": 0, "anchor_reference": "images"},
+           "scenes": {"skirt": {"fit": {"anchor_reference": "texture"}}, "dress": {"fit": {}}}}
+    assert scene_section(cfg, "fit", "skirt") == {"views": 0, "anchor_reference": "texture"}
+    assert scene_section(cfg, "fit", "dress") == cfg["fit"]
+    assert scene_section(cfg, "fit", "not_configured") == cfg["fit"]
+    scene_section(cfg, "fit", "skirt")["views"] = 3  # a copy
+    assert cfg["fit"]["views"] == 0

@@ -3,7 +3,7 @@ import os
 
 import yaml
 
-from anidress_core.config import validate_config
+from anidress_core.config import scene_section, validate_config
 
 
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")

@@ -47,9 +47,7 @@ def fit_inputs(wildcards):
 def fit_params(scene):
     """The settings that shape a fit of one scene: the fit section with the scene's own overrides
     (scenes/<scene>/fit), the ablation list and eval settings excluded (no rerun when they change)."""
-    p = {k: v for k, v in config["fit"].items() if k not in ("ablations", "eval", "threads")}
-    p.update(config["scenes"][scene].get("fit") or {})
-    return p
+    return {k: v for k, v in scene_section(config, "fit", scene).items() if k not in ("ablations", "eval", "threads")}
 
 
 def fit_outputs(scene):
