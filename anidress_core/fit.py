@@ -42,6 +42,13 @@ weights (V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
   each material point is from frame 0 on, which masks, normals and flow cannot (on the
   skirt's floral print the frame-0 tangential error falls from 18 to 6 mm; on a repeating,
   nearly one-hue plaid the references do not discriminate and the fit gets worse).
+* L_col, body collision (not in the paper; ``w_collision``, 0 = off): the mean over the
+  garment vertices of max(0, eps - d_v)^2, d_v the vertex's signed distance to the body along
+  the outward normal of its closest body point, point and normal taken at the frame's start
+  (:func:`body_contacts`, a point-to-plane linearisation like ICP's). The rig's bones at the
+  hem are seen in few views, and a part that has slipped inside a leg is hidden by the body
+  from every cue; without this the fit leaves tens of vertices per frame up to 6 cm inside
+  the body (benchmarks/fit_collision.md).
 
 As in the paper every term is a sum (over views and pixels or targets); all of them are
 divided by one common constant, the number of garment pixels in the masks, so that their
@@ -210,6 +217,16 @@ class FitConfig:
     vertex's chromaticity against the one it had when first seen (module docstring)."""
     anchor_scale: float = 0.05
     """Cauchy scale of L_an (chromaticity difference; rgb / (r + g + b), each in [0, 1])."""
+    w_collision: float = 0.0
+    """Weight of L_col, the body-collision term (not in the paper; 0 = off): mean over the garment
+    vertices of max(0, collision_eps - d_v)^2 (metres^2), d_v the vertex's signed distance to the
+    body along the outward normal of its closest body point, that point and normal taken once per
+    frame at the start pose (a point-to-plane linearisation; needs ``FrameCues.occluder_mesh``).
+    A garment part hidden inside a leg is seen by no mask, normal or flow; this pushes it out."""
+    collision_eps: float = 0.003
+    """L_col: clearance (metres) the garment keeps from the body skin."""
+    collision_radius: float = 0.05
+    """L_col: only vertices within this distance (metres) of the body at the frame's start get a plane."""
     smooth_passes: int = 0
     """After the whole sequence is fitted: passes of the temporal filter (1, 2, 1) / 4 over the bone
     transforms (:func:`smooth_transforms`; not in the paper; 0 = off). Offline, like the rest of
@@ -224,13 +241,16 @@ class FitConfig:
             raise ValueError(f"FitConfig.normalisation must be 'paper' or 'per_term', got {self.normalisation!r}")
         if self.method not in ("rig", "vertex"):
             raise ValueError(f"FitConfig.method must be 'rig' or 'vertex', got {self.method!r}")
-        for k in ("w_mask", "w_normal", "w_flow", "w_photo", "w_anchor"):
+        for k in ("w_mask", "w_normal", "w_flow", "w_photo", "w_anchor", "w_collision"):
             v = getattr(self, k)
             if not (v >= 0 and math.isfinite(v)):
                 raise ValueError(f"FitConfig.{k} must be finite and >= 0, got {v}")
         if not (self.photo_blur >= 0 and self.photo_scale > 0 and self.anchor_scale > 0):
             raise ValueError(f"FitConfig: photo_blur must be >= 0, photo_scale and anchor_scale > 0, got "
                              f"{self.photo_blur}, {self.photo_scale}, {self.anchor_scale}")
+        if not (self.collision_eps >= 0 and self.collision_radius > 0):
+            raise ValueError(f"FitConfig: collision_eps must be >= 0 and collision_radius > 0, got "
+                             f"{self.collision_eps}, {self.collision_radius}")
         if int(self.smooth_passes) != self.smooth_passes or self.smooth_passes < 0:
             raise ValueError(f"FitConfig.smooth_passes must be an integer >= 0, got {self.smooth_passes}")
         if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex_max_iters < 1:
@@ -247,11 +267,11 @@ def config_for(base: FitConfig, ablation: str | None) -> FitConfig:
     if ablation in (None, "", "full"):
         return base
     if ablation == "vertex":
-        return replace(base, method="vertex", w_photo=0.0, w_anchor=0.0, smooth_passes=0)
+        return replace(base, method="vertex", w_photo=0.0, w_anchor=0.0, w_collision=0.0, smooth_passes=0)
     if ablation == "no_normal_flow":
-        return replace(base, w_normal=0.0, w_flow=0.0, w_photo=0.0, w_anchor=0.0, smooth_passes=0)
+        return replace(base, w_normal=0.0, w_flow=0.0, w_photo=0.0, w_anchor=0.0, w_collision=0.0, smooth_passes=0)
     if ablation == "no_flow":
-        return replace(base, w_flow=0.0, w_photo=0.0, w_anchor=0.0, smooth_passes=0)
+        return replace(base, w_flow=0.0, w_photo=0.0, w_anchor=0.0, w_collision=0.0, smooth_passes=0)
     if ablation == "photo":
         return replace(base, w_photo=base.w_photo if base.w_photo > 0 else PHOTO_WEIGHT)
     if ablation == "anchor":
@@ -578,6 +598,31 @@ def chromaticity(image: Tensor) -> Tensor:
     return image / (image.sum(-1, keepdim=True) + CHROMA_EPS)
 
 
+class Contacts(NamedTuple):
+    """L_col's planes: garment vertices near the body, the closest body point and outward normal."""
+
+    vert: Tensor  # (M,) int64 garment vertex ids
+    point: Tensor  # (M, 3) float64 closest body point
+    normal: Tensor  # (M, 3) float64 outward unit normal there
+
+
+def body_contacts(verts: Tensor, body_verts: Tensor, body_faces: Tensor, radius: float) -> Contacts:
+    """L_col's planes for the garment ``verts`` (V, 3) and the posed body mesh (Vb, 3), (Fb, 3):
+    every vertex within ``radius`` of the body (inside or outside, by the winding number) with its
+    closest body point and the outward normal there (:func:`anidress_core.sim.metrics.body_contacts`)."""
+    from .sim.metrics import body_contacts as closest
+
+    point, normal, found = closest(verts.detach(), body_verts, body_faces, radius)
+    vert = found.nonzero(as_tuple=True)[0]
+    return Contacts(vert, point[vert].to(verts.device), normal[vert].to(verts.device))
+
+
+def _collision_residual(contacts: Contacts, verts: Tensor, eps: float) -> Tensor:
+    """(M,) max(0, eps - (x - p) . n): how far each contact vertex is short of ``eps`` outside the body."""
+    d = ((verts[contacts.vert] - contacts.point.to(verts.dtype)) * contacts.normal.to(verts.dtype)).sum(-1)
+    return (eps - d).clamp_min(0)
+
+
 class AnchorRef(NamedTuple):
     """L_an's references: each vertex's chromaticity in the first frame it was seen."""
 
@@ -747,6 +792,7 @@ class _Problem(NamedTuple):
     n_photo: float = 1.0
     anchor_feat: Tensor | None = None  # (C, 9, H, W) photo_features of the chromaticity, or None (L_an off)
     anchor: AnchorRef | None = None
+    contacts: "Contacts | None" = None  # L_col's planes, or None (L_col off)
 
 
 class _Eval(NamedTuple):
@@ -806,7 +852,8 @@ def _check_cues(views: Views, cues: FrameCues) -> None:
 
 
 def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig,
-                  prior: Tensor | None = None, anchor: AnchorRef | None = None) -> _Problem:
+                  prior: Tensor | None = None, anchor: AnchorRef | None = None,
+                  contacts: Contacts | None = None) -> _Problem:
     _check_cues(views, cues)
     soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
     soft = torch.where(torch.isfinite(soft), soft.clamp(0, 1), torch.zeros_like(soft))
@@ -842,6 +889,7 @@ def _make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTarget
         prior=None if prior is None or cfg.w_prior_first == 0 else prior.detach().double(),
         w_prior=cfg.w_prior_first / rig.rest.shape[0],
         photo=photo, photo_region=region, n_photo=n_photo, anchor_feat=anchor_feat, anchor=anchor,
+        contacts=contacts if cfg.w_collision > 0 and contacts is not None and contacts.vert.numel() else None,
     )
 
 
@@ -976,7 +1024,7 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
     frags = raster.occlude(raster.rasterize(verts, pb.rig.faces, K, E, v.height, v.width, with_bary=False),
                            pb.occluder)
     cfg = pb.cfg
-    terms = {"mask": 0.0, "normal": 0.0, "flow": 0.0, "prior": 0.0}
+    terms = {"mask": 0.0, "normal": 0.0, "flow": 0.0, "prior": 0.0, "collision": 0.0}
     # 1. silhouette (raster.silhouette): hard coverage + (t - 1/2) where each edge crosses
     hard = (frags.face_id >= 0).reshape(-1).double()
     cr = raster.silhouette_crossings(uv, z, pb.rig.faces, frags, pb.rig.edges)
@@ -1037,7 +1085,11 @@ def _evaluate(pb: _Problem, verts: Tensor) -> _Eval:
         value, anc = _cauchy_colour(c, vv, _sample(pb.anchor_feat, uv)[c, vv], pb.anchor.chroma, cfg.anchor_scale)
         terms["anchor"] = value / pb.n_photo
     loss = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
+    # 7. body collision: vertices short of the clearance outside the body (planes fixed per frame)
+    if pb.contacts is not None:
+        terms["collision"] = float(_collision_residual(pb.contacts, verts, cfg.collision_eps).pow(2).sum()) / V
     loss += cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"] + cfg.w_anchor * terms["anchor"]
+    loss += cfg.w_collision * terms["collision"]
     return _Eval(loss, terms, verts, frags, uv, sil, nrm, pho, anc)
 
 
@@ -1188,6 +1240,16 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
         blocks.index_add_(0, lay.diag, pb.w_prior * torch.eye(3, dtype=blocks.dtype, device=blocks.device).expand(V, 3, 3))
         gx += pb.w_prior * (verts - pb.prior)
         any_vertex_term = True
+    # 7. body collision: residual sqrt(w / V) max(0, eps - (x - p).n), Jacobian -n^T where active
+    if pb.contacts is not None:
+        ct = pb.contacts
+        r = _collision_residual(ct, verts, cfg.collision_eps)
+        on = r > 0
+        if bool(on.any()):
+            vv, nn, w = ct.vert[on], ct.normal[on].to(verts.dtype), cfg.w_collision / V
+            blocks.index_add_(0, lay.diag[vv], w * nn[:, :, None] * nn[:, None, :])
+            gx.index_add_(0, vv, -w * r[on][:, None] * nn)
+            any_vertex_term = True
     if any_vertex_term:
         Hx = lay.matrix(blocks.to(jdtype))
         H += (Jx.t() @ (Hx @ Jx)).double()
@@ -1197,7 +1259,8 @@ def _gauss_newton(pb: _Problem, ev: _Eval, transforms: Tensor, jdtype=torch.floa
 
 def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow: FlowTargets | None = None,
                cfg: FitConfig = FitConfig(), fragments: raster.Fragments | None = None,
-               prior: Tensor | None = None, anchor: AnchorRef | None = None) -> tuple[Tensor, dict]:
+               prior: Tensor | None = None, anchor: AnchorRef | None = None,
+               contacts: Contacts | None = None) -> tuple[Tensor, dict]:
     """Differentiable (autograd) total loss of a mesh ``verts`` (V, 3) and its unweighted terms.
 
     The same loss :func:`fit_frame` minimises, built from :func:`raster.silhouette`,
@@ -1205,7 +1268,7 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
     vertex ablation and to check the Gauss-Newton gradients. ``fragments``: visibility
     to hold fixed (default: rasterise ``verts``); anchor: L_an's references (None: L_an off).
     """
-    pb = _make_problem(rig, views, cues, flow, cfg, prior, anchor)
+    pb = _make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts)
     K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
     if fragments is None:
         fragments = raster.occlude(raster.rasterize(verts.detach(), rig.faces, K, E, views.height, views.width,
@@ -1244,8 +1307,12 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
         r = (_sample(pb.anchor_feat[:, :3], uv) - pb.anchor.chroma.to(uv.dtype)[None])[vis]
         s2 = cfg.anchor_scale ** 2
         terms["anchor"] = (s2 * torch.log1p((r * r).sum(-1) / s2)).sum() / pb.n_photo
+    terms["collision"] = lm.new_zeros(())
+    if pb.contacts is not None:
+        terms["collision"] = _collision_residual(pb.contacts, verts, cfg.collision_eps).pow(2).sum() / verts.shape[0]
     total = cfg.w_mask * terms["mask"] + cfg.w_normal * terms["normal"] + cfg.w_flow * terms["flow"]
     total = total + cfg.w_prior_first * terms["prior"] + cfg.w_photo * terms["photo"] + cfg.w_anchor * terms["anchor"]
+    total = total + cfg.w_collision * terms["collision"]
     return total, terms
 
 
@@ -1412,6 +1479,11 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
             G = _flow_align(rig, views, flow, G, cfg.flow_align_iters)
         x_start = lbs(rig.rest, rig.weights, G)
     prior = lbs(rig.rest, rig.weights, init) if first and cfg.method == "rig" else (x_start if first else None)
+    contacts = None
+    if cfg.w_collision > 0 and cfg.method == "rig":
+        if cues.occluder_mesh is None:
+            raise ValueError("fit: w_collision > 0 needs the body mesh (FrameCues.occluder_mesh)")
+        contacts = body_contacts(x_start, *cues.occluder_mesh, cfg.collision_radius)
     window = None
     if cfg.crop_margin >= 0:  # render only the windows that can hold the garment
         window = crop_window(views, cues.mask, x_start, cfg.crop_margin)
@@ -1423,7 +1495,7 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         res = _vertex_adam(pb, cues, x_start, init, cfg.vertex_max_iters * (3 if first else 1))
     else:
         for f in cfg.levels_first if first else cfg.levels:
-            pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg, prior, anchor)
+            pb = _make_problem(rig, *downsample(views, cues, flow, f), cfg, prior, anchor, contacts)
             res = _lm(pb, G, cfg.max_iters_first if first else cfg.max_iters)
             G, spent = res.transforms, spent + res.iterations
         res.iterations = spent  # the curve and terms are those of the full resolution

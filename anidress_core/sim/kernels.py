@@ -269,6 +269,34 @@ def signed_distance(
 
 
 @wp.kernel
+def closest_point_signed(
+    mesh: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    max_dist: float,
+    point: wp.array(dtype=wp.vec3),  # (N,) out: closest mesh point
+    normal: wp.array(dtype=wp.vec3),  # (N,) out: outward unit normal there
+    found: wp.array(dtype=wp.int32),  # (N,) out: 1 if a mesh point lies within max_dist
+):
+    """Closest point of a closed mesh within ``max_dist`` and the outward normal there: the
+    direction from the point to x when x is outside (winding number), the face normal when x is
+    inside or on the surface (so (x - point) . normal is x's signed distance either way)."""
+    i = wp.tid()
+    found[i] = 0
+    q = wp.mesh_query_point_sign_winding_number(mesh, x[i], max_dist)
+    if not q.result:
+        return
+    cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    d = x[i] - cp
+    dist = wp.length(d)
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    if q.sign > 0.0 and dist > 1.0e-7:
+        n = d / dist
+    point[i] = cp
+    normal[i] = n
+    found[i] = 1
+
+
+@wp.kernel
 def signed_distance_fast(
     mesh: wp.uint64,
     x: wp.array(dtype=wp.vec3),

@@ -6,7 +6,7 @@ import torch
 
 from .setup import mesh_edges
 
-__all__ = ["edge_stretch", "penetration_depth"]
+__all__ = ["body_contacts", "edge_stretch", "penetration_depth"]
 
 
 def _np(a, dtype):
@@ -63,3 +63,34 @@ def penetration_depth(frames, body_vertices, body_faces, max_dist: float = 0.1, 
         wp.launch(K.signed_distance, x.shape[1], inputs=[mesh.id, xs, float(max_dist), sd], device=device)
         out[t] = np.clip(-sd.numpy(), 0.0, None)
     return out
+
+
+def body_contacts(points, body_vertices, body_faces, max_dist: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Closest points of a closed body mesh to ``points`` and the outward normals there.
+
+    points: (N, 3); body_vertices: (Vb, 3); body_faces: (Fb, 3). Returns point (N, 3), normal
+    (N, 3) (float64, on the points' device) and found (N,) bool (a body point within
+    ``max_dist``; elsewhere point and normal are 0). Inside / outside by the generalised winding
+    number, so (x - point) . normal is the signed distance of x (< 0 inside) wherever found.
+    """
+    import warp as wp
+
+    from . import kernels as K
+
+    dev = points.device if isinstance(points, torch.Tensor) else torch.device("cpu")
+    x = _np(points, np.float32)
+    b = _np(body_vertices, np.float32)
+    f = _np(body_faces, np.int32)
+    if x.ndim != 2 or x.shape[-1] != 3 or b.ndim != 2 or b.shape[-1] != 3 or f.ndim != 2 or f.shape[-1] != 3:
+        raise ValueError(f"body_contacts: expected points (N, 3), body (Vb, 3), faces (Fb, 3), got {x.shape}, "
+                         f"{b.shape}, {f.shape}")
+    wp.init()
+    mesh = wp.Mesh(points=wp.array(b, dtype=wp.vec3), indices=wp.array(f.reshape(-1), dtype=wp.int32),
+                   support_winding_number=True)
+    n = x.shape[0]
+    xs = wp.array(np.nan_to_num(x, nan=1e9, posinf=1e9, neginf=-1e9), dtype=wp.vec3)
+    cp, cn, ok = wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.int32)
+    wp.launch(K.closest_point_signed, n, inputs=[mesh.id, xs, float(max_dist), cp, cn, ok])
+    found = torch.from_numpy(ok.numpy() != 0) & torch.from_numpy(np.isfinite(x).all(-1))
+    as64 = lambda a: torch.from_numpy(a.numpy().astype(np.float64))  # noqa: E731
+    return as64(cp).to(dev), as64(cn).to(dev), found.to(dev)

@@ -77,6 +77,7 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
     base = FIT.FitConfig(
         w_mask=float(w["mask"]), w_normal=float(w["normal"]), w_flow=float(w["flow"]), w_photo=float(w["photo"]),
         w_anchor=float(w["anchor"]), anchor_scale=float(p["anchor_scale"]),
+        w_collision=float(w["collision"]), collision_eps=float(p["collision_clearance"]),
         photo_blur=float(p["photo_blur"]), photo_scale=float(p["photo_scale"]),
         max_iters=int(p["max_iters"]), max_iters_first=int(p["max_iters_first"]), rel_tol=float(p["rel_tol"]),
         step_tol=float(p["step_tol"]), damping=float(p["damping"]), vis_depth_tol=float(p["visibility_depth_tol"]),

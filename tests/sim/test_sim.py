@@ -249,3 +249,27 @@ def test_five_times_faster_motion_is_stable(body):
     assert res.stats.max_stretch.max() < p.max_stretch
     pen = penetration_depth(res.frames, posed.vertices, body.faces)[:, ~band]
     assert pen.max() < 0.02
+
+
+def test_body_contacts_give_the_signed_distance_to_a_sphere():
+    """body_contacts: the closest point and outward normal of a closed mesh, so that
+    (x - point) . normal is the signed distance (winding-number sign), inside and outside;
+    points farther than max_dist are not found."""
+    import trimesh
+
+    from anidress_core.sim.metrics import body_contacts
+
+    m = trimesh.creation.icosphere(subdivisions=4, radius=0.2)
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.nn.functional.normalize(torch.randn(50, 3, generator=g, dtype=torch.float64), dim=-1)
+    radii = torch.linspace(0.12, 0.26, 50, dtype=torch.float64)
+    x = dirs * radii[:, None] + torch.tensor([0.3, -0.1, 1.0], dtype=torch.float64)
+    bv = torch.as_tensor(m.vertices) + torch.tensor([0.3, -0.1, 1.0], dtype=torch.float64)
+    point, normal, found = body_contacts(x, bv, torch.as_tensor(m.faces), max_dist=0.05)
+    inside_reach = (radii - 0.2).abs() < 0.049  # the cut-off is max_dist (facets: +-1 mm)
+    assert bool(found[inside_reach].all()) and not bool(found[(radii - 0.2).abs() > 0.051].any())
+    sd = ((x - point) * normal).sum(-1)
+    torch.testing.assert_close(sd[found], (radii - 0.2)[found], atol=2e-3, rtol=0)  # icosphere facets: < 2 mm
+    torch.testing.assert_close(normal[found].norm(dim=-1), torch.ones(int(found.sum()), dtype=torch.float64),
+                               atol=1e-5, rtol=0)
+    assert float((normal[found] * dirs[found]).sum(-1).min()) > 0.95  # outward, inside the sphere too
