@@ -12,7 +12,10 @@ With ground-truth masks and flows (synthetic scene) and frame 0 started on the r
 * ``chain + L_an``: as ``chain`` with the temporal chromaticity anchor on (variant
   ``anchor``; references from the frame each vertex is first seen in);
 * ``chain + L_an (texture)``: the same with L_an's references from the garment texture at the
-  template's UVs, frame 0 included (variant ``anchor_texture``, without its temporal filter).
+  template's UVs, frame 0 included (variant ``anchor_texture``, without its temporal filter);
+* ``anchor_texture_true_flows``: as ``anchor_texture`` with the scene's true flows (gt/flows) in
+  place of the estimated ones, the masks unchanged (isolates what the flow estimate's error costs);
+* ``anchor_texture_no_flow``: as ``anchor_texture`` without L_of (no transport between frames).
 
 Writes benchmarks/fit_drift.md (per-frame vertex RMSE against the ground truth, every
 other frame) and prints it. Not a test.
@@ -53,7 +56,8 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=8)
     ap.add_argument("--rig", default="results/{scene}/rig.npz", help="rig file ({scene}: the scene's name)")
     ap.add_argument("--runs", default="chain,oracle,photo,anchor,anchor_texture",
-                    help="which of chain, oracle, photo, anchor, anchor_texture to run")
+                    help="which of chain, oracle, photo, anchor, anchor_texture, anchor_texture_true_flows, "
+                         "anchor_texture_no_flow to run")
     ap.add_argument("--cues", default="ground_truth", choices=["ground_truth", "pipeline"],
                     help="masks and flows: the scene's true ones (gt/) or the pipeline's (results/<scene>/<seq>/)")
     ap.add_argument("--threads", type=int, default=2)
@@ -86,26 +90,31 @@ def main() -> None:
                                    ("photo", "chain + L_ph (variant photo)", FIT.config_for(paper, "photo"), False),
                                    ("anchor", "chain + L_an (variant anchor)", FIT.config_for(paper, "anchor"), False),
                                    ("anchor_texture", "chain + L_an on texture references (variant anchor_texture, "
-                                    "unfiltered)", FIT.config_for(paper, "anchor"), False)):
+                                    "unfiltered)", FIT.config_for(paper, "anchor"), False),
+                                   ("anchor_texture_true_flows", "as anchor_texture, the true flows (gt/flows) in "
+                                    "place of the estimated ones", FIT.config_for(paper, "anchor"), False),
+                                   ("anchor_texture_no_flow", "as anchor_texture without L_of",
+                                    replace(FIT.config_for(paper, "anchor"), w_flow=0.0), False)):
         if key not in wanted:
             continue
         cue_dir = d / a.seq / "gt" if a.cues == "ground_truth" else Path("results") / a.scene / a.seq
         for sub in ("masks", "flows"):
             if not (cue_dir / sub).is_dir():
                 raise SystemExit(f"{cue_dir / sub}: not found (the pipeline's cues: run the masks / flows rules)")
-        reader = CueReader(cams, cue_dir / "masks", d / a.seq / "normals", cue_dir / "flows",
+        flow_dir = d / a.seq / "gt" / "flows" if key == "anchor_texture_true_flows" else cue_dir / "flows"
+        reader = CueReader(cams, cue_dir / "masks", d / a.seq / "normals", flow_dir,
                             posed.vertices.double(), body.faces, views, torch.device("cpu"), num_frames=T,
                             seq_dir=d / a.seq if (cfg.w_photo > 0 or cfg.w_anchor > 0) else None)
         t0 = time.perf_counter()
         cues = reader.cues(0)
         anchor = None  # L_an's references (variant anchor), as fit_sequence keeps them
-        if key == "anchor_texture":  # fixed references for every vertex from frame 0 on
+        if key.startswith("anchor_texture"):  # fixed references for every vertex from frame 0 on
             anchor, _ = texture_anchor_of(d, info, f"results/{a.scene}/template.npz", rig, views, floor_G[0],
                                           cfg.photo_blur, torch.device("cpu"))
         prev = FIT.fit_frame(rig, views, cues, floor_G[0], cfg, None, first=True, anchor=anchor)
 
         def update(anchor, prev, cues):
-            if cfg.w_anchor == 0 or key == "anchor_texture":
+            if cfg.w_anchor == 0 or key.startswith("anchor_texture"):
                 return anchor
             return FIT.update_anchor(anchor, prev.verts, views, prev.fragments, cues.image, cues.mask, cfg)
 
