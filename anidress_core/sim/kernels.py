@@ -279,7 +279,8 @@ def closest_point_signed(
 ):
     """Closest point of a closed mesh within ``max_dist`` and the outward normal there: the
     direction from the point to x when x is outside (winding number), the face normal when x is
-    inside or on the surface (so (x - point) . normal is x's signed distance either way)."""
+    inside or on the surface. (x - point) . normal is then x's signed distance outside, and inside
+    too when the closest point lies within a face (at an edge or corner: smaller in magnitude)."""
     i = wp.tid()
     found[i] = 0
     q = wp.mesh_query_point_sign_winding_number(mesh, x[i], max_dist)

@@ -71,7 +71,8 @@ def body_contacts(points, body_vertices, body_faces, max_dist: float) -> tuple[t
     points: (N, 3); body_vertices: (Vb, 3); body_faces: (Fb, 3). Returns point (N, 3), normal
     (N, 3) (float64, on the points' device) and found (N,) bool (a body point within
     ``max_dist``; elsewhere point and normal are 0). Inside / outside by the generalised winding
-    number, so (x - point) . normal is the signed distance of x (< 0 inside) wherever found.
+    number (:func:`kernels.closest_point_signed`), so (x - point) . normal is x's signed distance
+    (< 0 inside) wherever found -- inside a limb, exactly when the closest point lies within a face.
     """
     import warp as wp
 
