@@ -88,6 +88,16 @@ def integrate(
         x[i] = x0 + vi * dt
 
 
+@wp.func
+def outward_normal(mesh: wp.uint64, face: int, sign: float, d: wp.vec3, dist: float):
+    """Outward normal of a closed mesh at the closest point of a query (face, sign) whose
+    offset from that point is d (length dist): along d when the query point is outside,
+    the face normal when it is inside or touching."""
+    if sign > 0.0 and dist > 1.0e-7:
+        return d / dist
+    return wp.mesh_eval_face_normal(mesh, face)
+
+
 @wp.kernel
 def collide_query(
     mesh: wp.uint64,
@@ -119,13 +129,8 @@ def collide_query(
     cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
     d = p - cp
     dist = wp.length(d)
-    # Outward normal: from the surface to the particle when outside, the face normal
-    # when inside or touching.
-    n = wp.mesh_eval_face_normal(mesh, q.face)
-    if q.sign > 0.0 and dist > 1.0e-7:
-        n = d / dist
     contact_point[i] = cp
-    contact_normal[i] = n
+    contact_normal[i] = outward_normal(mesh, q.face, q.sign, d, dist)
     contact_vel[i] = wp.mesh_eval_velocity(mesh, q.face, q.u, q.v)
     contact_flag[i] = 1
 
@@ -288,12 +293,8 @@ def closest_point_signed(
         return
     cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
     d = x[i] - cp
-    dist = wp.length(d)
-    n = wp.mesh_eval_face_normal(mesh, q.face)
-    if q.sign > 0.0 and dist > 1.0e-7:
-        n = d / dist
     point[i] = cp
-    normal[i] = n
+    normal[i] = outward_normal(mesh, q.face, q.sign, d, wp.length(d))
     found[i] = 1
 
 
@@ -414,11 +415,8 @@ def substep_serial(
                     else:
                         q_clear[i] = 0.0
                     if dist < radius:
-                        nrm = wp.mesh_eval_face_normal(mesh, q.face)
-                        if q.sign > 0.0 and dist > 1.0e-7:
-                            nrm = d / dist
                         contact_point[i] = cp
-                        contact_normal[i] = nrm
+                        contact_normal[i] = outward_normal(mesh, q.face, q.sign, d, dist)
                         contact_vel[i] = wp.mesh_eval_velocity(mesh, q.face, q.u, q.v)
                         contact_flag[i] = 1
     for c in range(C):
