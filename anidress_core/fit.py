@@ -614,7 +614,7 @@ def body_contacts(verts: Tensor, body_verts: Tensor, body_faces: Tensor, radius:
 
     point, normal, found = closest(verts.detach(), body_verts, body_faces, radius)
     vert = found.nonzero(as_tuple=True)[0]
-    return Contacts(vert, point[vert].to(verts.device), normal[vert].to(verts.device))
+    return Contacts(vert, point[vert], normal[vert])
 
 
 def _collision_residual(contacts: Contacts, verts: Tensor, eps: float) -> Tensor:

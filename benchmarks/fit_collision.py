@@ -32,6 +32,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from anidress_core.config import load_config, scene_section  # noqa: E402
 from anidress_core.sim import penetration_depth  # noqa: E402
 from anidress_core.stages.fit import run_fit, run_fit_eval  # noqa: E402
+from bench_fit import cue_dirs  # noqa: E402
 from benchutil import cpu_model, fit_scene, git_rev  # noqa: E402
 
 
@@ -60,9 +61,9 @@ def main() -> None:
                 p = copy.deepcopy(base)
                 p["weights"]["collision"] = w
                 out = Path(tmp) / f"{scene}-{seq}-{ref}-{w:g}.npz"
-                d = f"results/{scene}/{seq}"
+                d = cue_dirs(scene, seq, "pipeline")
                 meta = run_fit(f"data/{scene}", seq, f"results/{scene}/rig.npz", f"results/{scene}/template.npz",
-                               f"{d}/masks", f"{d}/flows", f"data/{scene}/{seq}/normals", p, out, progress=False)
+                               d["masks"], d["flows"], d["normals"], p, out, progress=False, cue_source=d["label"])
                 csv = out.with_suffix(".csv")
                 run_fit_eval(f"data/{scene}", seq, f"results/{scene}/rig.npz", {"fit": out}, csv)
                 m = pd.read_csv(csv)

@@ -717,13 +717,6 @@ def test_crop_windows_and_pyramid_keep_the_loss():
     torch.testing.assert_close(f4.target, (ft.target - 1.5) / 4)
 
 
-def sphere_body(centre, radius, subdivisions=3):
-    import trimesh
-
-    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    return (torch.as_tensor(m.vertices) + torch.tensor(centre, dtype=torch.float64), torch.as_tensor(m.faces))
-
-
 def test_collision_term_gradient_is_exact_and_pushes_the_garment_out():
     """L_col (body collision, point-to-plane at the frame's start): the Gauss-Newton gradient equals
     autograd's; a fit with it moves the vertices that a sphere 'body' pokes through back out to the
@@ -734,7 +727,10 @@ def test_collision_term_gradient_is_exact_and_pushes_the_garment_out():
     rig, views = toy(C=4, H=64, W=64, n_theta=32, n_h=10)
     G = torch.eye(4, dtype=torch.float64).expand(rig.weights.shape[1], 4, 4).clone()
     x = lbs(rig.rest, rig.weights, G)
-    bv, bf = sphere_body((0.33, 0.0, 0.75), 0.1)  # pokes through the cone's side, at most 3 cm deep
+    from tests.sim.skirt import sphere_body
+
+    bv, bf, _ = (torch.as_tensor(a) for a in sphere_body(0.1, (0.33, 0.0, 0.75)))  # pokes through the
+    # cone's side, at most 3 cm deep
     inside = penetration_depth(x[None], bv[None], bf)[0] > 0
     assert int(inside.sum()) >= 5
     cfg = fit.FitConfig(w_mask=0.0, w_normal=0.0, w_flow=0.0, w_collision=1e3, collision_eps=0.005)

@@ -255,17 +255,14 @@ def test_body_contacts_give_the_signed_distance_to_a_sphere():
     """body_contacts: the closest point and outward normal of a closed mesh, so that
     (x - point) . normal is the signed distance (winding-number sign), inside and outside;
     points farther than max_dist are not found."""
-    import trimesh
-
     from anidress_core.sim.metrics import body_contacts
 
-    m = trimesh.creation.icosphere(subdivisions=4, radius=0.2)
+    sv, sf, _ = sphere_body(0.2, (0.3, -0.1, 1.0), subdivisions=4)
     g = torch.Generator().manual_seed(0)
     dirs = torch.nn.functional.normalize(torch.randn(50, 3, generator=g, dtype=torch.float64), dim=-1)
     radii = torch.linspace(0.12, 0.26, 50, dtype=torch.float64)
     x = dirs * radii[:, None] + torch.tensor([0.3, -0.1, 1.0], dtype=torch.float64)
-    bv = torch.as_tensor(m.vertices) + torch.tensor([0.3, -0.1, 1.0], dtype=torch.float64)
-    point, normal, found = body_contacts(x, bv, torch.as_tensor(m.faces), max_dist=0.05)
+    point, normal, found = body_contacts(x, torch.as_tensor(sv), torch.as_tensor(sf), max_dist=0.05)
     inside_reach = (radii - 0.2).abs() < 0.049  # the cut-off is max_dist (facets: +-1 mm)
     assert bool(found[inside_reach].all()) and not bool(found[(radii - 0.2).abs() > 0.051].any())
     sd = ((x - point) * normal).sum(-1)
