@@ -337,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--normals", help="normal maps folder (default: <scene>/<seq>/normals if present)")
     s.add_argument("--no-normals", action="store_true", help="normal loss off")
     s.add_argument("--ablation", choices=["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth",
-                                              "anchor_texture"],
+                                              "anchor_texture", "collision"],
                    help="run an ablation instead (anidress_core.fit.ABLATIONS)")
     s.add_argument("--views", type=int, help="use N training cameras spread evenly (default: fit/views)")
     s.add_argument("--anchor-reference", choices=["images", "texture"],

@@ -140,6 +140,11 @@ PHOTO_WEIGHT = 1000.0
 #: 13.5 / 15.0 mm against 19.6 without it).
 ANCHOR_WEIGHT = 1.0e5
 
+#: Weight of L_col in the ``collision`` variant when the configuration leaves it off
+#: (benchmarks/fit_collision.md: 1e5 / 1e6 on the skirt walk, texture references, gave 15.97 /
+#: 15.94 mm against 16.40 without it; at 1e6 < 1 vertex per frame is > 2 mm inside the body).
+COLLISION_WEIGHT = 1.0e6
+
 #: Ablations of the paper (Fig. 9) and our variants: name -> what changes with respect to the full method.
 ABLATIONS = {
     "vertex": "(a) direct vertex fitting without the rig (Adam on vertex positions)",
@@ -152,6 +157,8 @@ ABLATIONS = {
     "anchor_smooth": "(ours, a variant) as anchor, then the poses filtered over time (fit/smooth_passes, else 1 pass)",
     "anchor_texture": "(ours, a variant) as anchor_smooth, with L_an's references from the garment's texture at the "
                       "template's UVs instead of from the first frame each vertex is seen (texture_anchor)",
+    "collision": "(ours, a variant) as anchor_texture, + the body-collision term L_col (weight "
+                 "fit/weights/collision, else COLLISION_WEIGHT)",
 }
 
 
@@ -278,6 +285,10 @@ def config_for(base: FitConfig, ablation: str | None) -> FitConfig:
         return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT)
     if ablation in ("anchor_smooth", "anchor_texture"):  # texture: the references' source is the caller's
         return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT,
+                       smooth_passes=max(int(base.smooth_passes), 1))
+    if ablation == "collision":
+        return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT,
+                       w_collision=base.w_collision if base.w_collision > 0 else COLLISION_WEIGHT,
                        smooth_passes=max(int(base.smooth_passes), 1))
     raise ValueError(f"unknown ablation {ablation!r}; choose from {sorted(ABLATIONS)}")
 

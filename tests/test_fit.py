@@ -539,6 +539,26 @@ def test_body_occlusion_is_respected():
     assert fit._evaluate(un, x).terms["mask"] > 5 * ev.terms["mask"]  # ignoring the occluder is much worse
 
 
+def test_ablation_names_agree_everywhere():
+    """The rule fit_ablation, the config schema and the CLI accept exactly fit.ABLATIONS."""
+    import argparse
+    import re
+    from pathlib import Path
+
+    import yaml
+
+    from anidress_core.cli import build_parser
+
+    root = Path(__file__).resolve().parents[1]
+    smk = re.search(r"^FIT_ABLATIONS = (\[.*?\])$", (root / "workflow/rules/fit.smk").read_text(), re.M)
+    assert smk is not None and sorted(yaml.safe_load(smk.group(1))) == sorted(fit.ABLATIONS)
+    schema = yaml.safe_load((root / "workflow/schemas/config.schema.yaml").read_text())
+    assert sorted(schema["properties"]["fit"]["properties"]["ablations"]["items"]["enum"]) == sorted(fit.ABLATIONS)
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    opt = next(a for a in sub.choices["fit"]._actions if "--ablation" in a.option_strings)
+    assert sorted(opt.choices) == sorted(fit.ABLATIONS)
+
+
 def test_ablation_configs_and_vertex_fit():
     base = fit.FitConfig()
     assert fit.config_for(base, None) == base and fit.config_for(base, "full") == base
@@ -551,9 +571,13 @@ def test_ablation_configs_and_vertex_fit():
     assert fit.config_for(ph, "no_flow").w_photo == 0 and fit.config_for(ph, "no_normal_flow").w_photo == 0
     an = fit.FitConfig(w_anchor=10.0, w_photo=5.0)
     assert fit.config_for(an, "anchor") == an and fit.config_for(base, "anchor").w_anchor == fit.ANCHOR_WEIGHT
+    col = fit.config_for(base, "collision")
+    assert col.w_collision == fit.COLLISION_WEIGHT and col.w_anchor == fit.ANCHOR_WEIGHT and col.smooth_passes == 1
+    mine = fit.FitConfig(w_anchor=10.0, w_collision=5.0)
+    assert fit.config_for(mine, "collision").w_collision == 5.0 and fit.config_for(mine, "collision").w_anchor == 10.0
     for abl in ("vertex", "no_flow", "no_normal_flow"):  # the paper's ablations: the paper's loss, no term of ours
-        c = fit.config_for(an, abl)
-        assert c.w_anchor == 0 and c.w_photo == 0
+        c = fit.config_for(fit.FitConfig(w_anchor=10.0, w_photo=5.0, w_collision=5.0), abl)
+        assert c.w_anchor == 0 and c.w_photo == 0 and c.w_collision == 0
     with pytest.raises(ValueError):
         fit.config_for(base, "nope")
     rig, views = toy(C=3, H=48, W=48, n_theta=20, n_h=6)

@@ -314,7 +314,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
     # 5. L_an's references: from the images (first frame each vertex is seen) or the template's texture
     anchor_init, anchor_note = None, None
-    ref_mode = {"anchor": "images", "anchor_smooth": "images", "anchor_texture": "texture"}.get(
+    ref_mode = {"anchor": "images", "anchor_smooth": "images", "anchor_texture": "texture",
+                "collision": "texture"}.get(
         method, params.get("anchor_reference", "images"))
     if cfg.w_anchor > 0 and ref_mode == "texture":
         anchor_init, anchor_note = texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.photo_blur,

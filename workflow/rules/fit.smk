@@ -6,7 +6,7 @@
 # normals_dir), or with fit/cues: ground_truth the synthetic scene's true masks and flows
 # and its shipped (degraded) normals -- an upper bound for the fitting alone.
 
-FIT_ABLATIONS = ["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth", "anchor_texture"]
+FIT_ABLATIONS = ["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth", "anchor_texture", "collision"]
 
 
 def _fit_sequences(scene):
