@@ -263,6 +263,26 @@ def test_template_mostly_degenerate_is_refused(scene):
     _fails(scene, p, "degenerate", "not a usable garment surface")
 
 
+def test_garment_texture_checked(scene, tmp_path):
+    s = run_validate(scene, tmp_path / "ok" / "scene_check.json")
+    assert s["garment_template"]["texture"]["size"] == [64, 64] and "garment texture readable" in s["checks"]
+    tex = scene / "garment" / "texture.png"
+    data = tex.read_bytes()
+    tex.write_bytes(data[: len(data) // 2])  # truncated
+    _fails(scene, tex, "truncated or corrupt PNG")
+    tex.write_bytes(data)
+    p, v, f, _ = _template(scene)
+    write_obj(p, v, f)  # no UVs: the texture cannot be used, a warning
+    s = run_validate(scene, tmp_path / "ok" / "scene_check.json")
+    assert any(str(tex) in w and "no UVs" in w for w in s["warnings"])
+
+
+def test_declared_garment_texture_missing(scene):
+    y = scene / "scene.yaml"
+    y.write_text(y.read_text() + "garment_texture: garment/fabric.png\n")
+    _fails(scene, scene / "garment" / "fabric.png", "garment texture not found", "garment_texture")
+
+
 # --------------------------------------------------------------------------- scene.yaml
 
 

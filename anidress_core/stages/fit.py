@@ -52,7 +52,7 @@ from ..io import files
 from ..synth import LABEL_GARMENT
 from .cues import image_path
 from .rig import load_rig
-from .scene import load_body, load_sequence_motion, read_scene
+from .scene import garment_texture_path, load_body, load_sequence_motion, read_scene
 
 __all__ = ["fit_config", "select_views", "CueReader", "gt_correspondence", "gt_template_vertices", "run_fit", "load_garment_poses",
            "run_fit_eval", "FIT_METRIC_COLUMNS"]
@@ -85,14 +85,6 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
         w_prior_first=float(p["first_frame_prior"]), smooth_passes=int(p["smooth_passes"]),
     )
     return FIT.config_for(base, ablation)
-
-
-def garment_texture_path(scene_dir: Path, info: Mapping) -> Path:
-    """The garment template's texture: ``garment_texture`` in scene.yaml, else ``texture.png``
-    beside the template."""
-    if info.get("garment_texture"):
-        return scene_dir / info["garment_texture"]
-    return (scene_dir / info.get("garment_template", "garment/template.obj")).parent / "texture.png"
 
 
 def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.RigParts, views: FIT.Views,

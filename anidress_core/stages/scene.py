@@ -31,6 +31,14 @@ def read_scene(scene_dir: str | os.PathLike) -> dict:
     return info
 
 
+def garment_texture_path(scene_dir: str | os.PathLike, info: dict) -> Path:
+    """The garment template's texture: ``garment_texture`` in scene.yaml, else ``texture.png``
+    beside the template (which may not exist: the texture is optional)."""
+    if info.get("garment_texture"):
+        return Path(scene_dir) / info["garment_texture"]
+    return (Path(scene_dir) / info.get("garment_template", "garment/template.obj")).parent / "texture.png"
+
+
 def load_body(scene_dir: str | os.PathLike, info: dict | None = None) -> BodyModel:
     """The scene's body model: the bundled mannequin file or a SMPL model file the user owns."""
     scene_dir = Path(scene_dir)

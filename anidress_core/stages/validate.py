@@ -67,7 +67,7 @@ from ..io.easymocap import read_extri, read_intri
 from ..io.files import SceneError
 from ..io.mesh import read_mesh
 from ..io.motion import read_easymocap_smpl_dir
-from .scene import load_body, read_scene
+from .scene import garment_texture_path, load_body, read_scene
 
 __all__ = [
     "SceneError",
@@ -402,8 +402,19 @@ def _check_garment(scene_dir: Path, info: dict, body, checks: list[str], warning
     path = scene_dir / rel
     if not path.is_file():
         _fail(path, "garment template not found (scene.yaml garment_template)")
-    v, f, _ = _wrap(read_mesh, path)
+    v, f, face_uv = _wrap(read_mesh, path)
     checks.append("garment template readable")
+    tex = garment_texture_path(scene_dir, info)
+    texture = None
+    if info.get("garment_texture") and not tex.is_file():
+        _fail(tex, "garment texture not found (scene.yaml garment_texture)")
+    if tex.is_file():  # optional; fit/anchor_reference: texture samples it at the template's UVs
+        th, tw = image_size_from_header(tex)
+        texture = {"file": str(tex), "size": [th, tw]}
+        if face_uv is None:
+            warnings.append(f"{tex}: the garment has a texture but {path} has no UVs (vt) on every face; "
+                            "fit/anchor_reference: texture cannot use it")
+        checks.append("garment texture readable")
     try:
         garment.check_placement(v, body)
     except ValueError as e:
@@ -438,7 +449,7 @@ def _check_garment(scene_dir: Path, info: dict, body, checks: list[str], warning
     return {"file": str(path), "kind": info["garment_kind"], "vertices": int(len(v)), "faces": int(F),
             "merged_vertices": d.merged_vertices, "degenerate_faces": int(len(d.degenerate_faces)),
             "duplicate_faces": int(len(d.duplicate_faces)), "non_manifold_edges": 0,
-            "self_intersecting_faces": int(n_int),
+            "self_intersecting_faces": int(n_int), "texture": texture,
             "extent_m": [round(float(x), 4) for x in (v.max(0) - v.min(0))]}
 
 
