@@ -43,6 +43,7 @@ from ..cues import flow as cue_flow
 from ..cues import masks as cue_masks
 from ..geometry import lbs
 from ..io import files
+from ..synth import LABEL_GARMENT
 from .scene import load_body, load_sequence_motion, read_scene
 
 __all__ = [
@@ -324,12 +325,13 @@ def _read_labels(path: Path, shape) -> np.ndarray:
 class _CameraFlow:
     """Flows of one camera, frame after frame (each image and mask is read once)."""
 
-    def __init__(self, seq_dir: Path, masks_dir: Path, cam: str, method: str, margin: int, shape, out: Path):
+    def __init__(self, seq_dir: Path, masks_dir: Path, cam: str, method: str, margin: int, shape, out: Path,
+                 refine_window: int = 0):
         self.seq_dir, self.masks_dir, self.cam, self.method, self.margin = seq_dir, masks_dir, cam, method, margin
-        self.shape, self.out = shape, out
+        self.shape, self.out, self.refine_window = shape, out, refine_window
         self.est = cue_flow.make_estimator(method)
         self.prev_img = self.prev_mask = None
-        self.compute, self.pixels, self.pairs = 0.0, 0, 0
+        self.compute, self.refine_s, self.refined, self.pixels, self.pairs = 0.0, 0.0, 0, 0, 0
 
     def step(self, frame: int, init: np.ndarray | None) -> None:
         img = cue_flow.to_gray8(_read_rgb(image_path(self.seq_dir, self.cam, frame), self.shape))
@@ -342,6 +344,13 @@ class _CameraFlow:
             else:
                 r = cue_flow.estimate_flow(self.prev_img, img, self.method, region, self.est, init)
                 self.pixels += (region.y1 - region.y0) * (region.x1 - region.x0)
+                if self.refine_window:  # the garment's pixels of frame t-1 (what the fit samples)
+                    t0 = time.perf_counter()
+                    f, n = cue_flow.refine_lk(self.prev_img, img, r.flow, (self.prev_mask == LABEL_GARMENT) & r.valid,
+                                              self.refine_window)
+                    r = r._replace(flow=f)
+                    self.refine_s += time.perf_counter() - t0
+                    self.refined += n
             self.compute += r.compute_s
             self.pairs += 1
             files.write_exr(self.out / self.cam / f"{frame:06d}.exr",
@@ -382,18 +391,23 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
     method, margin, use_prior = cfg["method"], int(cfg["margin_px"]), bool(cfg.get("prior", False))
     if method not in cue_flow.FLOW_METHODS:
         raise ValueError(f"cues/flows/method must be one of {cue_flow.FLOW_METHODS}, got {method!r}")
+    refine = cfg.get("refine", "none")
+    if refine not in cue_flow.REFINE_METHODS:
+        raise ValueError(f"cues/flows/refine must be one of {cue_flow.REFINE_METHODS}, got {refine!r}")
+    refine_window = int(cfg.get("refine_window", 7)) if refine == "lk" else 0
     size = info.get("image_size")
     shape = tuple(size) if size else files.read_image(image_path(seq_dir, names[0], frames[0])).shape[:2]
-    log.info("flows %s/%s: %s%s, %d cameras x %d pairs, margin %d px, %d threads", scene_dir.name, seq, method,
-             " initialised by the body/garment prior" if use_prior else "", len(names), len(frames) - 1, margin,
-             threads)
+    log.info("flows %s/%s: %s%s%s, %d cameras x %d pairs, margin %d px, %d threads", scene_dir.name, seq, method,
+             " initialised by the body/garment prior" if use_prior else "",
+             f", Lucas-Kanade refinement of the garment's pixels (window {refine_window})" if refine_window else "",
+             len(names), len(frames) - 1, margin, threads)
     torch.set_num_threads(max(1, threads))
     prior = None
     if use_prior:
         prior = _Prior(scene_dir, seq, info, template_npz, _cameras(seq_dir, names, info), frames)
     prior_s = 0.0
     with atomic_dir(out_dir) as tmp, _cv2_threads(1), ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        cams = [_CameraFlow(seq_dir, masks_dir, cam, method, margin, shape, tmp) for cam in names]
+        cams = [_CameraFlow(seq_dir, masks_dir, cam, method, margin, shape, tmp, refine_window) for cam in names]
         for i, f in enumerate(tqdm(frames, desc=f"flows {seq}", unit="frame", disable=not progress)):
             init = None
             if prior is not None and i > 0:
@@ -406,10 +420,14 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
     compute = sum(c.compute for c in cams)
     stats = {"method": method, "prior": use_prior, "pairs": pairs, "wall_s": wall,
              "compute_s_per_pair": compute / max(1, pairs), "prior_s_per_frame": prior_s / max(1, len(frames) - 1),
-             "region_fraction": sum(c.pixels for c in cams) / max(1, pairs * shape[0] * shape[1])}
-    log.info("flows %s/%s: wrote %s in %.1f s; %.4f s of %s per pair%s, %.0f%% of the pixels processed",
+             "region_fraction": sum(c.pixels for c in cams) / max(1, pairs * shape[0] * shape[1]),
+             "refine": refine, "refine_s_per_pair": sum(c.refine_s for c in cams) / max(1, pairs),
+             "refined_pixels_per_pair": sum(c.refined for c in cams) / max(1, pairs)}
+    log.info("flows %s/%s: wrote %s in %.1f s; %.4f s of %s per pair%s%s, %.0f%% of the pixels processed",
              scene_dir.name, seq, out_dir, wall, stats["compute_s_per_pair"], method,
              f" + {stats['prior_s_per_frame']:.3f} s of prior flow per frame" if use_prior else "",
+             f" + {stats['refine_s_per_pair']:.4f} s of Lucas-Kanade per pair ({stats['refined_pixels_per_pair']:.0f} "
+             "garment pixels refined)" if refine_window else "",
              100 * stats["region_fraction"])
     return stats
 

@@ -50,6 +50,26 @@ def test_masks_and_flows_layout_and_contract(tiny_scene, outputs):
     assert sorted(p.name for p in out.iterdir()) == ["flows", "masks"]
 
 
+def test_lk_refinement_changes_only_the_garment_pixels(tiny_scene, outputs, cues_config, tmp_path):
+    scene_dir, tpl = tiny_scene
+    out, _, plain = outputs
+    assert plain["refine"] == "none" and plain["refined_pixels_per_pair"] == 0
+    cfg = dict(cues_config["flows"], refine="lk", refine_window=7)
+    fs = sc.run_flows(scene_dir, "walk", out / "masks", tmp_path / "flows", cfg, tpl, progress=False)
+    assert fs["refine"] == "lk" and fs["refined_pixels_per_pair"] > 0
+    changed = 0
+    for cam in read_scene(scene_dir)["cameras"]["train"]:
+        for f in range(1, 4):
+            a = files.read_exr(out / "flows" / cam / f"{f:06d}.exr")
+            b = files.read_exr(tmp_path / "flows" / cam / f"{f:06d}.exr")
+            garment = files.read_mask(out / "masks" / cam / f"{f - 1:06d}.png") == 2  # frame t-1's garment
+            assert (a[~garment] == b[~garment]).all() and (a[..., 2] == b[..., 2]).all()
+            changed += int((a[garment] != b[garment]).any(-1).sum())
+    assert changed > 0
+    with pytest.raises(ValueError, match="refine"):
+        sc.run_flows(scene_dir, "walk", out / "masks", tmp_path / "g", dict(cfg, refine="raft"), tpl, progress=False)
+
+
 def test_estimated_cues_against_ground_truth(tiny_scene, outputs):
     scene_dir, _ = tiny_scene
     out, _, _ = outputs
