@@ -180,15 +180,15 @@ def refine_lk(img0: np.ndarray, img1: np.ndarray, flow: np.ndarray, where: np.nd
     """Re-estimate the flow at the pixels ``where`` by Lucas-Kanade, started from ``flow``.
 
     The dense estimators regularise: DIS averages overlapping patches and smooths them
-    (variational refinement), TV-L1 / DeepFlow / Farneback smooth by construction. Where
-    the motion peaks -- a skirt's hem, which swings most -- every average of the
-    neighbourhood is smaller than the motion at the pixel, and the fit's flow targets
-    under-estimate the swing by 18-25 % there (3-4 % elsewhere; skirt walk, the
-    pipeline's cues: benchmarks/cues.md). Each pixel's own small window (Lucas & Kanade,
+    (variational refinement), TV-L1 / DeepFlow / Farneback smooth by construction. That
+    shrinks the motion: at the fit's flow targets dis_medium (with the body prior)
+    under-estimates it by 5 % on the skirt walk (8 % on the hem, which swings most) and
+    by 26-31 % on the slow skirt dance and dress sway (0.4-0.5 px per frame), which the
+    chained fit integrates into drift. Each pixel's own small window (Lucas & Kanade,
     IJCAI 1981; OpenCV's pyramidal implementation, Bouguet 2001:
-    ``cv2.calcOpticalFlowPyrLK``), started at the dense flow, has no smoothness term and
-    halves that bias; the smaller the window, the smaller the bias and the larger the
-    noise (window 7: bias -0.33 -> -0.13 px at the hem, mean end-point error about the same).
+    ``cv2.calcOpticalFlowPyrLK``), started at the dense flow, has no smoothness term:
+    window 7 leaves 2 / 9 / 10 % at about the same mean end-point error; smaller windows
+    less bias and more noise (benchmarks/flow_refine.md).
 
     img0, img1: (H, W) uint8 grey (or (H, W, 3) RGB, converted); flow: (H, W, 2) float
     pixels (dx, dy) from img0 to img1; where: (H, W) bool, the pixels to refine;

@@ -375,7 +375,9 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
               threads: int = 2, progress: bool = True) -> dict:
     """Forward optical flow of one sequence into ``out_dir/<cam>/<frame>.exr`` (no file for the first frame).
 
-    cfg: the ``cues/flows`` config section (``method``, ``margin_px``, ``prior``).
+    cfg: the ``cues/flows`` config section (``method``, ``margin_px``, ``prior``, ``refine``,
+    ``refine_window``; with ``refine: lk`` the garment's pixels of frame t-1 are then
+    re-estimated by :func:`anidress_core.cues.flow.refine_lk`).
     masks_dir: the sequence's masks (shipped or estimated), which bound the processed
     region. With ``prior`` the flow of the posed body + skinned garment template
     (``template_npz``; None: the body alone) initialises the estimator
@@ -395,6 +397,8 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
     if refine not in cue_flow.REFINE_METHODS:
         raise ValueError(f"cues/flows/refine must be one of {cue_flow.REFINE_METHODS}, got {refine!r}")
     refine_window = int(cfg.get("refine_window", 7)) if refine == "lk" else 0
+    if refine_window and (refine_window < 3 or refine_window % 2 == 0):
+        raise ValueError(f"cues/flows/refine_window must be odd and >= 3, got {refine_window}")
     size = info.get("image_size")
     shape = tuple(size) if size else files.read_image(image_path(seq_dir, names[0], frames[0])).shape[:2]
     log.info("flows %s/%s: %s%s%s, %d cameras x %d pairs, margin %d px, %d threads", scene_dir.name, seq, method,

@@ -68,6 +68,9 @@ def test_lk_refinement_changes_only_the_garment_pixels(tiny_scene, outputs, cues
     assert changed > 0
     with pytest.raises(ValueError, match="refine"):
         sc.run_flows(scene_dir, "walk", out / "masks", tmp_path / "g", dict(cfg, refine="raft"), tpl, progress=False)
+    with pytest.raises(ValueError, match="refine_window must be odd"):
+        sc.run_flows(scene_dir, "walk", out / "masks", tmp_path / "g", dict(cfg, refine_window=8), tpl, progress=False)
+    assert not (tmp_path / "g").exists()
 
 
 def test_estimated_cues_against_ground_truth(tiny_scene, outputs):
