@@ -141,8 +141,9 @@ PHOTO_WEIGHT = 1000.0
 ANCHOR_WEIGHT = 1.0e5
 
 #: Weight of L_col in the ``collision`` variant when the configuration leaves it off
-#: (benchmarks/fit_collision.md: 1e5 / 1e6 on the skirt walk, texture references, gave 15.97 /
-#: 15.94 mm against 16.40 without it; at 1e6 < 1 vertex per frame is > 2 mm inside the body).
+#: (benchmarks/fit_collision.md, 1e6: on the skirt walk with texture references 15.94 mm against
+#: 16.40 without it, and < 1 vertex per frame more than 2 mm inside the body; 1e5, not in that
+#: file, gave 15.97 mm).
 COLLISION_WEIGHT = 1.0e6
 
 #: Ablations of the paper (Fig. 9) and our variants: name -> what changes with respect to the full method.
