@@ -251,7 +251,7 @@ def _kabsch_polar(H: Tensor) -> Tensor:
     U diag(1, 1, d) V^T, the Kabsch rotation, and for det H > 0 it is U V^T as for H
     itself. The polar factor comes from :func:`_polar_rotation`; clear reflections
     (det < -1e-3 after scaling, rare) and anything that does not come out a rotation go
-    to :func:`_kabsch_svd`.
+    to :func:`anidress_core.geometry.nearest_rotation` (SVD).
     """
     Hn = H / H.abs().amax((-2, -1), keepdim=True).clamp_min(torch.finfo(H.dtype).tiny)
     det = _det3(Hn)
@@ -261,13 +261,8 @@ def _kabsch_polar(H: Tensor) -> Tensor:
     ok = easy & torch.isfinite(R).all(-1).all(-1) & (_det3(R) > 0.5)
     if not bool(ok.all()):
         R = R.clone()
-        R[~ok] = _kabsch_svd(Hn[~ok])
+        R[~ok] = nearest_rotation(Hn[~ok])
     return R
-
-
-def _kabsch_svd(H: Tensor) -> Tensor:
-    """Rotation maximising tr(R^T H) by SVD: H = U S V^T, R = U diag(1, 1, det(U V^T)) V^T."""
-    return nearest_rotation(H)
 
 
 def _procrustes_torch(K: Tensor, Ubb: Tensor, M_old: Tensor, exact: bool = False) -> Tensor:
@@ -287,7 +282,7 @@ def _procrustes_torch(K: Tensor, Ubb: Tensor, M_old: Tensor, exact: bool = False
     # 1. centred covariance sum a (y - ybar)(p - pbar)^T = sum a y p^T - S ybar pbar^T
     cov = K[..., :, :3] - Ss[..., None] * ybar[..., :, None] * pbar[..., None, :]
     # 2. rotation maximising tr(R^T cov) with det R = +1
-    R = _kabsch_svd(cov) if exact else _kabsch_polar(cov)
+    R = nearest_rotation(cov) if exact else _kabsch_polar(cov)
     # 3. t = ybar - R pbar
     t = ybar - (R @ pbar[..., None])[..., 0]
     Mn = torch.cat([R, t[..., None]], -1)
