@@ -233,20 +233,16 @@ def verdicts(rows: list[dict]) -> list[str]:
             beats.append(f"variant anchor_smooth (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} vs anchor "
                          f"{1e3 * q['vertex_rmse_m_mean']:.2f} mm, acceleration error {1e3 * p['accel_error_m']:.2f} vs "
                          f"{1e3 * q['accel_error_m']:.2f} mm (full {1e3 * f['accel_error_m']:.2f})")
-        if "anchor_texture" in g and "anchor_smooth" in g:  # texture references vs first-seen ones (information)
-            p, q = g["anchor_texture"], g["anchor_smooth"]
-            beats.append(f"variant anchor_texture (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} mm = "
-                         f"{p['rmse_over_floor']:.2f} x the floor (anchor_smooth {1e3 * q['vertex_rmse_m_mean']:.2f} "
-                         f"mm = {q['rmse_over_floor']:.2f} x), Chamfer {1e3 * p['chamfer_m_mean']:.2f} vs "
-                         f"{1e3 * q['chamfer_m_mean']:.2f} mm, acceleration error {1e3 * p['accel_error_m']:.2f} vs "
-                         f"{1e3 * q['accel_error_m']:.2f} mm, {p['fps']:.2f} vs {q['fps']:.2f} frames/s")
-        if "collision" in g and "anchor_texture" in g:  # L_col on top of anchor_texture (information)
-            p, q = g["collision"], g["anchor_texture"]
-            beats.append(f"variant collision (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} mm = "
-                         f"{p['rmse_over_floor']:.2f} x the floor (anchor_texture {1e3 * q['vertex_rmse_m_mean']:.2f} "
-                         f"mm = {q['rmse_over_floor']:.2f} x), Chamfer {1e3 * p['chamfer_m_mean']:.2f} vs "
-                         f"{1e3 * q['chamfer_m_mean']:.2f} mm, acceleration error {1e3 * p['accel_error_m']:.2f} vs "
-                         f"{1e3 * q['accel_error_m']:.2f} mm, {p['fps']:.2f} vs {q['fps']:.2f} frames/s")
+        # each variant against the one it adds to (information): texture references vs first-seen ones,
+        # L_col on top of texture references
+        for name, ref in (("anchor_texture", "anchor_smooth"), ("collision", "anchor_texture")):
+            if name in g and ref in g:
+                p, q = g[name], g[ref]
+                beats.append(f"variant {name} (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} mm = "
+                             f"{p['rmse_over_floor']:.2f} x the floor ({ref} {1e3 * q['vertex_rmse_m_mean']:.2f} "
+                             f"mm = {q['rmse_over_floor']:.2f} x), Chamfer {1e3 * p['chamfer_m_mean']:.2f} vs "
+                             f"{1e3 * q['chamfer_m_mean']:.2f} mm, acceleration error {1e3 * p['accel_error_m']:.2f} vs "
+                             f"{1e3 * q['accel_error_m']:.2f} mm, {p['fps']:.2f} vs {q['fps']:.2f} frames/s")
         if "sim" in g:  # the simulator alone (information, not a criterion)
             beats.append(beat(f, "simulation only (reference, not a criterion)", g["sim"]))
         if "photo" in g:  # our variant against the full method (information, not a criterion)
