@@ -15,7 +15,14 @@ With ground-truth masks and flows (synthetic scene) and frame 0 started on the r
   template's UVs, frame 0 included (variant ``anchor_texture``, without its temporal filter);
 * ``anchor_texture_true_flows``: as ``anchor_texture`` with the scene's true flows (gt/flows) in
   place of the estimated ones, the masks unchanged (isolates what the flow estimate's error costs);
-* ``anchor_texture_no_flow``: as ``anchor_texture`` without L_of (no transport between frames).
+* ``anchor_texture_no_flow``: as ``anchor_texture`` without L_of (no transport between frames);
+* ``anchor_texture_oracle``: as ``anchor_texture`` with the flow targets from the rig floor of t-1
+  (what the chaining costs once L_an is on).
+
+``--basin 5,11,21`` adds, for the ``anchor_texture`` run, a look at those frames: the loss without
+L_of (what is left to place the frame once its targets are spent) at the chained fit, and at a
+fit of the same frame started on the rig floor and run to convergence -- does the loss have its
+minimum near the truth, and is the chained fit in it?
 
 Writes benchmarks/fit_drift.md (per-frame vertex RMSE against the ground truth, every
 other frame) and prints it. Not a test.
@@ -60,6 +67,8 @@ def main() -> None:
                          "anchor_texture_no_flow to run")
     ap.add_argument("--cues", default="ground_truth", choices=["ground_truth", "pipeline"],
                     help="masks and flows: the scene's true ones (gt/) or the pipeline's (results/<scene>/<seq>/)")
+    ap.add_argument("--basin", default="", help="frames (comma-separated) of the loss-basin check of the "
+                    "anchor_texture run (see the module docstring)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default="benchmarks/fit_drift.md")
     a = ap.parse_args()
@@ -82,7 +91,7 @@ def main() -> None:
         return raster.occlude(raster.rasterize(X, rig.faces, views.K, views.world_to_cam, views.height, views.width,
                                                with_bary=False), occ)
 
-    runs = {}
+    runs, chained = {}, {}
     paper = replace(base, w_photo=0.0, w_anchor=0.0)
     wanted = set(a.runs.split(","))
     for key, name, cfg, oracle in (("chain", "chain (the paper's L_of; the default)", paper, False),
@@ -94,7 +103,9 @@ def main() -> None:
                                    ("anchor_texture_true_flows", "as anchor_texture, the true flows (gt/flows) in "
                                     "place of the estimated ones", FIT.config_for(paper, "anchor"), False),
                                    ("anchor_texture_no_flow", "as anchor_texture without L_of",
-                                    replace(FIT.config_for(paper, "anchor"), w_flow=0.0), False)):
+                                    replace(FIT.config_for(paper, "anchor"), w_flow=0.0), False),
+                                   ("anchor_texture_oracle", "as anchor_texture, targets from the rig floor of t-1",
+                                    FIT.config_for(paper, "anchor"), True)):
         if key not in wanted:
             continue
         cue_dir = d / a.seq / "gt" if a.cues == "ground_truth" else Path("results") / a.scene / a.seq
@@ -120,6 +131,7 @@ def main() -> None:
 
         anchor = update(anchor, prev, cues)
         out, mask_prev, G = [rmse(prev.verts, 0)], cues.mask, prev.transforms
+        verts = [prev.verts]
         for t in range(1, T):
             cues = reader.cues(t)
             flow, valid = reader.flow(t)
@@ -129,9 +141,12 @@ def main() -> None:
             prev = FIT.fit_frame(rig, views, cues, G, cfg, targets, anchor=anchor)
             anchor = update(anchor, prev, cues)
             out.append(rmse(prev.verts, t))
+            verts.append(prev.verts)
             mask_prev, G = cues.mask, prev.transforms
-        reader.close()
         runs[name] = (out, time.perf_counter() - t0)
+        if key == "anchor_texture" and a.basin:
+            chained = basin(a, reader, rig, views, cfg, anchor, verts, floor_G, rmse)
+        reader.close()
         print(f"{name}: mean {np.mean(out):.1f} mm", flush=True)
     floor = [rmse(floor_X[t], t) for t in range(T)]
     cols = list(range(0, T, 2))
@@ -158,8 +173,39 @@ def main() -> None:
     for name, (out, _) in runs.items():
         lines.append(f"| {name} | {np.mean(out):.1f} | " + " | ".join(f"{out[t]:.1f}" for t in cols) + " |")
     lines += ["", "Wall time per run: " + ", ".join(f"{k}: {v:.0f} s" for k, (_, v) in runs.items()) + "."]
+    if chained:
+        lines += ["", "Loss basins of the `anchor_texture` run (`--basin`): the loss without L_of (2.0 L_M + 0.1 L_N + "
+                  "L_an) at the chained fit, and at a fit of the frame from the rig floor run to convergence (no "
+                  "L_of, relative tolerance 1e-6, up to 200 evaluations); vertex RMSE in mm:", "",
+                  "| frame | rig floor RMSE | chained fit: RMSE | loss | from the floor, converged: RMSE | loss | "
+                  "evaluations | loss, chained - converged |",
+                  "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        for t, r in chained.items():
+            lines.append(f"| {t} | {r['floor']:.1f} | {r['chain_rmse']:.1f} | {r['chain_loss']:.3f} | "
+                         f"{r['conv_rmse']:.1f} | {r['conv_loss']:.3f} | {r['evals']} | "
+                         f"{r['chain_loss'] - r['conv_loss']:+.3f} |")
     Path(a.out).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+
+
+def basin(a, reader, rig, views, cfg, anchor, verts, floor_G, rmse) -> dict:
+    """Per frame of ``--basin``: the loss without L_of at the chained fit ``verts[t]`` and at a
+    converged fit of the frame started on the rig floor (same cues, same references)."""
+    cf = replace(cfg, w_flow=0.0, max_iters=200, rel_tol=1e-6)
+    out = {}
+    for t in (int(x) for x in a.basin.split(",")):
+        if not 0 < t < len(verts):
+            raise SystemExit(f"--basin: frame {t} is not in 1..{len(verts) - 1}")
+        cues = reader.cues(t)
+        def loss(X):
+            return float(FIT.loss_terms(rig, views, cues, X, None, cf, anchor=anchor)[0])
+
+        res = FIT.fit_frame(rig, views, cues, floor_G[t], cf, None, anchor=anchor)
+        floor = rmse(lbs(rig.rest, rig.weights, floor_G[t]), t)
+        out[t] = {"floor": floor, "chain_rmse": rmse(verts[t], t), "chain_loss": loss(verts[t]),
+                  "conv_rmse": rmse(res.verts, t), "conv_loss": loss(res.verts), "evals": res.iterations}
+        print(f"basin t={t}: {out[t]}", flush=True)
+    return out
 
 
 if __name__ == "__main__":
