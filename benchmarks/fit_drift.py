@@ -20,9 +20,10 @@ With ground-truth masks and flows (synthetic scene) and frame 0 started on the r
   (what the chaining costs once L_an is on).
 
 ``--basin 5,11,21`` adds, for the ``anchor_texture`` run, a look at those frames: the loss without
-L_of (what is left to place the frame once its targets are spent) at the chained fit, and at a
-fit of the same frame started on the rig floor and run to convergence -- does the loss have its
-minimum near the truth, and is the chained fit in it?
+L_of (what is left to place the frame once its targets are spent) at the chained fit, at a
+fit of the same frame started on the rig floor and run to convergence, and on the straight line
+between the two meshes -- does the loss have its minimum near the truth, is the chained fit in
+it, and is there a barrier between them?
 
 Writes benchmarks/fit_drift.md (per-frame vertex RMSE against the ground truth, every
 other frame) and prints it. Not a test.
@@ -178,12 +179,12 @@ def main() -> None:
                   "L_an) at the chained fit, and at a fit of the frame from the rig floor run to convergence (no "
                   "L_of, relative tolerance 1e-6, up to 200 evaluations); vertex RMSE in mm:", "",
                   "| frame | rig floor RMSE | chained fit: RMSE | loss | from the floor, converged: RMSE | loss | "
-                  "evaluations | loss, chained - converged |",
-                  "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                  "evaluations | loss, chained - converged | loss on the line chained -> converged at 1/4, 1/2, 3/4 |",
+                  "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
         for t, r in chained.items():
             lines.append(f"| {t} | {r['floor']:.1f} | {r['chain_rmse']:.1f} | {r['chain_loss']:.3f} | "
                          f"{r['conv_rmse']:.1f} | {r['conv_loss']:.3f} | {r['evals']} | "
-                         f"{r['chain_loss'] - r['conv_loss']:+.3f} |")
+                         f"{r['chain_loss'] - r['conv_loss']:+.3f} | " + ", ".join(f"{x:.3f}" for x in r["line"]) + " |")
     Path(a.out).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -203,7 +204,9 @@ def basin(a, reader, rig, views, cfg, anchor, verts, floor_G, rmse) -> dict:
         res = FIT.fit_frame(rig, views, cues, floor_G[t], cf, None, anchor=anchor)
         floor = rmse(lbs(rig.rest, rig.weights, floor_G[t]), t)
         out[t] = {"floor": floor, "chain_rmse": rmse(verts[t], t), "chain_loss": loss(verts[t]),
-                  "conv_rmse": rmse(res.verts, t), "conv_loss": loss(res.verts), "evals": res.iterations}
+                  "conv_rmse": rmse(res.verts, t), "conv_loss": loss(res.verts), "evals": res.iterations,
+                  # on the straight line between the two meshes (skinning is linear in the transforms)
+                  "line": [loss((1 - s) * verts[t] + s * res.verts) for s in (0.25, 0.5, 0.75)]}
         print(f"basin t={t}: {out[t]}", flush=True)
     return out
 
