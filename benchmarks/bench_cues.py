@@ -16,7 +16,10 @@ uses), with one thread (so per-pair times are comparable):
   training cameras); reference rows: the ground-truth flow (what EPE is measured
   against, 0 by definition) and the zero flow (the size of the motion); the default
   method's full-frame run shows what the region restriction saves. The default is
-  the method with the lowest garment EPE x seconds per pair ("best error per second");
+  the method with the lowest garment EPE x seconds per pair ("best error per second").
+  Every estimator runs without the Lucas-Kanade refinement (``cues/flows/refine``); when the
+  config turns it on, one more row is the configured method with it (the pipeline's flows),
+  timed as the estimator's interleaved time + the refinement's own;
 * normals: the shipped degraded normals against ``gt/normals`` (angular error on the
   garment and on all subject pixels; the ground truth as reference).
 
@@ -240,8 +243,8 @@ def main() -> None:
                 flow_rows = []
                 for method in list(flow_methods):
                     out = tmp / scene / seq / f"flows_{method}"
-                    st = sc.run_flows(src, seq, default_masks, out, {**fcfg, "method": method}, tpl, threads=1,
-                                      progress=False)
+                    st = sc.run_flows(src, seq, default_masks, out, {**fcfg, "method": method, "refine": "none"}, tpl,
+                                      threads=1, progress=False)
                     ev = sc.evaluate_cues(src, seq, flows_dir=out)
                     t = timing[method]
                     total = t + prior_ms / 1e3
@@ -262,14 +265,14 @@ def main() -> None:
                     zero = {k.replace("epe_zero_", "epe_"): v for k, v in ev.items() if k.startswith("epe_zero_")}
                 best = min(flow_rows, key=lambda r: r["epe_garment_x_s_per_pair"]) if flow_rows else None
                 if best is not None:
-                    best["default"] = "best error x time" + (" (= config)" if best["method"] == fcfg["method"]
-                                                             else f" (config has {fcfg['method']})")
+                    best["default"] = best_label(best["method"], fcfg)
                     m = best["method"]
                     # the same method without the prior, and on the full frame: what each part brings
                     if prior is not None:
                         out = tmp / scene / seq / "flows_plain"
-                        st = sc.run_flows(src, seq, default_masks, out, {**fcfg, "method": m, "prior": False}, tpl,
-                                          threads=1, progress=False)
+                        st = sc.run_flows(src, seq, default_masks, out,
+                                          {**fcfg, "method": m, "prior": False, "refine": "none"}, tpl, threads=1,
+                                          progress=False)
                         ev = sc.evaluate_cues(src, seq, flows_dir=out)
                         tp = interleaved_timing(src, seq, names, frames, default_masks, [m], fcfg["margin_px"])[m]
                         rows.append({**base, "cue": "flows", "method": m + " without prior",
@@ -278,8 +281,9 @@ def main() -> None:
                                      **_pick(ev, "epe_"), "epe_garment_x_s_per_pair": ev["epe_garment_px"] * tp,
                                      "notes": "cues/flows/prior false"})
                     out = tmp / scene / seq / "flows_full"
-                    st = sc.run_flows(src, seq, default_masks, out, {**fcfg, "method": m, "margin_px": 1 << 20}, tpl,
-                                      threads=1, progress=False)
+                    st = sc.run_flows(src, seq, default_masks, out,
+                                      {**fcfg, "method": m, "margin_px": 1 << 20, "refine": "none"}, tpl, threads=1,
+                                      progress=False)
                     ev = sc.evaluate_cues(src, seq, flows_dir=out)
                     tt = interleaved_timing(src, seq, names, frames, default_masks, [m], fcfg["margin_px"], prior, ds,
                                             full_frame=True)
@@ -291,6 +295,23 @@ def main() -> None:
                                  **_pick(ev, "epe_"),
                                  "notes": f"{how}; no region restriction: {t_full / t_reg:.2f}x the time of the "
                                           "region (timed interleaved with it)"})
+                rm = refined_method(fcfg)
+                if rm is not None and fcfg["method"] in timing:  # the pipeline's flows: the estimator + LK
+                    out = tmp / scene / seq / "flows_refined"
+                    st = sc.run_flows(src, seq, default_masks, out, fcfg, tpl, threads=1, progress=False)
+                    ev = sc.evaluate_cues(src, seq, flows_dir=out)
+                    t = timing[fcfg["method"]] + st["refine_s_per_pair"]
+                    total = t + prior_ms / 1e3
+                    rows.append({**base, "cue": "flows", "method": rm, "reference": "ground-truth flow",
+                                 "wall_s": st["wall_s"], "per_pair_ms": 1e3 * t, "prior_ms_per_pair": prior_ms,
+                                 "per_frame_s": total * len(names), "region_frac": st["region_fraction"],
+                                 **_pick(ev, "epe_"), "epe_garment_x_s_per_pair": ev["epe_garment_px"] * total,
+                                 "default": "config",
+                                 "notes": f"{how}; the estimator's interleaved time + "
+                                          f"{1e3 * st['refine_s_per_pair']:.1f} ms of Lucas-Kanade per pair "
+                                          f"({st['refined_pixels_per_pair']:.0f} garment pixels of frame t-1)"})
+                    print(f"  flows {rm}: {_fmt_row(rows[-1])}", flush=True)
+                if best is not None:
                     rows.append({**base, "cue": "flows", "method": "zero flow", "reference": "ground-truth flow",
                                  **_pick(zero, "epe_"), "notes": "no motion: the size of the motion"})
                 rows.append({**base, "cue": "flows", "method": "ground-truth flow", "reference": "ground-truth flow",
@@ -309,6 +330,20 @@ def main() -> None:
     notes_md += overall_masks(rows, cfg["masks"]["method"])
     notes_md += overall_choice(rows, cfg["flows"]["method"])
     write(rows, args, started, load_before, notes_md)
+
+
+def refined_method(fcfg: dict) -> str | None:
+    """The row name of the configured estimator with the configured refinement (None: refinement off)."""
+    if fcfg.get("refine", "none") == "none":
+        return None
+    return f"{fcfg['method']} + Lucas-Kanade refinement (window {int(fcfg.get('refine_window', 7))})"
+
+
+def best_label(method: str, fcfg: dict) -> str:
+    """The marker of the estimator with the best error x time, against the configured one."""
+    if method != fcfg["method"]:
+        return f"best error x time (config has {fcfg['method']})"
+    return "best error x time (= config" + (", which refines it: see below)" if refined_method(fcfg) else ")")
 
 
 def overall_masks(rows: list[dict], configured: str) -> list[str]:
@@ -451,13 +486,16 @@ def render_only(args) -> None:
         r.pop("default", None)
         if r["cue"] == "masks" and r["method"] == cfg["masks"]["method"]:
             r["default"] = "yes (config)"
+    rm = refined_method(cfg["flows"])
+    for r in rows:
+        if r["cue"] == "flows" and r["method"] == rm:
+            r["default"] = "config"
     for key in {(r["scene"], r["sequence"]) for r in rows}:
         cand = [r for r in rows if (r["scene"], r["sequence"]) == key and r["cue"] == "flows"
                 and r["method"] in FLOW_METHODS and "epe_garment_x_s_per_pair" in r]
         if cand:
             best = min(cand, key=lambda r: r["epe_garment_x_s_per_pair"])
-            best["default"] = "best error x time" + (" (= config)" if best["method"] == cfg["flows"]["method"]
-                                                     else f" (config has {cfg['flows']['method']})")
+            best["default"] = best_label(best["method"], cfg["flows"])
     notes += overall_masks(rows, cfg["masks"]["method"]) + overall_choice(rows, cfg["flows"]["method"])
     rerender = (f"Re-rendered by `.venv/bin/python benchmarks/bench_cues.py --render-only` on "
                 f"{datetime.datetime.now().isoformat(timespec='seconds')} against the config's current defaults; "
