@@ -48,7 +48,7 @@ from anidress_core.io import files  # noqa: E402
 WORK = ROOT / "benchmarks" / "runs" / "tradeoffs"
 #: (stage, knob) of the rows each sweep writes (for --merge)
 SWEEP_KNOBS = {"rig": {("rig", "bones"), ("fit", "bones")}, "fit": {("fit", "views"), ("fit", "iterations/tolerance")},
-               "flow": {("flow", "method")}, "resolution": {("fit", "resolution")},
+               "flow": {("flow", "method"), ("flow", "refine")}, "resolution": {("fit", "resolution")},
                "field": {("field", "steps"), ("field", "ray step (m)")}}
 FIELDS = ["stage", "knob", "value", "wall_s", "cpu_s", "error", "error_metric", "is_default", "reference", "notes"]
 
@@ -170,6 +170,24 @@ def sweep_flow(cfg, scene, rows, args):
         frames = max(1, int(ev.get("frames", 1)) - 1) * max(1, int(ev.get("cameras", 1)))
         t.wall, t.cpu = t.wall / frames, t.cpu / frames
         _row(rows, "flow", "method", method, t, epe, "garment flow EPE (px); time per image", method == default)
+    # the configured method with and without the Lucas-Kanade refinement of the garment's pixels
+    refine = cfg["cues"]["flows"].get("refine", "none")
+    for value in ("none", "lk"):
+        if value == refine:  # that run is the default method's row above
+            row = next(r for r in rows if r["stage"] == "flow" and r["knob"] == "method" and r["value"] == default)
+            rows.append(dict(row, knob="refine", value=value))
+            continue
+        out = WORK / scene / f"flow_{default}_refine_{value}"
+        if out.exists():
+            shutil.rmtree(out)
+        c = dict(cfg["cues"]["flows"], refine=value)
+        with Timer() as t:
+            run_flows(data, seq, masks, out, c, res / "template.npz", threads=1, progress=False)
+        ev = evaluate_cues(data, seq, flows_dir=out)
+        frames = max(1, int(ev.get("frames", 1)) - 1) * max(1, int(ev.get("cameras", 1)))
+        t.wall, t.cpu = t.wall / frames, t.cpu / frames
+        _row(rows, "flow", "refine", value, t, float(ev["epe_garment_px"]), "garment flow EPE (px); time per image",
+             False)
 
 
 def sweep_resolution(cfg, scene, rows, args):
