@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from benchutil import cpu_model, git_rev  # noqa: E402
 
-from anidress_core.config import load_config  # noqa: E402
+from anidress_core.config import load_config, scene_section  # noqa: E402
 from anidress_core.io import files  # noqa: E402
 
 WORK = ROOT / "benchmarks" / "runs" / "tradeoffs"
@@ -277,6 +277,9 @@ def main():
     ap.add_argument("--field-steps", default="150,300,600", help="training steps swept (comma list)")
     args = ap.parse_args()
     cfg = load_config(args.config)
+    # the scene's own fit settings (scenes/<scene>/fit, e.g. the skirt's texture references for L_an),
+    # as the workflow's rule fit reads them
+    cfg = dict(cfg, fit=scene_section(cfg, "fit", args.scene))
     torch.set_num_threads(2)
     WORK.mkdir(parents=True, exist_ok=True)
     rows, started = [], datetime.datetime.now()
