@@ -73,6 +73,10 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default="benchmarks/fit_drift.md")
     a = ap.parse_args()
+    basin_frames = [int(x) for x in a.basin.split(",")] if a.basin else []
+    if basin_frames and ("anchor_texture" not in a.runs.split(",")
+                         or not all(0 < t < a.frames for t in basin_frames)):
+        raise SystemExit(f"--basin {a.basin}: needs the run anchor_texture and frames in 1..{a.frames - 1}")
     os.chdir(REPO)
     torch.set_num_threads(a.threads)
     d = Path("data") / a.scene
@@ -145,8 +149,8 @@ def main() -> None:
             verts.append(prev.verts)
             mask_prev, G = cues.mask, prev.transforms
         runs[name] = (out, time.perf_counter() - t0)
-        if key == "anchor_texture" and a.basin:
-            chained = basin(a, reader, rig, views, cfg, anchor, verts, floor_G, rmse)
+        if key == "anchor_texture" and basin_frames:
+            chained = basin(basin_frames, reader, rig, views, cfg, anchor, verts, floor_G, rmse)
         reader.close()
         print(f"{name}: mean {np.mean(out):.1f} mm", flush=True)
     floor = [rmse(floor_X[t], t) for t in range(T)]
@@ -175,9 +179,10 @@ def main() -> None:
         lines.append(f"| {name} | {np.mean(out):.1f} | " + " | ".join(f"{out[t]:.1f}" for t in cols) + " |")
     lines += ["", "Wall time per run: " + ", ".join(f"{k}: {v:.0f} s" for k, (_, v) in runs.items()) + "."]
     if chained:
-        lines += ["", "Loss basins of the `anchor_texture` run (`--basin`): the loss without L_of (2.0 L_M + 0.1 L_N + "
-                  "L_an) at the chained fit, and at a fit of the frame from the rig floor run to convergence (no "
-                  "L_of, relative tolerance 1e-6, up to 200 evaluations); vertex RMSE in mm:", "",
+        lines += ["", "Loss basins of the `anchor_texture` run (`--basin`): the fit's loss with the configured weights "
+                  "but without L_of (L_M, L_N, L_an; L_col not counted) at the chained fit, at a fit of the frame from "
+                  "the rig floor run to convergence (relative tolerance 1e-6, up to 200 evaluations), and on the "
+                  "straight line between the two meshes; vertex RMSE in mm:", "",
                   "| frame | rig floor RMSE | chained fit: RMSE | loss | from the floor, converged: RMSE | loss | "
                   "evaluations | loss, chained - converged | loss on the line chained -> converged at 1/4, 1/2, 3/4 |",
                   "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
@@ -189,15 +194,15 @@ def main() -> None:
     print("\n".join(lines))
 
 
-def basin(a, reader, rig, views, cfg, anchor, verts, floor_G, rmse) -> dict:
-    """Per frame of ``--basin``: the loss without L_of at the chained fit ``verts[t]`` and at a
-    converged fit of the frame started on the rig floor (same cues, same references)."""
+def basin(frames, reader, rig, views, cfg, anchor, verts, floor_G, rmse) -> dict:
+    """Per frame t of ``frames``: the loss without L_of at the chained fit ``verts[t]``, at a
+    converged fit of the frame started on the rig floor (same cues, same references) and on the
+    straight line between the two meshes."""
     cf = replace(cfg, w_flow=0.0, max_iters=200, rel_tol=1e-6)
     out = {}
-    for t in (int(x) for x in a.basin.split(",")):
-        if not 0 < t < len(verts):
-            raise SystemExit(f"--basin: frame {t} is not in 1..{len(verts) - 1}")
+    for t in frames:
         cues = reader.cues(t)
+
         def loss(X):
             return float(FIT.loss_terms(rig, views, cues, X, None, cf, anchor=anchor)[0])
 
