@@ -158,17 +158,21 @@ def sweep_flow(cfg, scene, rows, args):
     data, res, seq = _scene_paths(cfg, scene)
     masks, _, _ = _cue_dirs(res, data, seq)
     default = cfg["cues"]["flows"]["method"]
-    for method in ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "deepflow"):
-        out = WORK / scene / f"flow_{method}"
+
+    def run(name: str, flows_cfg: dict) -> tuple[Timer, float]:
+        """The flows of ``flows_cfg`` into WORK/<scene>/<name>: time per image, garment EPE (px)."""
+        out = WORK / scene / name
         if out.exists():
             shutil.rmtree(out)
-        c = dict(cfg["cues"]["flows"], method=method)
         with Timer() as t:
-            run_flows(data, seq, masks, out, c, res / "template.npz", threads=1, progress=False)
+            run_flows(data, seq, masks, out, flows_cfg, res / "template.npz", threads=1, progress=False)
         ev = evaluate_cues(data, seq, flows_dir=out)
-        epe = float(ev["epe_garment_px"])
         frames = max(1, int(ev.get("frames", 1)) - 1) * max(1, int(ev.get("cameras", 1)))
         t.wall, t.cpu = t.wall / frames, t.cpu / frames
+        return t, float(ev["epe_garment_px"])
+
+    for method in ("dis_ultrafast", "dis_fast", "dis_medium", "farneback", "deepflow"):
+        t, epe = run(f"flow_{method}", dict(cfg["cues"]["flows"], method=method))
         _row(rows, "flow", "method", method, t, epe, "garment flow EPE (px); time per image", method == default)
     # the configured method with and without the Lucas-Kanade refinement of the garment's pixels
     refine = cfg["cues"]["flows"].get("refine", "none")
@@ -177,17 +181,8 @@ def sweep_flow(cfg, scene, rows, args):
             row = next(r for r in rows if r["stage"] == "flow" and r["knob"] == "method" and r["value"] == default)
             rows.append(dict(row, knob="refine", value=value))
             continue
-        out = WORK / scene / f"flow_{default}_refine_{value}"
-        if out.exists():
-            shutil.rmtree(out)
-        c = dict(cfg["cues"]["flows"], refine=value)
-        with Timer() as t:
-            run_flows(data, seq, masks, out, c, res / "template.npz", threads=1, progress=False)
-        ev = evaluate_cues(data, seq, flows_dir=out)
-        frames = max(1, int(ev.get("frames", 1)) - 1) * max(1, int(ev.get("cameras", 1)))
-        t.wall, t.cpu = t.wall / frames, t.cpu / frames
-        _row(rows, "flow", "refine", value, t, float(ev["epe_garment_px"]), "garment flow EPE (px); time per image",
-             False)
+        t, epe = run(f"flow_{default}_refine_{value}", dict(cfg["cues"]["flows"], refine=value))
+        _row(rows, "flow", "refine", value, t, epe, "garment flow EPE (px); time per image", False)
 
 
 def sweep_resolution(cfg, scene, rows, args):
