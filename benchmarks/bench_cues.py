@@ -240,6 +240,16 @@ def main() -> None:
                                  "per_pair_ms": prior_ms, "per_frame_s": per_frame, **_pick(ev, "epe_"),
                                  "notes": f"posed body + skinned template, rasterised at 1/{ds} size, no image"})
                 how = f"prior-initialised (1/{ds} size, {prior_ms:.1f} ms per pair)" if prior is not None else "plain"
+
+                def flow_row(method: str, st: dict, ev: dict, t: float, notes: str) -> dict:
+                    """A row of a region run: ``t`` the estimator's (+ refinement's) seconds per pair."""
+                    total = t + prior_ms / 1e3
+                    return {**base, "cue": "flows", "method": method, "reference": "ground-truth flow",
+                            "wall_s": st["wall_s"], "per_pair_ms": 1e3 * t, "prior_ms_per_pair": prior_ms,
+                            "per_frame_s": total * len(names), "region_frac": st["region_fraction"],
+                            **_pick(ev, "epe_"), "epe_garment_x_s_per_pair": ev["epe_garment_px"] * total,
+                            "notes": notes}
+
                 flow_rows = []
                 for method in list(flow_methods):
                     out = tmp / scene / seq / f"flows_{method}"
@@ -247,13 +257,8 @@ def main() -> None:
                                       threads=1, progress=False)
                     ev = sc.evaluate_cues(src, seq, flows_dir=out)
                     t = timing[method]
-                    total = t + prior_ms / 1e3
-                    r = {**base, "cue": "flows", "method": method, "reference": "ground-truth flow",
-                         "wall_s": st["wall_s"], "per_pair_ms": 1e3 * t, "prior_ms_per_pair": prior_ms,
-                         "per_frame_s": total * len(names), "region_frac": st["region_fraction"],
-                         **_pick(ev, "epe_"), "epe_garment_x_s_per_pair": ev["epe_garment_px"] * total,
-                         "notes": f"{how}; region: estimated masks, margin {fcfg['margin_px']} px; whole-sequence "
-                                  f"run {1e3 * st['compute_s_per_pair']:.1f} ms per pair"}
+                    r = flow_row(method, st, ev, t, f"{how}; region: estimated masks, margin {fcfg['margin_px']} px; "
+                                                    f"whole-sequence run {1e3 * st['compute_s_per_pair']:.1f} ms per pair")
                     rows.append(r)
                     flow_rows.append(r)
                     print(f"  flows {method}: {_fmt_row(r)}", flush=True)
@@ -301,15 +306,10 @@ def main() -> None:
                     st = sc.run_flows(src, seq, default_masks, out, fcfg, tpl, threads=1, progress=False)
                     ev = sc.evaluate_cues(src, seq, flows_dir=out)
                     t = timing[fcfg["method"]] + st["refine_s_per_pair"]
-                    total = t + prior_ms / 1e3
-                    rows.append({**base, "cue": "flows", "method": rm, "reference": "ground-truth flow",
-                                 "wall_s": st["wall_s"], "per_pair_ms": 1e3 * t, "prior_ms_per_pair": prior_ms,
-                                 "per_frame_s": total * len(names), "region_frac": st["region_fraction"],
-                                 **_pick(ev, "epe_"), "epe_garment_x_s_per_pair": ev["epe_garment_px"] * total,
-                                 "default": "config",
-                                 "notes": f"{how}; the estimator's interleaved time + "
-                                          f"{1e3 * st['refine_s_per_pair']:.1f} ms of Lucas-Kanade per pair "
-                                          f"({st['refined_pixels_per_pair']:.0f} garment pixels of frame t-1)"})
+                    rows.append(dict(flow_row(rm, st, ev, t, f"{how}; the estimator's interleaved time + "
+                                              f"{1e3 * st['refine_s_per_pair']:.1f} ms of Lucas-Kanade per pair "
+                                              f"({st['refined_pixels_per_pair']:.0f} garment pixels of frame t-1)"),
+                                     default="config"))
                     print(f"  flows {rm}: {_fmt_row(rows[-1])}", flush=True)
                 if best is not None:
                     rows.append({**base, "cue": "flows", "method": "zero flow", "reference": "ground-truth flow",
