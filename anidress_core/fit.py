@@ -288,9 +288,8 @@ def config_for(base: FitConfig, ablation: str | None) -> FitConfig:
         return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT,
                        smooth_passes=max(int(base.smooth_passes), 1))
     if ablation == "collision":
-        return replace(base, w_anchor=base.w_anchor if base.w_anchor > 0 else ANCHOR_WEIGHT,
-                       w_collision=base.w_collision if base.w_collision > 0 else COLLISION_WEIGHT,
-                       smooth_passes=max(int(base.smooth_passes), 1))
+        return replace(config_for(base, "anchor_texture"),
+                       w_collision=base.w_collision if base.w_collision > 0 else COLLISION_WEIGHT)
     raise ValueError(f"unknown ablation {ablation!r}; choose from {sorted(ABLATIONS)}")
 
 
