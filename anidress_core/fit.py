@@ -41,7 +41,9 @@ weights (V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
   (:func:`texture_anchor`; the stage's ``anchor_reference: texture``): then L_an sees where
   each material point is from frame 0 on, which masks, normals and flow cannot (on the
   skirt's floral print the frame-0 tangential error falls from 18 to 6 mm; on a repeating,
-  nearly one-hue plaid the references do not discriminate and the fit gets worse).
+  nearly one-hue plaid they discriminate less, and the fit is worse than with first-seen
+  references unless the normal term is weighted up too: the stage's
+  ``weights/normal_texture_anchor``, benchmarks/fit_normal_weight.md).
 * L_col, body collision (not in the paper; ``w_collision``, 0 = off): the mean over the
   garment vertices of max(0, eps - d_v)^2, d_v the vertex's signed distance to the body along
   the outward normal of its closest body point, point and normal taken at the frame's start

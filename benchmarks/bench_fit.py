@@ -137,6 +137,8 @@ def main() -> None:
     # `full` is the paper's loss whatever the pipeline's config adds; the variants add our terms
     params["weights"] = dict(params["weights"], photo=0.0, anchor=0.0, collision=0.0)
     params["smooth_passes"] = 0
+    lam_n = float(params["weights"].get("normal", 0.1))
+    lam_n_an = float(params["weights"].get("normal_texture_anchor", 0.0)) or lam_n
     load0 = os.getloadavg()
     rows, notes = [], []
     command = "  ".join([".venv/bin/python benchmarks/bench_fit.py"] + sys.argv[1:])
@@ -200,6 +202,9 @@ def main() -> None:
                              f"sample sets): {1e3 * chamfer_bias(scene, seq, args.samples):.2f} mm; cues: {dirs['label']}"
                              f"; cameras: {timing['full']['cameras']}")
     load1 = os.getloadavg()
+    notes.insert(0, f"lambda_N = {lam_n:g} in every row except those with L_an on texture references "
+                 f"(`anchor_texture`, `collision`): {lam_n_an:g} there (config `fit/weights/normal_texture_anchor`; "
+                 "benchmarks/fit_normal_weight.md)")
     write(rows, notes, args, command, load0, load1)
 
 

@@ -68,6 +68,30 @@ def test_section_defaults_are_the_validated_configs():
         section_defaults("nope")
 
 
+def test_fit_config_normal_texture_anchor_is_lambda_n_only_with_texture_references():
+    from anidress_core.stages.fit import anchor_reference, fit_config
+
+    w = {"normal": 0.1, "anchor": 1e5, "normal_texture_anchor": 100.0}
+    tex = {"weights": w, "anchor_reference": "texture"}
+    assert fit_config(tex).w_normal == 100.0  # the pipeline's full method on the skirt (L_an, texture references)
+    for abl in ("anchor_texture", "collision"):  # these variants always take texture references
+        assert anchor_reference({"anchor_reference": "images"}, abl) == "texture"
+        assert fit_config({"weights": w}, abl).w_normal == 100.0
+    # first-seen image references keep the paper's lambda_N (a larger one is worse there: fit_normal_weight.md)
+    assert fit_config({"weights": w, "anchor_reference": "images"}).w_normal == 0.1
+    for abl in ("anchor", "anchor_smooth"):
+        assert anchor_reference(tex, abl) == "images" and fit_config(tex, abl).w_normal == 0.1
+    # the paper's ablations drop L_an and keep the paper's lambda_N; (b) has no normal term at all
+    assert fit_config(tex, "no_flow").w_normal == 0.1
+    assert fit_config(tex, "vertex").w_normal == 0.1
+    assert fit_config(tex, "no_normal_flow").w_normal == 0.0
+    # without L_an, or with normal_texture_anchor 0 (the schema's default), weights/normal everywhere
+    assert fit_config(dict(tex, weights=dict(w, anchor=0.0))).w_normal == 0.1
+    assert fit_config(dict(tex, weights=dict(w, normal_texture_anchor=0.0))).w_normal == 0.1
+    # normals off (weight 0) stay off
+    assert fit_config(dict(tex, weights=dict(w, normal=0.0))).w_normal == 0.0
+
+
 def test_scene_section_puts_the_scene_overrides_on_top():
     from anidress_core.config import scene_section
 

@@ -84,7 +84,24 @@ def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
         vertex_lr=float(v["lr"]), vertex_max_iters=int(v["max_iters"]), vertex_patience=int(v["patience"]),
         w_prior_first=float(p["first_frame_prior"]), smooth_passes=int(p["smooth_passes"]),
     )
-    return FIT.config_for(base, ablation)
+    cfg = FIT.config_for(base, ablation)
+    # weights/normal_texture_anchor: lambda_N where L_an is on with references from the garment
+    # texture (everywhere else weights/normal, the paper's). At its weight L_an is ~99 % of the
+    # loss, and with the paper's lambda_N the normals barely count. With texture references a
+    # larger lambda_N lowers the error; with first-seen image references it raises it
+    # (benchmarks/fit_normal_weight.md).
+    lam = float(w["normal_texture_anchor"])
+    if lam > 0 and cfg.w_anchor > 0 and cfg.w_normal > 0 and anchor_reference(p, ablation) == "texture":
+        cfg = dataclasses.replace(cfg, w_normal=lam)
+    return cfg
+
+
+def anchor_reference(params: Mapping, ablation: str | None = None) -> str:
+    """Where L_an's references come from for a run: 'images' (first frame each vertex is seen) or
+    'texture' (:func:`texture_anchor_of`). The variants fix it (``anchor``, ``anchor_smooth``: images;
+    ``anchor_texture``, ``collision``: texture); else the config's ``anchor_reference``."""
+    fixed = {"anchor": "images", "anchor_smooth": "images", "anchor_texture": "texture", "collision": "texture"}
+    return fixed.get(ablation or "full", params.get("anchor_reference", "images"))
 
 
 def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.RigParts, views: FIT.Views,
@@ -306,9 +323,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
     # 5. L_an's references: from the images (first frame each vertex is seen) or the template's texture
     anchor_init, anchor_note = None, None
-    ref_mode = {"anchor": "images", "anchor_smooth": "images", "anchor_texture": "texture",
-                "collision": "texture"}.get(
-        method, params.get("anchor_reference", "images"))
+    ref_mode = anchor_reference(params, ablation)
     if cfg.w_anchor > 0 and ref_mode == "texture":
         anchor_init, anchor_note = texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.photo_blur,
                                                      device)
