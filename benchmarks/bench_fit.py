@@ -308,7 +308,7 @@ def write(rows, notes, args, command, load0, load1) -> None:
         "transforms (`fit.smooth_transforms`), not part of the criteria; `anchor_texture` = `anchor_smooth` with "
         "L_an's references taken from the garment's texture at the template's UVs (`fit.texture_anchor`) instead of "
         "from the first frame each vertex is seen, not part of the criteria; `collision` = `anchor_texture` + our "
-        "body-collision term L_col (weight 1e6; the pipeline's configuration on the skirt), not part of the criteria; "
+        "body-collision term L_col (weight 1e6; the pipeline's configuration on both loose scenes), not part of the criteria; "
         "`sim` = no fit, the rig driven by its simulated poses of the sequence (the cloth simulator alone; no fps).",
         "",
         "| scene/seq | views | method | frames | vertex RMSE mm mean / p95 / worst (frame) | rig floor mm | RMSE / floor "
