@@ -59,7 +59,7 @@ def test_fit_command_applies_the_scene_overrides(monkeypatch, tmp_path):
     assert seen["params"]["anchor_reference"] == "texture"  # config.yaml: scenes/skirt/fit
     assert main(base + ["--anchor-reference", "images"]) in (0, None)
     assert seen["params"]["anchor_reference"] == "images"
-    other = tmp_path / "dress"
+    other = tmp_path / "custom"  # a scene config.yaml does not define
     other.mkdir()
     assert main(["fit", str(other)] + base[2:]) in (0, None)
     assert seen["params"]["anchor_reference"] == "images"  # the top-level fit section
