@@ -37,7 +37,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from anidress_core.config import load_config  # noqa: E402
 from anidress_core.stages import setup_logging  # noqa: E402
-from anidress_core.stages.fit import load_garment_poses, run_fit, run_fit_eval  # noqa: E402
+from anidress_core.stages.fit import fit_config, load_garment_poses, run_fit, run_fit_eval  # noqa: E402
 from anidress_core.stages.scene import read_scene  # noqa: E402
 from benchutil import git_rev  # noqa: E402
 
@@ -137,8 +137,8 @@ def main() -> None:
     # `full` is the paper's loss whatever the pipeline's config adds; the variants add our terms
     params["weights"] = dict(params["weights"], photo=0.0, anchor=0.0, collision=0.0)
     params["smooth_passes"] = 0
-    lam_n = float(params["weights"].get("normal", 0.1))
-    lam_n_an = float(params["weights"].get("normal_texture_anchor", 0.0)) or lam_n
+    # lambda_N as the stage sets it: without L_an (`full`) and with texture references (`collision`)
+    lam_n, lam_n_an = fit_config(params).w_normal, fit_config(params, "collision").w_normal
     load0 = os.getloadavg()
     rows, notes = [], []
     command = "  ".join([".venv/bin/python benchmarks/bench_fit.py"] + sys.argv[1:])

@@ -37,10 +37,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from anidress_core.config import load_config, scene_section  # noqa: E402
 from anidress_core.geometry import lbs  # noqa: E402
-from anidress_core.rig import fit_transforms  # noqa: E402
-from anidress_core.stages.fit import gt_template_vertices, load_garment_poses, run_fit  # noqa: E402
-from anidress_core.stages.rig import load_rig  # noqa: E402
-from benchutil import cpu_model, git_rev  # noqa: E402
+from anidress_core.stages.fit import load_garment_poses, run_fit  # noqa: E402
+from benchutil import cpu_model, fit_scene, git_rev  # noqa: E402
 
 KEY = ("scene", "seq", "views", "loss", "lambda_n")
 
@@ -80,9 +78,9 @@ def main() -> None:
             if not Path(need).exists():
                 raise SystemExit(f"{need}: not found (build the scene's rig and cues first: snakemake {rig_npz} "
                                  f"{res}/masks {res}/flows --config 'run_scenes=[{scene}]')")
-        art = load_rig(rig_npz, dtype=torch.float64)
-        Y = gt_template_vertices(f"data/{scene}", seq, art.model.rest, a.frames)[0]
-        floor = lbs(art.model.rest, art.model.weights, fit_transforms(art.model, Y).double())
+        sc = fit_scene(scene, seq, 8, rig_npz, a.frames)  # the ground truth in the rig's topology, the rig floor
+        art, Y = sc.art, sc.Y
+        floor = lbs(art.model.rest, art.model.weights, sc.floor_G)
         floor_rmse = float(((floor - Y) ** 2).sum(-1).mean(-1).sqrt().mean())
         base = scene_section(cfg, "fit", scene)
         for nv in (int(x) for x in a.views.split(",")):
