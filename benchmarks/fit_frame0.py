@@ -64,6 +64,7 @@ def error_parts(X: torch.Tensor, Y: torch.Tensor, faces) -> tuple[float, float, 
     return (1e3 * float(dn.pow(2).mean().sqrt()), 1e3 * float(dt.pow(2).sum(-1).mean().sqrt()),
             1e3 * float(np.sqrt(np.mean(dist ** 2))))
 
+
 def pipeline_loss(rig, views, cues, cfg, anchor, body_verts, body_faces):
     """X (V, 3) -> the loss ``cfg`` makes fit_frame minimise (the same evaluation, ``fit._evaluate``),
     without the proximal term (it depends on the start), L_col with its body contacts taken at X."""
