@@ -83,12 +83,12 @@ def pipeline_loss(rig, views, cues, cfg, anchor, body_verts, body_faces):
 def bone_search(rig, G, loss, steps_m=(0.03, 0.06)):
     """One round of a coordinate search over the bones: each bone in turn is moved by every step of
     ``steps_m`` (m) along the 26 directions of a 3x3x3 grid; the move that lowers ``loss`` (of the
-    skinned mesh) most is kept. Returns (G, loss, bones moved)."""
+    skinned mesh) most is kept. Returns the new transforms G."""
     import itertools
 
     dirs = torch.tensor([d for d in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(d)], dtype=G.dtype)
     dirs = dirs / dirs.norm(dim=1, keepdim=True)
-    best_l, moved = loss(lbs(rig.rest, rig.weights, G)), 0
+    best_l = loss(lbs(rig.rest, rig.weights, G))
     for b in range(G.shape[0]):
         cand = None
         for m in steps_m:
@@ -99,8 +99,8 @@ def bone_search(rig, G, loss, steps_m=(0.03, 0.06)):
                 if val < best_l:
                     best_l, cand = val, G2
         if cand is not None:
-            G, moved = cand, moved + 1
-    return G, best_l, moved
+            G = cand
+    return G
 
 
 CUE_SETS = {  # name: (label, masks folder, normals folder)
@@ -222,7 +222,7 @@ def main() -> None:
             if a.search > 0 and cue_set == "pipeline":
                 G, its = G_pipe, 0
                 for _ in range(a.search):
-                    G, _, _ = bone_search(rig, G, ploss)
+                    G = bone_search(rig, G, ploss)
                     r = FIT.fit_frame(rig, views, cues, G, pipeline_cfg[scene], None, first=True, anchor=tex_ref)
                     G, its = r.transforms, its + r.iterations
                 poses[f"fit from simulated start, pipeline loss + {a.search} rounds of per-bone search"] = (

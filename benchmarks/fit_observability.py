@@ -84,7 +84,7 @@ def main() -> None:
     os.chdir(REPO)
     torch.set_num_threads(a.threads)
     config = load_config("config/config.yaml")
-    rows, per_frame = [], {}
+    rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for pair in a.runs.split(","):
             scene, seq = pair.split(":")
@@ -113,7 +113,6 @@ def main() -> None:
                 rows.append({"scene": scene, "sequence": seq, "views": nv, "frames": T,
                              "lambda_N": cfg.w_normal, "w_anchor": cfg.w_anchor,
                              **{k: round(v, 4) for k, v in mean.items()}})
-                per_frame[(scene, seq, nv)] = stats
                 print(f"{scene}/{seq} {nv} views: fit {mean['fit_rmse']:.2f} mm, floor {mean['floor_rmse']:.2f}, "
                       f"2D {mean['fit_px']:.3f} / {mean['floor_px']:.3f} px ({wall:.0f} s)", flush=True)
     with open(f"{a.out}.csv", "w", newline="") as fh:
