@@ -1,6 +1,6 @@
 """Benchmark of the 2D cues (anidress_core.cues) against the synthetic ground truth.
 
-Run: .venv/bin/python benchmarks/bench_cues.py [--scenes skirt,dress] [--seqs all] [--frames 60]
+Run: .venv/bin/python -m benchmarks.bench_cues [--scenes skirt,dress] [--seqs all] [--frames 60]
      [--flow-methods all] [--mask-methods all] [--max-ms-per-pair 500]
 Writes benchmarks/cues.md and benchmarks/cues.csv. Not a test.
 
@@ -40,19 +40,17 @@ from pathlib import Path
 
 import numpy as np
 
-from benchutil import cpu_model, git_rev
+from anidress_core.config import load_config
+from anidress_core.cues import FLOW_METHODS, MASK_METHODS, CueErrors
+from anidress_core.io import files
+from anidress_core.stages import cues as sc
+from anidress_core.stages.scene import read_scene
+from benchmarks.benchutil import cpu_model, git_rev
 
 # the code whose uncommitted changes the git revision of a run's table flags
 CODE_PATHS = ("anidress_core/cues", "anidress_core/stages/cues.py")
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from anidress_core.config import load_config  # noqa: E402
-from anidress_core.cues import FLOW_METHODS, MASK_METHODS, CueErrors  # noqa: E402
-from anidress_core.io import files  # noqa: E402
-from anidress_core.stages import cues as sc  # noqa: E402
-from anidress_core.stages.scene import read_scene  # noqa: E402
 
 COLUMNS = ["scene", "sequence", "cue", "method", "reference", "cameras", "frames", "wall_s", "per_frame_s",
            "per_pair_ms", "prior_ms_per_pair", "region_frac", "iou_subject", "iou_body", "iou_garment", "epe_all_px", "epe_subject_px",
@@ -497,7 +495,7 @@ def render_only(args) -> None:
             best = min(cand, key=lambda r: r["epe_garment_x_s_per_pair"])
             best["default"] = best_label(best["method"], cfg["flows"])
     notes += overall_masks(rows, cfg["masks"]["method"]) + overall_choice(rows, cfg["flows"]["method"])
-    rerender = (f"Re-rendered by `.venv/bin/python benchmarks/bench_cues.py --render-only` on "
+    rerender = (f"Re-rendered by `.venv/bin/python -m benchmarks.bench_cues --render-only` on "
                 f"{datetime.datetime.now().isoformat(timespec='seconds')} against the config's current defaults; "
                 "every figure is that of the run above.  ")
     write(rows, args, None, None, notes, header={**header, "rerender": rerender})
@@ -513,7 +511,7 @@ def write(rows: list[dict], args, started: str | None, load_before: str | None, 
             w.writeheader()
             for r in rows:
                 w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-    cmd = ".venv/bin/python benchmarks/bench_cues.py " + " ".join(sys.argv[1:])
+    cmd = ".venv/bin/python -m benchmarks.bench_cues " + " ".join(sys.argv[1:])
     if header is None:
         head = [f"Command: `{cmd.strip()}`  ", f"Date: {started}  ", f"Git revision: {git_rev(CODE_PATHS)}  ",
                 f"Machine: {machine()}; torch and OpenCV set to 1 thread  ",

@@ -1,6 +1,6 @@
 """Benchmark of the pose-driven radiance field (anidress_core.field): `full` vs `body_only`.
 
-Run: .venv/bin/python benchmarks/bench_field.py [--scene skirt] [--steps N] [--workdir benchmarks/runs/field]
+Run: .venv/bin/python -m benchmarks.bench_field [--scene skirt] [--steps N] [--workdir benchmarks/runs/field]
 Writes benchmarks/field.md and benchmarks/field.csv. Not a test.
 
 Demo scale (config/config.yaml): the synthetic `skirt` scene, 8 training views at 256x256,
@@ -39,23 +39,21 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from benchutil import cpu_model, git_rev
 import torch
+
+from anidress_core.config import load_config
+from anidress_core.io import files
+from anidress_core.metrics.image import load_dists, load_lpips
+from anidress_core.stages import setup_logging
+from anidress_core.stages.evaluate import run_evaluate
+from anidress_core.stages.field import run_render, run_train
+from anidress_core.stages.scene import read_scene
+from benchmarks.benchutil import cpu_model, git_rev
 
 # the code whose uncommitted changes the git revision of a run's table flags
 CODE_PATHS = ("anidress_core", "benchmarks/bench_field.py")
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from anidress_core.config import load_config  # noqa: E402
-from anidress_core.io import files  # noqa: E402
-from anidress_core.metrics.image import load_dists, load_lpips  # noqa: E402
-from anidress_core.stages import setup_logging  # noqa: E402
-from anidress_core.stages.evaluate import run_evaluate  # noqa: E402
-from anidress_core.stages.field import run_render, run_train  # noqa: E402
-from anidress_core.stages.scene import read_scene  # noqa: E402
 
 log = logging.getLogger("anidress.bench")
 
@@ -203,7 +201,8 @@ def main() -> None:
     #    demo does on 2 cores: one torch thread each)
     procs = {}
     if not args.finish:
-        procs = {v: subprocess.Popen([sys.executable, __file__, "--worker", v, "--workdir", str(work)])
+        procs = {v: subprocess.Popen([sys.executable, "-m", "benchmarks.bench_field", "--worker", v,
+                                      "--workdir", str(work)], cwd=ROOT)
                  for v in ("full", "body_only")}
 
     def wait_for(v: str) -> None:
@@ -343,7 +342,7 @@ def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose
     L.append("# Pose-driven radiance field benchmark (`anidress_core.field`): full vs body_only\n")
     L.append(f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}")
     cmd = " ".join(a for a in sys.argv[1:] if a != "--finish")
-    L.append(f"- command: `.venv/bin/python benchmarks/bench_field.py {cmd}` (git {git_rev(CODE_PATHS)})"
+    L.append(f"- command: `.venv/bin/python -m benchmarks.bench_field {cmd}` (git {git_rev(CODE_PATHS)})"
              + (" -- this table was written by a second invocation with `--finish`, which waited for the two "
                 "variant workers the first one had started and ran the sampling ablations meanwhile" if args.finish
                 else ""))
@@ -436,7 +435,7 @@ def collect(args) -> None:
     rows, L = [], []
     L.append("# Pose-driven radiance field benchmark (`anidress_core.field`): full vs body_only\n")
     L.append(f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}")
-    L.append(f"- command: `.venv/bin/python benchmarks/bench_field.py --render-stride {ctx['stride']} --ablation-steps "
+    L.append(f"- command: `.venv/bin/python -m benchmarks.bench_field --render-stride {ctx['stride']} --ablation-steps "
              f"{args.ablation_steps}` (git {git_rev(CODE_PATHS)}); this file was written by `--collect` from the artifacts the run "
              "had produced when the session's time ran out -- **a partial benchmark**: what is missing is marked "
              "NOT MEASURED")

@@ -14,7 +14,7 @@ template on the sequence's body motion, paper §4.5): what fitting to the images
 the simulator. Writes benchmarks/fit.md and benchmarks/fit.csv; fitted poses go to
 benchmarks/runs/fit/ (not committed).
 
-    .venv/bin/python benchmarks/bench_fit.py --scenes skirt --views 8,4 --cues pipeline
+    .venv/bin/python -m benchmarks.bench_fit --scenes skirt --views 8,4 --cues pipeline
 """
 from __future__ import annotations
 
@@ -31,15 +31,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
+from anidress_core.config import load_config
+from anidress_core.stages import setup_logging
+from anidress_core.stages.fit import fit_config, load_garment_poses, run_fit, run_fit_eval
+from anidress_core.stages.scene import read_scene
+from benchmarks.benchutil import git_rev
 
-from anidress_core.config import load_config  # noqa: E402
-from anidress_core.stages import setup_logging  # noqa: E402
-from anidress_core.stages.fit import fit_config, load_garment_poses, run_fit, run_fit_eval  # noqa: E402
-from anidress_core.stages.scene import read_scene  # noqa: E402
-from benchutil import git_rev  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 # the code whose uncommitted changes the git revision of a run's table flags
 CODE_PATHS = ("anidress_core/fit.py", "anidress_core/raster.py", "anidress_core/stages/fit.py")
@@ -141,7 +139,7 @@ def main() -> None:
     lam_n, lam_n_an = fit_config(params).w_normal, fit_config(params, "collision").w_normal
     load0 = os.getloadavg()
     rows, notes = [], []
-    command = "  ".join([".venv/bin/python benchmarks/bench_fit.py"] + sys.argv[1:])
+    command = "  ".join([".venv/bin/python -m benchmarks.bench_fit"] + sys.argv[1:])
     for scene in args.scenes.split(","):
         info = read_scene(f"data/{scene}")
         seqs = [s["name"] for s in info["sequences"] if s.get("role") == "train"] if args.seq == "train" else \

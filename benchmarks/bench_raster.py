@@ -2,7 +2,7 @@
 
 Run from the repository root:
 
-    .venv/bin/python benchmarks/bench_raster.py
+    .venv/bin/python -m benchmarks.bench_raster
 
 Writes benchmarks/raster.md (table, machine, command) and benchmarks/raster.csv (one row
 per configuration). Mesh: a noise-displaced UV sphere, trimesh.creation.uv_sphere(count=
@@ -23,15 +23,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from benchutil import cpu_model
 import torch
 import trimesh
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from anidress_core.raster import project_vertices, rasterize, render_mesh
+from benchmarks.benchutil import cpu_model
 
-from anidress_core.raster import project_vertices, rasterize, render_mesh  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 OUT_DIR = Path(__file__).resolve().parent
 
@@ -126,7 +124,7 @@ def main() -> None:
     ap.add_argument("--no-reference", action="store_true")
     args = ap.parse_args()
     thread_counts = [int(x) for x in args.threads.split(",") if x.strip()]
-    command = " ".join([".venv/bin/python", "benchmarks/bench_raster.py", *sys.argv[1:]])
+    command = " ".join([".venv/bin/python", "-m", "benchmarks.bench_raster", *sys.argv[1:]])
     mesh = bench_mesh()
     V = torch.tensor(mesh.vertices, dtype=torch.float32)
     Fc = torch.tensor(mesh.faces)

@@ -1,6 +1,6 @@
 """Benchmark of the garment rigging model (anidress_core.rig.ssdr) against Dem Bones.
 
-Run: .venv/bin/python benchmarks/bench_rig.py [--repeats 3] [--sizes 3000:200:twirl,8000:500:dance]
+Run: .venv/bin/python -m benchmarks.bench_rig [--repeats 3] [--sizes 3000:200:twirl,8000:500:dance]
      [--bones-sweep 10,15,20,25,30] [--no-dembones]
 Writes benchmarks/rig.md and benchmarks/rig.csv. Not a test.
 
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchutil import cpu_model
+from benchmarks.benchutil import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "benchmarks" / "runs" / "rig"
@@ -48,7 +48,6 @@ def sequence(size: int, frames: int, motion: str) -> Path:
     path = RUNS / f"skirt{size}_{motion}{frames}.npz"
     if path.is_file():
         return path
-    sys.path.insert(0, str(ROOT))
     from anidress_core.body import make_motion, mannequin_model
     from anidress_core.garment import make_skirt
     from anidress_core.sim import ClothParams, simulate
@@ -82,7 +81,6 @@ def worker_ours(path: str, bones: int, iters: int, nnz: int, extra: dict) -> dic
     import torch
 
     torch.set_num_threads(1)
-    sys.path.insert(0, str(ROOT))
     import warp as wp
 
     from anidress_core import rig
@@ -128,7 +126,8 @@ def run_worker(method: str, path: Path, bones: int, iters: int, nnz: int, extra:
     spec = json.dumps({"method": method, "path": str(path), "bones": bones, "iters": iters, "nnz": nnz,
                        "extra": extra or {}})
     env = dict(os.environ, **ENV1)
-    out = subprocess.run([sys.executable, __file__, "--worker", spec], env=env, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-m", "benchmarks.bench_rig", "--worker", spec], env=env, cwd=ROOT,
+                         capture_output=True, text=True)
     if out.returncode != 0:
         raise RuntimeError(f"{method} on {path.name} failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -225,7 +224,7 @@ def write(rows, args, loads):
         "# Garment rigging model benchmark (`anidress_core.rig.ssdr`) vs Dem Bones",
         "",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
-        f"- command: `.venv/bin/python benchmarks/bench_rig.py --repeats {args.repeats} --sizes {args.sizes} "
+        f"- command: `.venv/bin/python -m benchmarks.bench_rig --repeats {args.repeats} --sizes {args.sizes} "
         f"--bones-sweep {args.bones_sweep}` (git {rev} + working tree)",
         f"- machine: {machine()}",
         "- load average (1 min) before each repeat and at the end: " + ", ".join(f"{x[0]:.2f}" for x in loads),

@@ -1,6 +1,6 @@
 """Benchmark of the cloth solver (anidress_core.sim) against newton's SolverVBD (CPU).
 
-Run: .venv/bin/python benchmarks/bench_sim.py [--frames 300] [--sizes 3000,8000] [--motions twirl,walk]
+Run: .venv/bin/python -m benchmarks.bench_sim [--frames 300] [--sizes 3000,8000] [--motions twirl,walk]
      [--no-newton]
 Writes benchmarks/sim.md and benchmarks/sim.csv. Not a test.
 
@@ -9,7 +9,7 @@ target_vertices=N)`` (waist band pinned to the skinned body) on the procedural
 mannequin (6,500 vertices) doing the library "twirl" and "walk" motions (300 frames,
 30 fps). Both solvers get the same mesh, band, skinning weights, body and key poses
 (30 settle frames from the T-pose, then the motion); the newton reference is
-benchmarks/bench_sim_newton.py, run in the same process right after ours for each
+``benchmarks.bench_sim_newton``, run in the same process right after ours for each
 row. Quality: edge length / rest length (p99 over edges of the worst frame, and max),
 penetration of free garment vertices into the posed body (winding-number test,
 ``anidress_core.sim.penetration_depth``), NaN count.
@@ -29,15 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from benchutil import cpu_model
+from anidress_core.body import make_motion, mannequin_model
+from anidress_core.garment import make_skirt
+from anidress_core.sim import ClothParams, edge_stretch, penetration_depth, simulate
+from benchmarks.benchutil import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from anidress_core.body import make_motion, mannequin_model  # noqa: E402
-from anidress_core.garment import make_skirt  # noqa: E402
-from anidress_core.sim import ClothParams, edge_stretch, penetration_depth, simulate  # noqa: E402
 
 
 def machine() -> str:
@@ -102,7 +99,7 @@ def main():
                 continue
             loads.append(f"{len(v)} {motion} newton {load()}")
             try:
-                from bench_sim_newton import ITERATIONS, SUBSTEPS, run_newton
+                from benchmarks.bench_sim_newton import ITERATIONS, SUBSTEPS, run_newton
 
                 nf, nwall, nsteps = run_newton(v, f, band, gw, body.v_template.numpy(), body.faces.numpy(),
                                                body.weights.numpy(), posed.transforms.numpy(), m.fps,
@@ -138,7 +135,7 @@ def write(rows, args, loads):
         w.writeheader()
         for r in rows:
             w.writerow({k: (f"{r[k]:.4f}" if isinstance(r[k], float) else r[k]) for k in cols})
-    cmd = " ".join([".venv/bin/python", "benchmarks/bench_sim.py"] + sys.argv[1:])
+    cmd = " ".join([".venv/bin/python", "-m", "benchmarks.bench_sim"] + sys.argv[1:])
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     except OSError:
@@ -162,7 +159,7 @@ def write(rows, args, loads):
         "- ours: default `ClothParams` (30 substeps x 2 iterations, bend_stiffness 1e-4, thickness 4 mm), "
         "collision against the skinned body mesh every substep; ms/frame = wall time of `simulate` (setup and settle "
         "included) / (frames + settle - 1).",
-        "- newton: `benchmarks/bench_sim_newton.py`, SolverVBD 10 substeps x 5 iterations on the CPU, the same mesh; "
+        "- newton: `benchmarks.bench_sim_newton`, SolverVBD 10 substeps x 5 iterations on the CPU, the same mesh; "
         "band particles kinematic (mass 0, written every substep from the skinned band); the body as a deforming "
         "collider mesh (static mesh shape whose points are re-skinned + refit every substep, collision AABB updated "
         "per frame); ms/frame = wall time of its stepping loop (skinning, collision, VBD) / frame steps (settle "

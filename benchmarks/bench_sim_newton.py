@@ -1,4 +1,4 @@
-"""Reference for benchmarks/bench_sim.py: newton's SolverVBD cloth on the CPU, same scene.
+"""Reference for benchmarks.bench_sim: newton's SolverVBD cloth on the CPU, same scene.
 
 Benchmark-only (``newton`` is never a runtime dependency of anidress_core).
 
@@ -158,11 +158,9 @@ def run_newton(verts, faces, band, gw, body_rest, body_faces, body_weights, tran
     return frames, wall, nsteps
 
 
-if __name__ == "__main__":  # quick smoke run: python benchmarks/bench_sim_newton.py [frames] [vertices]
+if __name__ == "__main__":  # quick smoke run: python -m benchmarks.bench_sim_newton [frames] [vertices]
     import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from anidress_core.body import make_motion, mannequin_model
     from anidress_core.garment import make_skirt
     from anidress_core.sim import edge_stretch, penetration_depth

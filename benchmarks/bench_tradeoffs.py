@@ -1,7 +1,7 @@
 """Run time against error: sweeps of the knobs that trade one for the other (issue 8 §2).
 
 Run: `snakemake --cores all bench`, `make bench`, or
-     .venv/bin/python benchmarks/bench_tradeoffs.py [--scene skirt] [--only rig,fit,flow,field,resolution]
+     .venv/bin/python -m benchmarks.bench_tradeoffs [--scene skirt] [--only rig,fit,flow,field,resolution]
          [--fit-frames 30] [--quick]
 Writes benchmarks/tradeoffs.csv (one row per run: stage, knob, value, wall_s, cpu_s, error,
 error_metric, is_default, reference) and benchmarks/tradeoffs.md; the report draws the
@@ -31,19 +31,17 @@ import csv
 import datetime
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 
+import numpy as np
+import torch
+
+from anidress_core.config import load_config, scene_section
+from anidress_core.io import files
+from benchmarks.benchutil import cpu_model, git_rev
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from benchutil import cpu_model, git_rev  # noqa: E402
-
-from anidress_core.config import load_config, scene_section  # noqa: E402
-from anidress_core.io import files  # noqa: E402
 
 WORK = ROOT / "benchmarks" / "runs" / "tradeoffs"
 #: (stage, knob) of the rows each sweep writes (for --merge)
@@ -300,9 +298,9 @@ def main():
             w.writerows(rows)
     md = ROOT / "benchmarks" / "tradeoffs.md"
     prev_md = md.read_text().splitlines() if md.is_file() else []
-    lines = ["# Run time against error (`benchmarks/bench_tradeoffs.py`)", "",
+    lines = ["# Run time against error (`benchmarks.bench_tradeoffs`)", "",
              f"- date: {started.isoformat(timespec='seconds')}",
-             f"- command: `.venv/bin/python benchmarks/bench_tradeoffs.py --scene {args.scene} --only {args.only} "
+             f"- command: `.venv/bin/python -m benchmarks.bench_tradeoffs --scene {args.scene} --only {args.only} "
              f"--fit-frames {args.fit_frames}{' --quick' if args.quick else ''}` (git {git_rev()})",
              f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs, torch "
              f"{torch.__version__}; load average (1 min) at the start and after each sweep: "

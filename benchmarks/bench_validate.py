@@ -1,6 +1,6 @@
 """How long the scene check (anidress_core.stages.validate.validate_scene) takes on the demo scenes.
 
-Run: .venv/bin/python benchmarks/bench_validate.py [--scenes skirt,tight,dress] [--repeats 3]
+Run: .venv/bin/python -m benchmarks.bench_validate [--scenes skirt,tight,dress] [--repeats 3]
 Writes benchmarks/validate.md and benchmarks/validate.csv. Not a test.
 
 Methods, per scene folder data/<scene> (skipped when absent):
@@ -36,7 +36,6 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     os.environ.update(ENV1)
-    sys.path.insert(0, str(ROOT))
     import cv2
     import torch
 
@@ -98,7 +97,7 @@ def main() -> None:
         f"- machine: {platform.node()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs "
         f"(shared with other jobs; load average {load_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end), "
         "one thread",
-        f"- command: `.venv/bin/python benchmarks/bench_validate.py --scenes {args.scenes} --repeats {args.repeats}`",
+        f"- command: `.venv/bin/python -m benchmarks.bench_validate --scenes {args.scenes} --repeats {args.repeats}`",
         f"- git revision: {rev}{' (validate.py modified)' if dirty else ''}",
         "- methods: `ends_cli` = `python -m anidress_core.cli validate data/<scene>` in a fresh process (imports "
         "included: the Snakemake job's cost); `ends` = `validate_scene(images=\"ends\")` in a warm process (every "

@@ -1,5 +1,5 @@
-"""Helpers shared by the benchmark scripts. They run as ``python benchmarks/<name>.py``, so
-this folder is on ``sys.path`` and the module imports by its name."""
+"""Helpers shared by the benchmark scripts, which run as modules from the repository root:
+``.venv/bin/python -m benchmarks.<name> ...``."""
 from __future__ import annotations
 
 import platform

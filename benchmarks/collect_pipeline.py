@@ -1,7 +1,7 @@
 """What one pipeline run of a scene cost and measured, from its own files (no recomputation).
 
 Run after `make demo` (or `snakemake --workflow-profile config/profiles/default`):
-    .venv/bin/python benchmarks/collect_pipeline.py [--scene skirt] [--wall-s SECONDS]
+    .venv/bin/python -m benchmarks.collect_pipeline [--scene skirt] [--wall-s SECONDS]
 Writes benchmarks/pipeline.md and benchmarks/pipeline.csv. Not a test.
 
 Sources: Snakemake's `benchmark:` files (benchmarks/runs/<scene>/**.tsv: wall and CPU
@@ -18,18 +18,15 @@ import datetime
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from benchutil import cpu_model
+from anidress_core.io import files
+from benchmarks.benchutil import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from anidress_core.io import files  # noqa: E402
 
 
 def _tsv(path: Path) -> dict:
@@ -86,7 +83,7 @@ def main() -> None:
              f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}; git {rev.strip()}",
              f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs; "
              f"load average now {' / '.join(f'{x:.2f}' for x in os.getloadavg())}",
-             f"- command: `.venv/bin/python benchmarks/collect_pipeline.py --scene {scene}"
+             f"- command: `.venv/bin/python -m benchmarks.collect_pipeline --scene {scene}"
              + (f" --wall-s {args.wall_s:.0f}" if args.wall_s else "") + "` after the run",
              "- sources: Snakemake `benchmark:` files of the last run of each job "
              f"(benchmarks/runs/{scene}/), results/{scene}/*/fit_metrics.csv, "
