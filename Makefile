@@ -24,8 +24,10 @@ test: venv
 	$(BIN)/pytest
 
 # Run-time-vs-error sweeps on the demo scene (builds it first): benchmarks/tradeoffs.{csv,md}.
-# The per-stage benchmarks (raster, sim, rig, cues, fit, field, validate) are scripts in
-# benchmarks/ (see README); their references need envs/requirements-bench.txt.
+# The per-stage benchmarks are modules run from the repository root, each writing
+# benchmarks/<stage>.{md,csv}: .venv/bin/python -m benchmarks.bench_<stage> --help, for <stage> in
+# raster, sim, rig, cues, fit, field, validate (and benchmarks.collect_pipeline after `make demo`);
+# their references need envs/requirements-bench.txt. Research probes and findings: studies/.
 bench: venv
 	$(BIN)/pip install --disable-pip-version-check -q -r envs/requirements-bench.txt
 	$(SNAKEMAKE) --workflow-profile config/profiles/default bench

@@ -1,7 +1,8 @@
 # `snakemake --cores all bench`: run-time-vs-error sweeps (issue 8 §2) on the first
 # garment scene of run_scenes, after the pipeline has built it. No output file on purpose:
-# a benchmark runs whenever it is asked for. Writes benchmarks/tradeoffs.{csv,md}; the
-# sweeps run with the effective config (config.yaml + any --configfile / --config).
+# a benchmark runs whenever it is asked for. Runs `python -m benchmarks.bench_tradeoffs`, which
+# writes benchmarks/tradeoffs.{csv,md}; the sweeps run with the effective config (config.yaml +
+# any --configfile / --config).
 
 BENCH_SCENE = next((s for s in SCENES if has_garment(s)), None)
 
@@ -25,4 +26,4 @@ rule bench:
         os.makedirs(os.path.dirname(cfg_path), exist_ok=True)
         with open(cfg_path, "w") as fh:
             yaml.safe_dump(dict(config), fh)
-        shell(f"{sys.executable} benchmarks/bench_tradeoffs.py --scene {params.scene} --config {cfg_path} > {log} 2>&1")
+        shell(f"{sys.executable} -m benchmarks.bench_tradeoffs --scene {params.scene} --config {cfg_path} > {log} 2>&1")
