@@ -14,7 +14,7 @@ import yaml
 
 from anidress_core import plots
 from anidress_core.io import files
-from anidress_core.stages.report import collect_report, run_report
+from anidress_core.stages.report import collect_report, reference_label, run_report
 
 REPO = Path(__file__).resolve().parents[1]
 H = W = 24
@@ -78,12 +78,21 @@ def _tree(root: Path) -> dict:
         w.writerow(["stage", "knob", "value", "wall_s", "cpu_s", "error", "error_metric", "is_default"])
         for b, t, e in ((10, 2.0, 5.1), (25, 5.0, 2.2), (30, 6.0, 1.8)):
             w.writerow(["rig", "bones", b, t, 2 * t, e, "rig RMSE (mm)", int(b == 25)])
+    with open(root / "benchmarks" / "rig.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["method", "vertices", "frames", "bones_asked", "rmse_m"])
+        w.writerow(["anidress_core.rig.ssdr", 50, 4, 25, 0.002])  # not a sweep row: not charted
+        for b, e in ((10, 0.005), (25, 0.0022)):
+            w.writerow(["anidress_core.rig.ssdr (bones sweep)", 50, 4, b, e])
     return cfg
+
+
+REFS = {"tradeoffs": "benchmarks/tradeoffs.csv", "rig_sweep": "benchmarks/rig.csv"}
 
 
 def test_report_content(tmp_path):
     cfg = _tree(tmp_path)
-    d = collect_report(cfg, tmp_path)
+    d = collect_report(cfg, tmp_path, references=REFS)
     sk = d["scenes"][0]
     assert sk["rig"]["rmse_mm"] == pytest.approx(4.0) and len(sk["sims"]) == 2
     fit = sk["sequences"][0]["fit"]["table"]
@@ -96,10 +105,60 @@ def test_report_content(tmp_path):
     assert d["tradeoffs"]["verdicts"] == [{"stage": "rig", "metric": "rig RMSE (mm)", "default": "bones=25",
                                            "on_front": True, "dominated_by": []}]
     out = tmp_path / "report.html"
-    run_report(cfg, out, tmp_path)
+    run_report(cfg, out, tmp_path, references=REFS)
     html = out.read_text()
     assert "27.50" in html and "26.90" in html and "28.50" in html  # novel pose / view PSNR of both variants
-    assert html.count("<table") >= 6 and html.count("<svg") >= 4 and html.count("data:image/png;base64") == 8
+    assert html.count("<table") >= 6 and html.count("<svg") >= 5 and html.count("data:image/png;base64") == 8
+    # the committed tables are labelled as reference figures (tmp_path is no git checkout: said so)
+    for name in ("benchmarks/tradeoffs.csv", "benchmarks/rig.csv"):
+        label = f"reference figures in {name} (not in a git checkout: commit and date unknown)"
+        assert html.count(label) == 1, label
+    assert d["rig_sweep"]["label"].startswith("reference figures in benchmarks/rig.csv")
+    assert "nothing on this page is typed in" not in html and "reference figures this run did" in html
+
+
+def test_report_shows_no_reference_table_unless_passed(tmp_path):
+    cfg = _tree(tmp_path)  # benchmarks/tradeoffs.csv and rig.csv exist under the root, but are not passed
+    out = tmp_path / "report.html"
+    d = run_report(cfg, out, tmp_path)
+    html = out.read_text()
+    assert d["tradeoffs"]["available"] is False and d["rig_sweep"] is None
+    assert "reference figures in" not in html and "reference figures committed" not in html
+    assert "No reference figures from earlier runs are shown" in html
+    assert "Not shown: no benchmarks/tradeoffs.csv" in html
+    with pytest.raises(ValueError, match="unknown keys"):
+        collect_report(cfg, tmp_path, references={"fit": "benchmarks/fit.csv"})
+
+
+def test_reference_label_reads_commit_and_date_from_git(tmp_path):
+    if shutil.which("git") is None:
+        pytest.skip("git not installed")
+    cfg = _tree(tmp_path)
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@t", "GIT_COMMITTER_DATE": "2026-11-30T12:00:00+00:00",
+           "GIT_AUTHOR_DATE": "2026-11-30T12:00:00+00:00"}
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=tmp_path, env=env, check=True, capture_output=True,
+                              text=True).stdout.strip()
+
+    git("init", "-q")
+    path = tmp_path / "benchmarks" / "tradeoffs.csv"
+    assert label_of(path) == "reference figures in benchmarks/tradeoffs.csv (not committed: commit and date unknown)"
+    git("add", "benchmarks/tradeoffs.csv")
+    git("commit", "-q", "-m", "sweeps")
+    sha = git("rev-parse", "--short", "HEAD")
+    assert label_of(path) == f"reference figures committed in benchmarks/tradeoffs.csv (commit {sha}, 2026-11-30)"
+    out = tmp_path / "report.html"
+    run_report(cfg, out, tmp_path, references={"tradeoffs": path})  # an absolute path: shown relative to root
+    assert f"reference figures committed in benchmarks/tradeoffs.csv (commit {sha}, 2026-11-30)" in out.read_text()
+    path.write_text(path.read_text() + "rig,bones,40,7.0,14.0,1.7,rig RMSE (mm),0\n")
+    assert label_of(path) == (f"reference figures in benchmarks/tradeoffs.csv (changed since its last commit "
+                              f"{sha}, 2026-11-30: not the committed figures)")
+
+
+def label_of(path: Path) -> str:
+    return reference_label(path, "benchmarks/tradeoffs.csv")
 
 
 def test_pareto_front_and_empty_charts():
@@ -126,7 +185,7 @@ def test_report_loads_in_a_headless_browser(tmp_path):
                     "or set ANIDRESS_NO_BROWSER=1 to skip this check on purpose")
     cfg = _tree(tmp_path)
     out = tmp_path / "report.html"
-    run_report(cfg, out, tmp_path)
+    run_report(cfg, out, tmp_path, references=REFS)
     with tempfile.TemporaryDirectory() as profile:
         res = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                               "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -138,5 +197,5 @@ def test_report_loads_in_a_headless_browser(tmp_path):
     assert attrs.get("loaded") == "1", attrs
     assert attrs["errors"] == "0", attrs.get("error-list")
     assert int(attrs["images"]) == 8 and attrs["images-ok"] == attrs["images"]
-    assert int(attrs["tables"]) >= 6 and int(attrs["svgs"]) >= 4
+    assert int(attrs["tables"]) >= 6 and int(attrs["svgs"]) >= 5
     assert "Skipped and why" in res.stdout and "Ours w/o G" in res.stdout

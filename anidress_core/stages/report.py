@@ -7,9 +7,15 @@ Reads what the pipeline wrote (nothing is recomputed here):
   (RMSE per simulated sequence), per sequence ``fit_metrics.csv`` and
   ``garment_poses.npz`` (loss curves), ``normals.json`` (cue skips), per training
   sequence and variant ``metrics_summary.json`` / ``metrics.csv`` and the renders;
-* ``benchmarks/runs/<scene>/**.tsv``: Snakemake's per-job run time and memory;
-* ``benchmarks/tradeoffs.csv`` (``snakemake bench``) and ``benchmarks/rig.csv``: the
-  run-time-vs-error sweeps, shown as Pareto plots.
+* ``benchmarks/runs/<scene>/**.tsv``: Snakemake's per-job run time and memory (the last
+  run of each job);
+
+and, only where the caller passes them (``references``; rule ``report`` names them as its
+inputs when they exist), committed *reference* tables that this run did not make:
+``benchmarks/tradeoffs.csv`` (``snakemake bench``: the run-time-vs-error sweeps, shown as
+Pareto plots) and ``benchmarks/rig.csv`` (the rig benchmark's bone-count sweep). Each is
+labelled on the page with its file and the commit and date git reports for it
+(:func:`reference_label`), or says why those are unknown.
 
 and renders ``reports/report.html.j2`` (Jinja2) into one HTML file: tables shaped like the
 paper's (novel view / novel pose, full vs body_only), fitting error per frame and per
@@ -27,6 +33,8 @@ import datetime
 import logging
 import math
 import os
+import subprocess
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -35,11 +43,14 @@ import yaml
 from .. import __version__, plots
 from ..io import files
 
-__all__ = ["collect_report", "render_report", "run_report"]
+__all__ = ["REFERENCE_TABLES", "collect_report", "reference_label", "render_report", "run_report"]
 
 log = logging.getLogger("anidress.report")
 
 VARIANTS = ("full", "body_only")
+
+#: Committed reference tables the report can show (key -> path relative to the working directory).
+REFERENCE_TABLES = {"tradeoffs": "benchmarks/tradeoffs.csv", "rig_sweep": "benchmarks/rig.csv"}
 
 
 # --------------------------------------------------------------------------- small readers
@@ -217,11 +228,62 @@ def _runtimes(root: Path, scene: str) -> list[dict]:
     return out
 
 
-def _tradeoffs(root: Path) -> dict:
-    """benchmarks/tradeoffs.csv -> one Pareto chart per (stage, error metric)."""
-    p = root / "benchmarks" / "tradeoffs.csv"
+def _git(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, timeout=30)
+
+
+def reference_label(path: str | os.PathLike, shown: str | None = None) -> str:
+    """Label of a committed reference table: file, commit and date, read from git.
+
+    ``"reference figures committed in benchmarks/rig.csv (commit 1a2b3c4, 2026-12-02)"`` when
+    the file is committed unchanged; otherwise the label says what is known instead: the file
+    changed since its last commit, never committed, not in a git checkout, or git missing.
+    ``shown``: the name printed (default: ``path`` as given).
+    """
+    p = Path(path).resolve()
+    shown = shown or str(path)
     if not p.is_file():
-        return {"available": False, "path": str(p)}
+        raise FileNotFoundError(f"{p}: reference table not found")
+    try:
+        inside = _git(["rev-parse", "--is-inside-work-tree"], p.parent)
+        if inside.returncode != 0:
+            err = (inside.stderr.strip().splitlines() or ["no message"])[0]
+            if "not a git repository" in err:
+                return f"reference figures in {shown} (not in a git checkout: commit and date unknown)"
+            return f"reference figures in {shown} (git failed: {err}; commit and date unknown)"
+        log_ = _git(["log", "-1", "--format=%h %cs", "--", p.name], p.parent)
+        status = _git(["status", "--porcelain", "--", p.name], p.parent)
+    except FileNotFoundError:
+        return f"reference figures in {shown} (git not installed: commit and date unknown)"
+    except subprocess.TimeoutExpired:
+        return f"reference figures in {shown} (git timed out: commit and date unknown)"
+    if log_.returncode != 0 or not log_.stdout.strip():  # no commit at all, or none with this file
+        return f"reference figures in {shown} (not committed: commit and date unknown)"
+    sha, date = log_.stdout.split()[:2]
+    if status.returncode != 0:
+        return (f"reference figures in {shown} (last commit {sha}, {date}; git status failed, so whether "
+                f"the file changed since is unknown)")
+    if status.stdout.strip():
+        return (f"reference figures in {shown} (changed since its last commit {sha}, {date}: "
+                f"not the committed figures)")
+    return f"reference figures committed in {shown} (commit {sha}, {date})"
+
+
+def _reference(path: Path, root: Path) -> tuple[Path, str]:
+    """Resolved path of a reference table and its label (the name shown relative to ``root``)."""
+    p = path if path.is_absolute() else root / path
+    try:
+        shown = str(p.resolve().relative_to(root.resolve()))
+    except ValueError:
+        shown = str(p)
+    return p, reference_label(p, shown)
+
+
+def _tradeoffs(path: Path | None, root: Path) -> dict:
+    """The sweeps table (benchmarks/tradeoffs.csv) -> one Pareto chart per (stage, error metric)."""
+    if path is None:
+        return {"available": False, "path": REFERENCE_TABLES["tradeoffs"]}
+    p, label = _reference(path, root)
     rows = _read_csv(p)
     charts, verdicts = [], []
     keys = list(dict.fromkeys((r["stage"], r["error_metric"]) for r in rows))
@@ -239,28 +301,42 @@ def _tradeoffs(root: Path) -> dict:
                                  "on_front": q["label"] in front,
                                  "dominated_by": [o["label"] for o in good if o["x"] <= q["x"] and o["y"] <= q["y"]
                                                   and (o["x"] < q["x"] or o["y"] < q["y"])]})
-    return {"available": True, "charts": charts, "verdicts": verdicts, "rows": len(rows)}
+    return {"available": True, "charts": charts, "verdicts": verdicts, "rows": len(rows), "label": label}
 
 
-def _rig_sweep(root: Path) -> str | None:
-    p = root / "benchmarks" / "rig.csv"
-    if not p.is_file():
+def _rig_sweep(path: Path | None, root: Path) -> dict | None:
+    """The rig benchmark's bone-count sweep (benchmarks/rig.csv) -> a chart and its label."""
+    if path is None:
         return None
+    p, label = _reference(path, root)
     rows = [r for r in _read_csv(p) if "sweep" in r.get("method", "")]
     if not rows:
         return None
     rows.sort(key=lambda r: int(r["bones_asked"]))
-    return plots.line_chart([("RMSE", [int(r["bones_asked"]) for r in rows], [_num(r["rmse_m"]) * 1e3 for r in rows])],
-                            f"rig RMSE per bone count ({rows[0]['vertices']} vertices x {rows[0]['frames']} frames)",
-                            "bones B", "RMSE (mm)")
+    chart = plots.line_chart([("RMSE", [int(r["bones_asked"]) for r in rows],
+                               [_num(r["rmse_m"]) * 1e3 for r in rows])],
+                             f"rig RMSE per bone count ({rows[0]['vertices']} vertices x {rows[0]['frames']} frames)",
+                             "bones B", "RMSE (mm)")
+    return {"chart": chart, "label": label}
 
 
 # --------------------------------------------------------------------------- collect / render
 
 
-def collect_report(config: dict, root: str | os.PathLike = ".") -> dict:
-    """Everything the page shows, from the files under ``root`` (data/, results/, benchmarks/)."""
+def collect_report(config: dict, root: str | os.PathLike = ".",
+                   references: Mapping[str, str | os.PathLike] | None = None) -> dict:
+    """Everything the page shows, from the files under ``root`` (data/, results/, benchmarks/runs/).
+
+    ``references``: committed reference tables to show as well, by key of
+    :data:`REFERENCE_TABLES` (``{"tradeoffs": "benchmarks/tradeoffs.csv"}``; relative paths
+    are under ``root``). None or a missing key: that table is not shown.
+    """
     root = Path(root)
+    references = dict(references or {})
+    unknown = set(references) - set(REFERENCE_TABLES)
+    if unknown:
+        raise ValueError(f"report references: unknown keys {sorted(unknown)}; known: {sorted(REFERENCE_TABLES)}")
+    refs = {k: Path(v) for k, v in references.items() if v}
     scenes, skipped = [], []
     for name in config["run_scenes"]:
         scfg = config["scenes"][name]
@@ -319,7 +395,8 @@ def collect_report(config: dict, root: str | os.PathLike = ".") -> dict:
     return {
         "title": "AniDress pipeline report", "created": datetime.datetime.now().isoformat(timespec="seconds"),
         "code_version": __version__, "config_hash": files.config_hash(config), "scenes": scenes,
-        "skipped": skipped, "tradeoffs": _tradeoffs(root), "rig_sweep": _rig_sweep(root),
+        "skipped": skipped, "tradeoffs": _tradeoffs(refs.get("tradeoffs"), root),
+        "rig_sweep": _rig_sweep(refs.get("rig_sweep"), root),
     }
 
 
@@ -349,12 +426,14 @@ def render_report(data: dict, template_dir: str | os.PathLike, out_html: str | o
 
 
 def run_report(config: dict, out_html: str | os.PathLike, root: str | os.PathLike = ".",
-               template_dir: str | os.PathLike | None = None) -> dict:
-    """Collect and render the report; returns the collected data."""
+               template_dir: str | os.PathLike | None = None,
+               references: Mapping[str, str | os.PathLike] | None = None) -> dict:
+    """Collect and render the report; returns the collected data. ``references``: see
+    :func:`collect_report`."""
     tdir = Path(template_dir) if template_dir else Path(__file__).resolve().parents[2] / "reports"
     if not (tdir / "report.html.j2").is_file():
         raise FileNotFoundError(f"{tdir / 'report.html.j2'}: report template not found")
-    data = collect_report(config, root)
+    data = collect_report(config, root, references)
     render_report(data, tdir, out_html)
     log.info("report: %s (%d scenes, %d skips)", out_html, len(data["scenes"]), len(data["skipped"]))
     return data
