@@ -28,7 +28,7 @@ def _cmd_synth(args: argparse.Namespace) -> None:
 
 
 def _cmd_template(args: argparse.Namespace) -> None:
-    from .stages.scene import load_body, read_scene
+    from .io.scene import load_body, read_scene
     from .stages.template import run_template
 
     scene_dir = Path(args.scene_dir)
@@ -186,7 +186,7 @@ def _cmd_render(args: argparse.Namespace) -> None:
     import torch
 
     from .stages.field import run_render
-    from .stages.scene import read_scene
+    from .io.scene import read_scene
 
     cfg = _field_cfg(args.config)
     params = {k: cfg["field"][k] for k in ("sampler", "render")}

@@ -44,7 +44,7 @@ from anidress_core.config import load_config
 from anidress_core.cues import FLOW_METHODS, MASK_METHODS, CueErrors
 from anidress_core.io import files
 from anidress_core.stages import cues as sc
-from anidress_core.stages.scene import read_scene
+from anidress_core.io.scene import image_path, read_scene
 from benchmarks.benchutil import cpu_model, git_rev
 
 # the code whose uncommitted changes the git revision of a run's table flags
@@ -76,7 +76,7 @@ def template_for(scene: str, data_root: Path, tmp: Path) -> tuple[Path, str]:
     p = ROOT / "results" / scene / "template.npz"
     if p.is_file():
         return p, str(p.relative_to(ROOT))
-    from anidress_core.stages.scene import load_body
+    from anidress_core.io.scene import load_body
     from anidress_core.stages.template import run_template
 
     data = data_root / scene
@@ -114,8 +114,8 @@ def interleaved_timing(scene_dir: Path, seq: str, names: list[str], frames: list
     times: dict[str, list[float]] = {m: [] for m in methods}
     for k, (c, i) in enumerate(picks):
         cam, f0, f1 = names[c], frames[i - 1], frames[i]
-        g0 = cf.to_gray8(files.read_image(sc.image_path(scene_dir / seq, cam, f0)))
-        g1 = cf.to_gray8(files.read_image(sc.image_path(scene_dir / seq, cam, f1)))
+        g0 = cf.to_gray8(files.read_image(image_path(scene_dir / seq, cam, f0)))
+        g1 = cf.to_gray8(files.read_image(image_path(scene_dir / seq, cam, f1)))
         region = cf.flow_region(files.read_mask(masks_dir / cam / f"{f0:06d}.png"),
                                 files.read_mask(masks_dir / cam / f"{f1:06d}.png"), margin)
         if region is None:

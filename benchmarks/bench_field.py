@@ -47,7 +47,7 @@ from anidress_core.metrics.image import load_dists, load_lpips
 from anidress_core.stages import setup_logging
 from anidress_core.stages.evaluate import run_evaluate
 from anidress_core.stages.field import run_render, run_train
-from anidress_core.stages.scene import read_scene
+from anidress_core.io.scene import read_scene
 from benchmarks.benchutil import cpu_model, git_rev
 
 # the code whose uncommitted changes the git revision of a run's table flags
@@ -93,16 +93,16 @@ def standin_poses(scene: str, seq: str, rig_npz: Path, work: Path) -> Path:
 
     from anidress_core.io.mesh import read_mesh
     from anidress_core.rig import fit_transforms, reconstruct, rmse
-    from anidress_core.stages.rig import load_rig
-    from anidress_core.stages.template import load_template
+    from anidress_core.io.rig import read_rig
+    from anidress_core.io.template import read_template
 
     out = work / "standin" / seq / "garment_poses.npz"
     if out.is_file():
         return out
     data = ROOT / "data" / scene
     info = read_scene(data)
-    rig = load_rig(rig_npz, dtype=torch.float64)
-    tpl = load_template(ROOT / "results" / scene / "template.npz")
+    rig = read_rig(rig_npz, dtype=torch.float64)
+    tpl = read_template(ROOT / "results" / scene / "template.npz")
     v, f, _ = read_mesh(data / info["garment_template"])
     mesh = trimesh.Trimesh(v, f, process=False)
     cp, dist, tri = trimesh.proximity.closest_point(mesh, tpl.verts)

@@ -34,7 +34,7 @@ import torch
 from anidress_core.config import load_config
 from anidress_core.stages import setup_logging
 from anidress_core.stages.fit import fit_config, load_garment_poses, run_fit, run_fit_eval
-from anidress_core.stages.scene import read_scene
+from anidress_core.io.scene import read_scene
 from benchmarks.benchutil import git_rev
 
 REPO = Path(__file__).resolve().parents[1]
@@ -72,9 +72,9 @@ def write_sim_poses(rig_npz: str, seq: str, frames: int, out: Path) -> None:
     """The ``sim`` reference as a garment_poses.npz: the rig driven by its simulated poses of ``seq``."""
     from anidress_core.geometry import lbs
     from anidress_core.io import files
-    from anidress_core.stages.rig import load_rig
+    from anidress_core.io.rig import read_rig
 
-    art = load_rig(rig_npz, dtype=torch.float64)
+    art = read_rig(rig_npz, dtype=torch.float64)
     name = f"seq-{seq}"
     if name not in art.sequences:
         raise SystemExit(f"{rig_npz}: no simulated sequence {name!r} (has {sorted(art.sequences)})")

@@ -606,7 +606,7 @@ def tiny_skirt(tmp_path_factory):
     from anidress_core.io.mesh import read_mesh
     from anidress_core.metrics.mesh import barycentric_transfer
     from anidress_core.stages.fit import gt_correspondence
-    from anidress_core.stages.scene import load_body, read_scene
+    from anidress_core.io.scene import load_body, read_scene
     from anidress_core.stages.synth import run_synth
     from anidress_core.stages.template import run_template
 
@@ -658,10 +658,10 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     assert meta["config"]["w_anchor"] == 0.0 and (a["loss_anchor"] == 0).all()
     assert h["meta"]["first_frame_start"].startswith("rig transforms of the simulated sequence seq-walk")
     # the fitted transforms reproduce the fitted vertices through the rig (the field stage's contract)
-    from anidress_core.stages.rig import load_rig
+    from anidress_core.io.rig import read_rig
     from anidress_core.geometry import lbs
 
-    art = load_rig(res / "rig.npz", dtype=torch.float64)
+    art = read_rig(res / "rig.npz", dtype=torch.float64)
     x = lbs(art.model.rest, art.model.weights, torch.as_tensor(a["transforms"]).double())
     assert float((x - torch.as_tensor(a["verts"]).double()).abs().max()) < 1e-4
     # the photo variant reads the images; the no-flow ablation; the evaluation

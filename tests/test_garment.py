@@ -220,7 +220,8 @@ def test_prepare_template_on_user_mesh_keeps_uvs(body, skirt):
 def test_run_template_writes_artifacts(tmp_path, body, skirt):
     from anidress_core.io.files import load_npz
     from anidress_core.io.mesh import read_mesh, write_obj
-    from anidress_core.stages.template import load_template, run_template
+    from anidress_core.io.template import read_template
+    from anidress_core.stages.template import run_template
 
     src = tmp_path / "garment" / "template.obj"
     src.parent.mkdir()
@@ -233,7 +234,7 @@ def test_run_template_writes_artifacts(tmp_path, body, skirt):
     np.testing.assert_array_equal(raw["band"].astype(bool), tpl.band)
     arrays, header = load_npz(npz)
     assert str(arrays["kind"]) == "skirt" and header["meta"]["vertices_inside_body"] == 0
-    back = load_template(npz)
+    back = read_template(npz)
     np.testing.assert_array_equal(back.faces, tpl.faces)
     np.testing.assert_allclose(back.body_weights, tpl.body_weights)
     # a template in millimetres: the error names the file and the units

@@ -6,7 +6,8 @@ import torch
 from anidress_core import geometry as g
 from anidress_core.cli import main
 from anidress_core.io import files
-from anidress_core.stages.rig import load_rig, run_rig
+from anidress_core.io.rig import read_rig
+from anidress_core.stages.rig import run_rig
 
 from .test_rig import _known_rig
 
@@ -42,7 +43,7 @@ def test_run_rig_writes_and_reads_back(tmp_path):
     tpl, sims, rest, faces, (X, X2) = _two_sequences(tmp_path)
     out = tmp_path / "rig.npz"
     art = run_rig(tpl, sims, {"bones": 4, "iters": 60, "nnz": 4, "smooth": 0.0}, out, device="cpu")
-    again = load_rig(out)
+    again = read_rig(out)
     assert again.model.weights.shape == (rest.shape[0], art.model.num_bones)
     assert again.sequences == {"lib-walk": slice(0, 20), "seq-dance": slice(20, 27)}
     assert again.model.transforms.shape == (27, art.model.num_bones, 4, 4)

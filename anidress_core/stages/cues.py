@@ -43,14 +43,13 @@ from ..cues import flow as cue_flow
 from ..cues import masks as cue_masks
 from ..geometry import lbs
 from ..io import files
+from ..io.scene import IMAGE_EXTS, image_path, load_body, load_sequence_motion, read_scene
+from ..io.template import read_template
 from ..synth import LABEL_GARMENT
-from .scene import load_body, load_sequence_motion, read_scene
 
 __all__ = [
-    "IMAGE_EXTS",
     "select_cameras",
     "sequence_frames",
-    "image_path",
     "atomic_dir",
     "mask_params",
     "run_masks",
@@ -61,8 +60,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("anidress.cues")
-
-IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
 
 # --------------------------------------------------------------------------- scene helpers
@@ -83,16 +80,6 @@ def select_cameras(info: dict, which: str | Sequence[str], scene_dir: str | os.P
     if not names:
         raise ValueError(f"{Path(scene_dir) / 'scene.yaml'}: no cameras for selection {which!r}")
     return names
-
-
-def image_path(seq_dir: Path, cam: str, frame: int) -> Path:
-    """``<seq_dir>/images/<cam>/<frame:06d>.{png,jpg,jpeg}`` (the first that exists; .png if none)."""
-    base = seq_dir / "images" / cam / f"{frame:06d}"
-    for ext in IMAGE_EXTS:
-        p = base.with_suffix(ext)
-        if p.is_file():
-            return p
-    return base.with_suffix(".png")
 
 
 def sequence_frames(seq_dir: str | os.PathLike, cams: Sequence[str]) -> list[int]:
@@ -165,8 +152,6 @@ class _Prior:
 
     def __init__(self, scene_dir: Path, seq: str, info: dict, template_npz: str | os.PathLike | None,
                  cams, frames: list[int]):
-        from .template import load_template
-
         body = load_body(scene_dir, info)
         motion = load_sequence_motion(scene_dir, seq, info["fps"])
         smpl_frames = sorted(int(p.stem) for p in (scene_dir / seq / "smpl").glob("*.json"))
@@ -179,7 +164,7 @@ class _Prior:
         self.body_verts, self.body_faces = posed.vertices.float(), body.faces
         self.garment_verts = self.garment_faces = None
         if template_npz is not None:
-            tpl = load_template(template_npz)
+            tpl = read_template(template_npz)
             # garment vertices follow the body: x = sum_k w_k A_k x_rest (template body weights)
             self.garment_verts = lbs(torch.from_numpy(tpl.verts).float(), torch.from_numpy(tpl.body_weights).float(),
                                      posed.transforms.float())

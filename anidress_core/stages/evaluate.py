@@ -31,8 +31,8 @@ import torch
 from .. import __version__
 from ..camera import load_cameras
 from ..io import files
+from ..io.scene import load_body, load_sequence_motion, read_scene
 from ..metrics import image as M
-from .scene import load_body, load_sequence_motion, read_scene
 
 __all__ = ["run_evaluate", "COLUMNS", "read_metrics_csv"]
 

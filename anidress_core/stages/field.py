@@ -3,7 +3,7 @@
 Artifacts (under ``results/<scene>/<seq>/<variant>/``, seq = a training sequence,
 variant = ``full`` | ``body_only``):
 
-* ``field.pt`` (torch.save dict, written atomically): ``format`` ("anidress-field/1"),
+* ``field.pt`` (:mod:`anidress_core.io.field`, written atomically): ``format`` ("anidress-field/1"),
   ``variant``, ``scene``, ``sequence``, ``field_config`` (architecture),
   ``state_dict`` (canonical field + motion-weight volume incl. its prior and the
   canonical box), ``num_body_joints`` (24), ``num_bones`` (B; 0 for body_only / tight),
@@ -41,15 +41,18 @@ from ..field.sampler import build_occupancy, mask_boxes, occupancy_pixels, occup
 from ..field.subject import BodyRest, GarmentRest, canonical_setup, posed_parts, unified_pose
 from ..field.train import TrainConfig, TrainData, render_view, train_field
 from ..io import files
-from .scene import load_body, load_sequence_motion, read_scene
+from ..io.body_motion import read_motion
+from ..io.field import FIELD_FORMAT as FORMAT
+from ..io.field import (FieldCheckpoint, read_field_checkpoint, read_training_state, training_state_path,
+                        write_field_checkpoint, write_training_state)
+from ..io.rig import read_rig
+from ..io.scene import load_body, load_sequence_motion, read_scene
+from ..io.template import read_template
 
 __all__ = ["run_train", "run_render", "load_field", "field_config_from_params", "train_config_from_params",
            "LoadedField", "FORMAT"]
 
 log = logging.getLogger("anidress.field")
-
-FORMAT = "anidress-field/1"
-
 
 # --------------------------------------------------------------------------- config
 
@@ -100,15 +103,11 @@ def _rest_inputs(scene_dir: Path, info: dict, template_npz, rig_npz, variant: st
     body = BodyRest(v.reshape(-1, 3).float(), body_model.faces, body_model.weights.float(), J.reshape(24, 3).float())
     if template_npz is None:
         return _Inputs(body, None, 0)
-    from .template import load_template
-
-    tpl = load_template(template_npz)
+    tpl = read_template(template_npz)
     rig_w = None
     B = 0
     if rig_npz is not None and variant == "full":
-        from .rig import load_rig
-
-        rig = load_rig(rig_npz)
+        rig = read_rig(rig_npz)
         if rig.model.rest.shape[0] != tpl.verts.shape[0]:
             raise files.ArtifactError(f"{rig_npz}: rig has {rig.model.rest.shape[0]} vertices but {template_npz} "
                                       f"has {tpl.verts.shape[0]}")
@@ -229,10 +228,10 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
                      torch.linalg.inv(S).to(dev), grid.to(dev))
     # 3. model, resume, train
     model = AnimatableField(box, prior, fcfg, seed=tcfg.seed).to(dev)
-    ckpt_path = Path(str(out_pt) + ".ckpt")
+    ckpt_path = training_state_path(out_pt)
     state = None
     if ckpt_path.is_file():
-        st = torch.load(ckpt_path, map_location=dev, weights_only=False)
+        st = read_training_state(ckpt_path, device=dev)
         if st.get("config_hash") == cfg_hash:
             state = st
             log.info("resuming from %s at step %d", ckpt_path, int(st["step"]))
@@ -248,8 +247,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
 
     def save_ckpt(s: dict) -> None:
         s["config_hash"] = cfg_hash
-        with files.atomic_path(ckpt_path) as tmp:
-            torch.save(s, tmp)
+        write_training_state(ckpt_path, s)
 
     res = _train_maybe_partial(model, data, tcfg, state, save_ckpt, lp, progress, max_steps)
     if res is None:  # stopped early on purpose: the checkpoint stays
@@ -268,8 +266,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
         "config_hash": cfg_hash, "code_version": __version__, "device": str(dev),
         "stage_wall_s": time.perf_counter() - t_start,
     }
-    with files.atomic_path(out_pt) as tmp:
-        torch.save({**out, "state_dict": {k: v.cpu() for k, v in model.state_dict().items()}}, tmp)
+    write_field_checkpoint(out_pt, FieldCheckpoint(meta=out, state_dict=model.state_dict()))
     if ckpt_path.exists():
         ckpt_path.unlink()
     last = res.history[-1] if res.history else {}
@@ -308,23 +305,14 @@ class LoadedField:
 
 def load_field(path: str | os.PathLike, device: str | None = None) -> LoadedField:
     """Read ``field.pt`` written by :func:`run_train`."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: field checkpoint not found")
-    try:
-        d = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise files.ArtifactError(f"{path}: not a readable torch file ({e})") from e
-    if not isinstance(d, dict) or d.get("format") != FORMAT:
-        raise files.ArtifactError(f"{path}: not an AniDress field ({FORMAT})")
-    fc = d["field_config"]
+    ck = read_field_checkpoint(path)
+    fc = ck.meta["field_config"]
     fcfg = FieldConfig(grid=HashGridConfig(**fc["grid"]), **{k: v for k, v in fc.items() if k != "grid"})
-    sd = d["state_dict"]
+    sd = ck.state_dict
     model = AnimatableField(sd["canonical.box"], sd["weights.log_prior"].exp(), fcfg)
     model.load_state_dict(sd)
     model.eval()
-    meta = {k: v for k, v in d.items() if k != "state_dict"}
-    return LoadedField(model.to(_device(device)), meta)
+    return LoadedField(model.to(_device(device)), ck.meta)
 
 
 def _projected_box(grid_lo: torch.Tensor, grid_hi: torch.Tensor, cams, pad_px: int) -> torch.Tensor:
@@ -366,7 +354,6 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     Garment poses (variant ``full``): ``garment_poses_npz`` for a captured sequence.
     Cameras: ``cameras`` of ``seq`` (or of the training sequence for a library motion).
     """
-    from .simulate import load_motion
 
     t_start = time.perf_counter()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
@@ -379,7 +366,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     bg = torch.tensor(params.get("render", {}).get("background", [0.0, 0.0, 0.0]), dtype=torch.float32, device=dev)
     cam_seq = seq if library_motion_npz is None else meta["sequence"]
     if library_motion_npz is not None:
-        motion = load_motion(library_motion_npz)
+        motion = read_motion(library_motion_npz)
         source = f"rig.transforms_of({library_name!r})"
     else:
         motion = load_sequence_motion(scene_dir, seq, info["fps"])
@@ -395,9 +382,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     G = None
     if variant == "full" and inp.garment is not None:
         if library_motion_npz is not None:
-            from .rig import load_rig
-
-            G = load_rig(rig_npz).transforms_of(library_name).float()
+            G = read_rig(rig_npz).transforms_of(library_name).float()
             if G.shape[0] != T_all:
                 raise files.ArtifactError(f"{rig_npz}: {library_name} has {G.shape[0]} garment-pose frames, the body "
                                           f"motion {library_motion_npz} {T_all}")

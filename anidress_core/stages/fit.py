@@ -2,7 +2,7 @@
 
 ``fit`` (paper §3.2, DESIGN.md §8) reads, for one sequence ``<seq>`` of ``data/<scene>``:
 
-* ``results/<scene>/rig.npz`` (:func:`anidress_core.stages.rig.load_rig`): rest (V, 3),
+* ``results/<scene>/rig.npz`` (:func:`anidress_core.io.rig.read_rig`): rest (V, 3),
   weights (V, B), bone centres, faces and the simulated sequences' transforms;
 * the cues of the training cameras (``scene.yaml`` ``cameras.train``, optionally an
   evenly spread subset): ``<masks_dir>/<cam>/<frame:06d>.png`` (labels 0/1/2, garment = 2),
@@ -49,10 +49,10 @@ from .. import fit as FIT
 from ..camera import load_cameras
 from ..config import section_defaults
 from ..io import files
+from ..io.rig import read_rig
+from ..io.scene import garment_texture_path, image_path, load_body, load_sequence_motion, read_scene
+from ..io.template import read_template
 from ..synth import LABEL_GARMENT
-from .cues import image_path
-from .rig import load_rig
-from .scene import garment_texture_path, load_body, load_sequence_motion, read_scene
 
 __all__ = ["fit_config", "select_views", "CueReader", "gt_correspondence", "gt_template_vertices", "run_fit", "load_garment_poses",
            "run_fit_eval", "FIT_METRIC_COLUMNS"]
@@ -109,13 +109,12 @@ def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.Rig
     """L_an's references from the template's UVs and the scene's garment texture
     (:func:`anidress_core.fit.texture_anchor`), blurred to the images' footprint at the start pose G0."""
     from ..geometry import lbs
-    from .template import load_template
 
     path = garment_texture_path(scene_dir, info)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: fit/anchor_reference is 'texture' but the garment has no texture "
                                 f"(set garment_texture in {scene_dir / 'scene.yaml'}, or anchor_reference: images)")
-    tpl = load_template(template_npz)
+    tpl = read_template(template_npz)
     faces = torch.as_tensor(np.asarray(tpl.faces), device=device).long()
     if tpl.face_uv is None or not torch.equal(faces, rig.faces):
         raise files.ArtifactError(f"{template_npz}: no UVs, or faces that are not the rig's")
@@ -272,7 +271,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     cams = load_cameras(sdir / "intri.yml", sdir / "extri.yml", names=names).to(device=device)
     views = FIT.Views.from_cameras(cams)
     # 2. rig
-    art = load_rig(rig_npz, device=device, dtype=torch.float64)
+    art = read_rig(rig_npz, device=device, dtype=torch.float64)
     rig = FIT.RigParts.make(art.model.rest, art.model.weights, art.model.bone_centres,
                             torch.as_tensor(art.faces, device=device))
     # 3. body (occluder) per frame
@@ -295,9 +294,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
                          f"(has {sorted(art.sequences)})")
     else:
         from ..rig import fit_transforms
-        from .template import load_template
 
-        tpl = load_template(template_npz)
+        tpl = read_template(template_npz)
         if tpl.verts.shape != tuple(art.model.rest.shape):
             raise files.ArtifactError(f"{template_npz}: template has {tpl.verts.shape[0]} vertices, the rig "
                                       f"{art.model.rest.shape[0]}")
@@ -452,7 +450,7 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
     from ..rig import fit_transforms, reconstruct
 
     gt_path = Path(scene_dir) / seq / "gt" / "meshes.npz"
-    art = load_rig(rig_npz, dtype=torch.float64)
+    art = read_rig(rig_npz, dtype=torch.float64)
     Y, gt, gt_faces, dist = gt_template_vertices(scene_dir, seq, art.model.rest)
     log.info("fit_eval %s: template -> ground-truth rest correspondence, distance mean %.2f mm, max %.2f mm",
              seq, 1e3 * float(dist.mean()), 1e3 * float(dist.max()))

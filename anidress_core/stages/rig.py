@@ -1,19 +1,8 @@
 """Stage `rig`: garment rigging model from the simulated sequences (DESIGN.md §4, paper §3.1).
 
 Reads the scene's ``template.npz`` and every ``sim/<motion>.npz``, decomposes all
-simulated frames together with :func:`anidress_core.rig.ssdr` and writes ``rig.npz``:
-
-* ``rest`` (V, 3) float32: the template's rest vertices (body canonical frame, metres);
-* ``faces`` (F, 3) int64;
-* ``weights`` (V, B) float32: convex skinning weights, at most ``nnz`` non-zeros per
-  row (stored dense, zeros off the support);
-* ``bone_centres`` (B, 3) float32: weighted rest centroid of each bone;
-* ``transforms`` (N, B, 4, 4) float32: rest -> frame transforms (column vectors) of
-  every simulated frame, sequences concatenated in the order of ``sequences``;
-* ``sequences`` (S,) str and ``offsets`` (S + 1,) int64: frames of sequence s are
-  ``transforms[offsets[s]:offsets[s + 1]]``;
-* ``rmse_per_sequence`` (S,) float64 (metres) and ``rmse`` () float64: reconstruction
-  error of the rig on the simulated frames.
+simulated frames together with :func:`anidress_core.rig.ssdr` and writes ``rig.npz``
+(layout: :mod:`anidress_core.io.rig`).
 
 Also the file-to-file command of ``anidress rig-decompose`` (the Dem Bones layout:
 ``weights`` (B, V), ``transforms`` (T, B, 4, 4)).
@@ -23,7 +12,6 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -32,32 +20,13 @@ import torch
 
 from .. import rig as R
 from ..io import files
+from ..io.rig import RigArtifact, read_rig, write_rig
+from ..io.sim import read_sim
+from ..io.template import read_template
 
-__all__ = ["RigArtifact", "run_rig", "load_rig", "run_rig_decompose"]
+__all__ = ["run_rig", "run_rig_decompose"]
 
 log = logging.getLogger("anidress.rig")
-
-
-@dataclass(frozen=True)
-class RigArtifact:
-    """``rig.npz`` as read by :func:`load_rig`."""
-
-    model: R.RigModel
-    """rest (V, 3), weights (V, B), transforms (N, B, 4, 4), bone_centres (B, 3), rmse."""
-    faces: np.ndarray
-    """(F, 3) int64."""
-    sequences: dict[str, slice]
-    """Simulated motion name -> its frames in ``model.transforms``."""
-    rmse_per_sequence: dict[str, float]
-    """Simulated motion name -> reconstruction RMSE (m)."""
-    meta: dict
-    """Header metadata (parameters, timings, iteration history)."""
-
-    def transforms_of(self, name: str) -> torch.Tensor:
-        """(T, B, 4, 4) bone transforms of simulated motion ``name``."""
-        if name not in self.sequences:
-            raise KeyError(f"rig has no simulated sequence {name!r} (has {sorted(self.sequences)})")
-        return self.model.transforms[self.sequences[name]]
 
 
 def run_rig(template_npz: str | os.PathLike, sim_npzs: Sequence[str | os.PathLike], params: dict,
@@ -69,14 +38,11 @@ def run_rig(template_npz: str | os.PathLike, sim_npzs: Sequence[str | os.PathLik
     more frames than this to the decomposition; the transforms of every frame are still
     written, by fitting the rig to the frames left out).
     """
-    from .template import load_template
-
     t0 = time.perf_counter()
-    tpl = load_template(template_npz)
+    tpl = read_template(template_npz)
     names, frames = [], []
     for p in sim_npzs:
-        a, h = files.load_npz(p, required=("frames",))
-        x = a["frames"]
+        x = read_sim(p).frames
         if x.ndim != 3 or x.shape[1:] != tpl.verts.shape:
             raise files.ArtifactError(f"{p}: frames must be (T, {tpl.verts.shape[0]}, 3) to match "
                                       f"{template_npz}, got {x.shape}")
@@ -116,37 +82,14 @@ def run_rig(template_npz: str | os.PathLike, sim_npzs: Sequence[str | os.PathLik
     wall = time.perf_counter() - t0
     meta = {"params": dict(params), "bones": model.num_bones, "frames_decomposed": int(X.shape[0]),
             "history_m": list(model.history), "wall_s": wall, "device": str(dev)}
-    files.save_npz(out_npz, {
-        "rest": tpl.verts.astype(np.float32), "faces": tpl.faces.astype(np.int64),
-        "weights": model.weights.float().cpu().numpy(), "bone_centres": model.bone_centres.float().cpu().numpy(),
-        "transforms": transforms.float().cpu().numpy(), "sequences": np.asarray(names),
-        "offsets": np.asarray(offsets, np.int64), "rmse_per_sequence": np.asarray(rm, np.float64),
-        "rmse": np.float64(total),
-    }, config=params, meta=meta)
+    rest32 = torch.as_tensor(tpl.verts.astype(np.float32))
+    write_rig(out_npz, RigArtifact(
+        model=R.RigModel(rest=rest32, weights=model.weights, transforms=transforms, bone_centres=model.bone_centres,
+                         rmse=total),
+        faces=tpl.faces, sequences={n: slice(offsets[i], offsets[i + 1]) for i, n in enumerate(names)},
+        rmse_per_sequence=dict(zip(names, rm)), meta=meta), config=params)
     log.info("rig: %d bones, RMSE %.2f mm over %d frames (%.1f s)", model.num_bones, 1e3 * total, offsets[-1], wall)
-    return load_rig(out_npz)
-
-
-def load_rig(path: str | os.PathLike, device: str | torch.device = "cpu",
-             dtype: torch.dtype = torch.float32) -> RigArtifact:
-    """Read ``rig.npz`` written by :func:`run_rig`."""
-    a, h = files.load_npz(path, required=("rest", "faces", "weights", "bone_centres", "transforms", "sequences",
-                                          "offsets", "rmse_per_sequence", "rmse"))
-    V, B = a["weights"].shape
-    if a["rest"].shape != (V, 3) or a["transforms"].shape[1:] != (B, 4, 4) or a["bone_centres"].shape != (B, 3):
-        raise files.ArtifactError(f"{path}: inconsistent shapes: rest {a['rest'].shape}, weights "
-                                  f"{a['weights'].shape}, transforms {a['transforms'].shape}")
-    names = [str(n) for n in a["sequences"]]
-    off = a["offsets"]
-    if off.shape != (len(names) + 1,) or off[-1] != a["transforms"].shape[0]:
-        raise files.ArtifactError(f"{path}: offsets {off.tolist()} do not cover {a['transforms'].shape[0]} frames")
-    t = lambda k: torch.as_tensor(a[k], dtype=dtype, device=device)  # noqa: E731
-    model = R.RigModel(rest=t("rest"), weights=t("weights"), transforms=t("transforms"),
-                       bone_centres=t("bone_centres"), rmse=float(a["rmse"]))
-    return RigArtifact(model=model, faces=a["faces"].astype(np.int64),
-                       sequences={n: slice(int(off[i]), int(off[i + 1])) for i, n in enumerate(names)},
-                       rmse_per_sequence={n: float(r) for n, r in zip(names, a["rmse_per_sequence"])},
-                       meta=h.get("meta", {}))
+    return read_rig(out_npz)
 
 
 def run_rig_decompose(seq_npz: str | os.PathLike, out_npz: str | os.PathLike, bones: int = 25, iters: int = 50,

@@ -2,10 +2,11 @@
 
 ``motions``: every captured sequence of a scene (its EasyMocap ``smpl/`` folder), the
 procedural library and any configured AMASS files, each written as
-``motions/<name>.npz`` (poses (T, 72), Rh, Th (T, 3), shapes, fps).
+``motions/<name>.npz`` (poses (T, 72), Rh, Th (T, 3), shapes, fps;
+:mod:`anidress_core.io.body_motion`).
 ``simulate``: one garment simulation per motion, ``sim/<name>.npz`` holding
 ``frames`` (T, V, 3) float32 and per-frame stability statistics, with the cloth
-parameters in the header.
+parameters in the header (:mod:`anidress_core.io.sim`).
 """
 from __future__ import annotations
 
@@ -19,12 +20,13 @@ import torch
 
 from .. import sim
 from ..body.motions import Motion, make_motion, resample
-from ..io import files
+from ..io.body_motion import read_motion, write_motion
 from ..io.motion import read_amass_npz
-from .scene import load_body, load_sequence_motion, read_scene
-from .template import load_template
+from ..io.scene import load_body, load_sequence_motion, read_scene
+from ..io.sim import SimSequence, write_sim
+from ..io.template import read_template
 
-__all__ = ["motion_names", "run_motion", "run_simulate", "load_motion"]
+__all__ = ["motion_names", "run_motion", "run_simulate"]
 
 log = logging.getLogger("anidress.simulate")
 
@@ -65,24 +67,15 @@ def run_motion(name: str, scene_dir: str | os.PathLike, sim_cfg: dict, out_npz: 
         m = resample(m, sim_cfg["library_fps"])
     else:
         raise ValueError(f"motion {name!r}: expected a name starting with {CAPTURED}, {LIBRARY} or {AMASS}")
-    files.save_npz(out_npz, {"poses": m.poses.numpy(), "Rh": m.Rh.numpy(), "Th": m.Th.numpy(),
-                             "shapes": m.shapes.numpy(), "fps": np.float64(m.fps)},
-                   config=sim_cfg, meta={"name": name, "frames": int(m.poses.shape[0])})
+    write_motion(out_npz, m, config=sim_cfg, meta={"name": name, "frames": int(m.poses.shape[0])})
     return m
-
-
-def load_motion(path: str | os.PathLike) -> Motion:
-    a, h = files.load_npz(path, required=("poses", "Rh", "Th", "shapes", "fps"))
-    t = lambda k: torch.from_numpy(a[k]).float()  # noqa: E731
-    return Motion(name=h.get("meta", {}).get("name", Path(path).stem), fps=float(a["fps"]), poses=t("poses"),
-                  Rh=t("Rh"), Th=t("Th"), shapes=t("shapes"))
 
 
 def run_simulate(template_npz: str | os.PathLike, motion_npz: str | os.PathLike, scene_dir: str | os.PathLike,
                  cloth_cfg: dict, out_npz: str | os.PathLike, progress: bool = True) -> sim.SimResult:
     """Simulate the scene's garment template on one body motion and write ``sim/<motion>.npz``."""
-    tpl = load_template(template_npz)
-    motion = load_motion(motion_npz)
+    tpl = read_template(template_npz)
+    motion = read_motion(motion_npz)
     body = load_body(scene_dir)
     posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
     params = sim.ClothParams(**cloth_cfg)
@@ -93,10 +86,9 @@ def run_simulate(template_npz: str | os.PathLike, motion_npz: str | os.PathLike,
              "%d recoveries, %.1f s", motion.name, res.frames.shape[0], res.frames.shape[1],
              float(st.max_stretch.max()), float(st.p99_stretch.max()), 1e3 * float(st.max_penetration_m.max()),
              int(st.nan_count.sum()), len(st.recoveries), st.wall_s)
-    files.save_npz(out_npz, {
-        "frames": res.frames.astype(np.float32), "faces": tpl.faces, "fps": np.float64(motion.fps),
-        "max_stretch": st.max_stretch, "p99_stretch": st.p99_stretch, "max_penetration_m": st.max_penetration_m,
-        "nan_count": st.nan_count, "substeps": st.substeps,
-    }, config=cloth_cfg, meta={"motion": motion.name, "params": dataclasses.asdict(params),
-                               "recoveries": st.recoveries, "wall_s": st.wall_s})
+    write_sim(out_npz, SimSequence(
+        frames=res.frames.astype(np.float32), faces=tpl.faces, fps=motion.fps, max_stretch=st.max_stretch,
+        p99_stretch=st.p99_stretch, max_penetration_m=st.max_penetration_m, nan_count=st.nan_count,
+        substeps=st.substeps, meta={"motion": motion.name, "params": dataclasses.asdict(params),
+                                    "recoveries": st.recoveries, "wall_s": st.wall_s}), config=cloth_cfg)
     return res

@@ -5,8 +5,9 @@ reads), or builds the procedural skirt/dress when there is no file, runs
 :func:`anidress_core.garment.prepare_template` and writes, atomically:
 
 * ``template.ply``: the remeshed garment, vertex property ``band`` (uchar 0/1);
-* ``template.npz``: verts (V, 3), faces (F, 3), face_uv (F, 3, 2), band (V,),
-  body_weights (V, 24), kind; header meta with the source and counts.
+* ``template.npz`` (:mod:`anidress_core.io.template`): verts (V, 3), faces (F, 3),
+  face_uv (F, 3, 2), band (V,), body_weights (V, 24), kind; header meta with the
+  source and counts.
 """
 from __future__ import annotations
 
@@ -15,14 +16,12 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
-
 from .. import garment
 from ..garment import GarmentTemplate
-from ..io import files
 from ..io.mesh import read_mesh, write_ply
+from ..io.template import write_template
 
-__all__ = ["run_template", "load_template"]
+__all__ = ["run_template"]
 
 log = logging.getLogger("anidress.template")
 
@@ -61,20 +60,7 @@ def run_template(template_path: str | os.PathLike | None, kind: str, body_model,
         log.warning("template: %d of %d garment vertices lie inside the T-posed body",
                     int(inside.sum()), tpl.verts.shape[0])
     write_ply(out_ply, tpl.verts, tpl.faces, {"band": tpl.band})
-    files.save_npz(out_npz, {"verts": tpl.verts, "faces": tpl.faces, "face_uv": tpl.face_uv, "band": tpl.band,
-                             "body_weights": tpl.body_weights, "kind": np.asarray(tpl.kind)},
-                   config=config, meta=meta)
+    write_template(out_npz, tpl, config=config, meta=meta)
     log.info("template: %s -> %d vertices, %d faces, %d band vertices (%.1f s)", source,
              meta["num_vertices"], meta["num_faces"], meta["band_vertices"], meta["wall_s"])
     return tpl
-
-
-def load_template(path: str | os.PathLike) -> GarmentTemplate:
-    """Read ``template.npz`` written by :func:`run_template`."""
-    arrays, _ = files.load_npz(path, required=("verts", "faces", "face_uv", "band", "body_weights", "kind"))
-    try:
-        return GarmentTemplate(verts=arrays["verts"], faces=arrays["faces"].astype(np.int64),
-                               face_uv=arrays["face_uv"], band=arrays["band"].astype(bool),
-                               body_weights=arrays["body_weights"], kind=str(arrays["kind"]))
-    except ValueError as e:
-        raise files.ArtifactError(f"{path}: {e}") from e

@@ -13,7 +13,7 @@ What is checked (in this order; the first problem found is the error):
 1. ``scene.yaml``: readable; ``fps`` > 0; ``units`` metres (if given); ``sequences``
    (unique names); ``cameras/train`` (and ``test``) lists of camera-name strings;
    ``body_model`` (type, file); ``garment_template`` / ``garment_kind``.
-2. Body model (:func:`anidress_core.stages.scene.load_body`): readable, finite, and in
+2. Body model (:func:`anidress_core.io.scene.load_body`): readable, finite, and in
    metres: the rest vertices and the rest joints must span a person (0.3-3 m and
    0.2-3 m); a 1000x error (1.7 m read as 1700 m or 1.7 mm) says "looks like
    millimetres" / "kilometres".
@@ -67,7 +67,7 @@ from ..io.easymocap import read_extri, read_intri
 from ..io.files import SceneError
 from ..io.mesh import read_mesh
 from ..io.motion import read_easymocap_smpl_dir
-from .scene import garment_texture_path, load_body, read_scene
+from ..io.scene import garment_texture_path, load_body, read_scene
 
 __all__ = [
     "SceneError",

@@ -210,9 +210,9 @@ def check_outputs(work: Path, scene: str, ran: set[tuple[str, str]]) -> list[tup
             add(f"results/{scene}/sim/{name}.npz", False, repr(e))
     if "rig" in rules:
         try:
-            from anidress_core.stages.rig import load_rig
+            from anidress_core.io.rig import read_rig
 
-            rig = load_rig(work / "results" / scene / "rig.npz")
+            rig = read_rig(work / "results" / scene / "rig.npz")
             T_all = sum(T for _, T in sims)
             ok = (rig.model.weights.shape[0] == V and rig.model.transforms.shape[0] == T_all
                   and sorted(rig.sequences) == sorted(n for n, _ in sims) and np.isfinite(rig.model.rmse))

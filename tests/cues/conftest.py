@@ -26,7 +26,7 @@ TINY_SKIRT = {
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory):
     """(scene_dir, template_npz) of a 64x64, 6-camera (4 train), 4-frame skirt scene."""
-    from anidress_core.stages.scene import load_body
+    from anidress_core.io.scene import load_body
     from anidress_core.stages.synth import run_synth
     from anidress_core.stages.template import run_template
 

@@ -10,7 +10,7 @@ import pytest
 
 from anidress_core.io import files
 from anidress_core.stages import cues as sc
-from anidress_core.stages.scene import read_scene
+from anidress_core.io.scene import read_scene
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ try:
     import torch
 
     from anidress_core.stages.field import run_render
-    from anidress_core.stages.scene import read_scene
+    from anidress_core.io.scene import read_scene
 
     torch.set_num_threads(snakemake.threads)
     p, inp, wc = snakemake.params, snakemake.input, snakemake.wildcards

@@ -2,7 +2,7 @@
 from pathlib import Path
 
 from anidress_core.stages import setup_logging
-from anidress_core.stages.scene import load_body, read_scene
+from anidress_core.io.scene import load_body, read_scene
 from anidress_core.stages.template import run_template
 
 log = setup_logging(snakemake.log[0])

@@ -1,4 +1,8 @@
-"""Reading a scene folder (DESIGN.md §3): scene.yaml, its body model, its sequences' motions."""
+"""Reading a scene folder (DESIGN.md §3): scene.yaml, its body model, its sequences' motions and images.
+
+Shared by every stage that reads a scene (template, motions, cues, fit, field,
+evaluate, validate) and by the command line; errors name the file and the key.
+"""
 from __future__ import annotations
 
 import os
@@ -10,10 +14,13 @@ import yaml
 
 from ..body.model import BodyModel, smpl_model
 from ..body.motions import Motion
-from ..io import files
-from ..io.motion import read_easymocap_smpl_dir, read_smpl_model_file
+from . import files
+from .motion import read_easymocap_smpl_dir, read_smpl_model_file
 
-__all__ = ["read_scene", "load_body", "load_sequence_motion"]
+__all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path"]
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+"""Extensions of a sequence's ``images/<cam>/<frame:06d>.<ext>`` files, in the order they are looked for."""
 
 
 def read_scene(scene_dir: str | os.PathLike) -> dict:
@@ -73,3 +80,13 @@ def load_sequence_motion(scene_dir: str | os.PathLike, seq: str, fps: float) -> 
         Rh=torch.as_tensor(np.asarray(d["Rh"], np.float32)), Th=torch.as_tensor(np.asarray(d["Th"], np.float32)),
         shapes=torch.as_tensor(shapes[0] if shapes.ndim == 2 else shapes),
     )
+
+
+def image_path(seq_dir: Path, cam: str, frame: int) -> Path:
+    """``<seq_dir>/images/<cam>/<frame:06d>.{png,jpg,jpeg}`` (the first that exists; .png if none)."""
+    base = seq_dir / "images" / cam / f"{frame:06d}"
+    for ext in IMAGE_EXTS:
+        p = base.with_suffix(ext)
+        if p.is_file():
+            return p
+    return base.with_suffix(".png")
