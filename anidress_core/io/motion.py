@@ -192,10 +192,62 @@ def read_smpl_model_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 
 # -------------------------------------------------------------------- EasyMocap
+POSES_ACCEPTED = (
+    "72 (SMPL: root + joints 1-23), "
+    "69 (SMPL without the root: EasyMocap >= 0.2 SMPLModel(use_root_rot=False), the root orientation is 'Rh'), "
+    "63 (SMPL-H / SMPL-X body without the root: EasyMocap >= 0.2 SMPLHModel / SMPLXModel, hands in "
+    "'handl' / 'handr'), "
+    "66 or more than 72 (EasyMocap 0.1 SMPL-H / SMPL-X with PCA hands, e.g. 78 / 87, or full SMPL-H 156 / "
+    "SMPL-X 165: root + joints 1-21 first)"
+)
+"""The lengths of an EasyMocap / ZJU-MoCap ``poses`` entry :func:`_smpl_poses` reads, in words."""
+
+
+def _smpl_poses(path: Path, poses: np.ndarray, key: str = "poses") -> np.ndarray:
+    """(72,) SMPL axis-angle pose (root + joints 1..23) from the ``poses`` of an EasyMocap body file.
+
+    EasyMocap's layouts (zju3dv/EasyMocap ``easymocap/bodymodel/smpl.py``, ``smplx.py``,
+    and 0.1's ``easymocap/smplmodel/body_model.py``):
+
+    * 72: SMPL with the root (0.1, and >= 0.2 with ``use_root_rot=True``); kept as is.
+    * 69: SMPL without the root (>= 0.2, ``use_root_rot=False``, the default): EasyMocap
+      prepends three zeros before skinning and applies the global orientation ``Rh``
+      afterwards; we do the same (root = 0, ``Rh`` read separately).
+    * 63: SMPL-H / SMPL-X body without the root (>= 0.2 ``SMPLHModel`` / SMPL-X): the 21
+      body joints 1..21 shared with SMPL. Root = 0 (it is ``Rh``).
+    * 66 and > 72: 0.1's SMPL-H / SMPL-X (root + 21 body joints + PCA hands [+ jaw, eyes],
+      e.g. 78 / 87) and full SMPL-H (156) / SMPL-X (165): the first 66 numbers are root +
+      joints 1..21.
+
+    SMPL's joints 22, 23 (left / right hand) are set to ZERO for every layout but 72:
+    SMPL-H / SMPL-X hands are MANO finger joints (``handl`` / ``handr``: PCA
+    coefficients of MANO's licensed basis, or 15 finger joints each), none of which is
+    SMPL's rigid hand joint, so no hand pose says otherwise. Any other length is refused
+    with a message listing the accepted ones.
+    """
+    n = poses.size
+    if n == 72:
+        return poses
+    if n == 69:
+        return np.concatenate([np.zeros(3), poses])
+    if n == 63:
+        return np.concatenate([np.zeros(3), poses, np.zeros(6)])
+    if n == 66 or n > 72:
+        return np.concatenate([poses[:66], np.zeros(6)])
+    raise ValueError(f"{path}: '{key}' holds {n} numbers; accepted lengths: {POSES_ACCEPTED}")
+
+
 def _person_params(path: Path, person: dict) -> dict[str, np.ndarray]:
+    """poses (72,), Rh (3,), Th (3,), shapes (S,) of one person entry (see :func:`_smpl_poses`).
+
+    ``handl`` / ``handr`` / ``expression`` (EasyMocap >= 0.2 SMPL-H / SMPL-X) are checked
+    (numeric, finite) but not returned: they do not move SMPL's joints.
+    """
+    if not isinstance(person, dict):
+        raise ValueError(f"{path}: a person entry must be a dict of parameters, got {type(person).__name__}")
     _require(path, person, ("Rh", "Th", "poses"))
     out = {}
-    for key in ("Rh", "Th", "poses", "shapes"):
+    for key in ("Rh", "Th", "poses", "shapes", "handl", "handr", "expression"):
         if key not in person:
             continue
         try:
@@ -207,15 +259,9 @@ def _person_params(path: Path, person: dict) -> dict[str, np.ndarray]:
     for key in ("Rh", "Th"):
         if out[key].shape != (3,):
             raise ValueError(f"{path}: '{key}' must hold 3 numbers, got {out[key].size}")
-    n = out["poses"].size
-    if n == 72:
-        pass
-    elif n in (66, 78, 87) or (n > 72 and n % 3 == 0):
-        # SMPL-H / SMPL-X: the first 22 joints are SMPL's; hands (SMPL joints 22, 23)
-        # are set to zero (the PCA hand coefficients are not SMPL joint rotations).
-        out["poses"] = np.concatenate([out["poses"][:66], np.zeros(6)])
-    else:
-        raise ValueError(f"{path}: 'poses' must hold 72 numbers (SMPL) or 78/87 (SMPL-H/X), got {n}")
+    out["poses"] = _smpl_poses(path, out["poses"])
+    for key in ("handl", "handr", "expression"):
+        out.pop(key, None)
     if "shapes" not in out:
         out["shapes"] = np.zeros(10)
     return out
