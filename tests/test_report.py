@@ -38,7 +38,10 @@ def _tree(root: Path) -> dict:
                                                   "max_penetration_m": np.zeros(3), "nan_count": np.zeros(3, int)},
                        meta={"wall_s": 1.5, "recoveries": []})
     files.save_npz(res / "rig.npz", {"rmse": np.float64(0.004), "rmse_per_sequence": np.array([0.003, 0.005]),
-                                     "sequences": np.array(["lib-twirl", "seq-walk"]), "weights": np.ones((5, 2)) / 2},
+                                     "sequences": np.array(["lib-twirl", "seq-walk"]), "weights": np.ones((5, 2)) / 2,
+                                     "rest": np.zeros((5, 3)), "faces": np.zeros((1, 3), int),
+                                     "bone_centres": np.zeros((2, 3)), "transforms": np.tile(np.eye(4), (6, 2, 1, 1)),
+                                     "offsets": np.array([0, 3, 6])},
                    meta={"wall_s": 2.0, "frames_decomposed": 6, "history_m": [0.01, 0.005, 0.004]})
     for seq in ("walk", "dance"):
         (res / seq).mkdir(parents=True)

@@ -42,6 +42,8 @@ import yaml
 
 from .. import __version__, plots
 from ..io import files
+from ..io.rig import read_rig
+from ..io.sim import read_sim
 
 __all__ = ["REFERENCE_TABLES", "collect_report", "reference_label", "render_report", "run_report"]
 
@@ -104,17 +106,16 @@ def _sims(res: Path) -> list[dict]:
     out = []
     for p in sorted((res / "sim").glob("*.npz")):
         try:
-            a, h = files.load_npz(p)
+            sq = read_sim(p)
         except files.ArtifactError as e:
             out.append({"motion": p.stem, "error": str(e)})
             continue
-        meta = h.get("meta", {})
-        fr = a.get("frames")
-        out.append({"motion": p.stem, "frames": int(fr.shape[0]) if fr is not None else 0,
-                    "max_stretch": float(np.max(a["max_stretch"])) if "max_stretch" in a else float("nan"),
-                    "max_penetration_mm": 1e3 * float(np.max(a["max_penetration_m"]))
-                    if "max_penetration_m" in a else float("nan"),
-                    "nan": int(np.sum(a["nan_count"])) if "nan_count" in a else 0,
+        meta = sq.meta
+        out.append({"motion": p.stem, "frames": sq.num_frames,
+                    "max_stretch": float(np.max(sq.max_stretch)) if sq.max_stretch is not None else float("nan"),
+                    "max_penetration_mm": 1e3 * float(np.max(sq.max_penetration_m))
+                    if sq.max_penetration_m is not None else float("nan"),
+                    "nan": int(np.sum(sq.nan_count)) if sq.nan_count is not None else 0,
                     "recoveries": len(meta.get("recoveries", [])), "wall_s": float(meta.get("wall_s", float("nan")))})
     return out
 
@@ -123,13 +124,12 @@ def _rig(res: Path) -> dict | None:
     p = res / "rig.npz"
     if not p.is_file():
         return None
-    a, h = files.load_npz(p, required=("rmse", "rmse_per_sequence", "sequences", "weights"))
-    meta = h.get("meta", {})
-    return {"bones": int(a["weights"].shape[1]), "vertices": int(a["weights"].shape[0]),
-            "rmse_mm": 1e3 * float(a["rmse"]), "wall_s": float(meta.get("wall_s", float("nan"))),
+    rig = read_rig(p)
+    meta = rig.meta
+    return {"bones": rig.model.num_bones, "vertices": int(rig.model.weights.shape[0]),
+            "rmse_mm": 1e3 * rig.model.rmse, "wall_s": float(meta.get("wall_s", float("nan"))),
             "frames_decomposed": meta.get("frames_decomposed"),
-            "per_sequence": [{"name": str(n), "rmse_mm": 1e3 * float(r)}
-                             for n, r in zip(a["sequences"], a["rmse_per_sequence"])],
+            "per_sequence": [{"name": n, "rmse_mm": 1e3 * r} for n, r in rig.rmse_per_sequence.items()],
             "history_mm": [1e3 * x for x in meta.get("history_m", [])]}
 
 
