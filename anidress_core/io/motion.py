@@ -34,6 +34,8 @@ __all__ = [
     "read_smpl_model_file",
     "read_easymocap_smpl_dir",
     "read_easymocap_smpl_file",
+    "EmptyFrameError",
+    "smpl_selection",
     "write_easymocap_smpl",
     "write_easymocap_smpl_dir",
     "read_zju_params_dir",
@@ -267,10 +269,48 @@ def _person_params(path: Path, person: dict) -> dict[str, np.ndarray]:
     return out
 
 
+class EmptyFrameError(ValueError):
+    """An EasyMocap body file without the chosen person (no one detected in that frame)."""
+
+
+def _person_id(person: dict) -> int | None:
+    pid = person.get("id", person.get("personID"))
+    try:
+        return None if pid is None else int(pid)
+    except (TypeError, ValueError):
+        return None
+
+
+def _select_person(p: Path, data: list, person_id: int | None) -> dict:
+    """The entry of ``person_id`` in a file's list of people (see :func:`read_easymocap_smpl_file`)."""
+    ids = [d.get("id", d.get("personID")) if isinstance(d, dict) else None for d in data]
+    if not data:
+        raise EmptyFrameError(f"{p}: no person in this frame (an empty list: the capture detected nobody)")
+    if person_id is None:
+        if len(data) > 1:
+            raise ValueError(f"{p}: holds {len(data)} people (ids {ids}); choose one with person_id "
+                             "(scene.yaml 'person_id'), the order of people may change between frames")
+        return data[0]
+    match = [d for d in data if isinstance(d, dict) and _person_id(d) == int(person_id)]
+    if not match:
+        raise EmptyFrameError(f"{p}: no person with id {person_id} in this frame (ids: {ids})")
+    if len(match) > 1:
+        raise ValueError(f"{p}: person id {person_id} appears {len(match)} times")
+    return match[0]
+
+
 def read_easymocap_smpl_file(path: str | os.PathLike, person_id: int | None = None) -> dict[str, np.ndarray]:
     """One EasyMocap smpl json: dict(poses (72,), Rh (3,), Th (3,), shapes (S,), id).
 
-    person_id: the person to take (None: the first entry of the file).
+    The file is a JSON list of people (EasyMocap ``write_smpl``; some versions wrap it
+    as ``{"annots": [...]}``), each ``{"id", "Rh", "Th", "poses", "shapes"[, "handl",
+    "handr", "expression"]}``. ``poses`` may hold any layout of :data:`POSES_ACCEPTED`.
+
+    person_id: the ``id`` of the person to take. None: the file must hold exactly one
+    person; a file with several raises naming the ids found (taking "the first" would
+    follow whoever EasyMocap listed first, which may change between frames). A frame
+    without that person (``[]``, EasyMocap's output when nobody was detected, or other
+    ids only) raises :class:`EmptyFrameError` (a ValueError) naming the file.
     """
     p = _exists(path)
     try:
@@ -281,27 +321,77 @@ def read_easymocap_smpl_file(path: str | os.PathLike, person_id: int | None = No
         data = data.get("annots", data)
         if isinstance(data, dict):
             data = [data]
-    if not isinstance(data, list) or not data or not all(isinstance(d, dict) for d in data):
-        raise ValueError(f"{p}: expected a non-empty JSON list of people (dicts)")
-    if person_id is None:
-        person = data[0]
-    else:
-        match = [d for d in data if int(d.get("id", d.get("personID", -1))) == person_id]
-        if not match:
-            ids = [d.get("id", d.get("personID")) for d in data]
-            raise ValueError(f"{p}: no person with id {person_id} (ids: {ids})")
-        person = match[0]
+    if not isinstance(data, list) or not all(isinstance(d, dict) for d in data):
+        raise ValueError(f"{p}: expected a JSON list of people (dicts with Rh, Th, poses, shapes)")
+    person = _select_person(p, data, person_id)
     out = _person_params(p, person)
-    out["id"] = np.asarray(int(person.get("id", person.get("personID", 0))))
+    pid = _person_id(person)
+    out["id"] = np.asarray(0 if pid is None else pid)
     return out
 
 
-def read_easymocap_smpl_dir(directory: str | os.PathLike, person_id: int | None = None) -> dict[str, Any]:
+def _interpolate_gaps(d: Path, frames: list[int], recs: list, missing: list[int], max_gap: int) -> None:
+    """Fill ``recs[i] is None`` (i in ``missing``) from the nearest frames before and after (in place).
+
+    Th, shapes: linear in the frame number; Rh and every joint of poses: spherical
+    linear interpolation of the rotations (scipy Slerp on the axis-angle vectors).
+    A gap longer than ``max_gap`` files, or one at the start or end of the sequence
+    (no neighbour on one side), raises naming the file.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    have = [i for i, r in enumerate(recs) if r is not None]
+    if not have:
+        raise EmptyFrameError(f"{d}: no frame holds the person (every file is empty or lacks the id)")
+    i = 0
+    while i < len(missing):
+        j = i
+        while j + 1 < len(missing) and missing[j + 1] == missing[j] + 1:
+            j += 1
+        lo, hi = missing[i] - 1, missing[j] + 1
+        gap = missing[j] - missing[i] + 1
+        first = d / f"{frames[missing[i]]:06d}.json"
+        if lo < 0 or hi >= len(recs):
+            side = "first" if lo < 0 else "last"
+            raise EmptyFrameError(f"{first}: the person is missing in {gap} file(s) at the {side} frames of the "
+                                  "sequence: nothing to interpolate from on that side (trim the sequence)")
+        if gap > max_gap:
+            raise EmptyFrameError(f"{first}: the person is missing in {gap} consecutive files, more than "
+                                  f"max_gap={max_gap} to interpolate")
+        a, b = recs[lo], recs[hi]
+        fa, fb = frames[lo], frames[hi]
+        for k in range(missing[i], missing[j] + 1):
+            w = (frames[k] - fa) / (fb - fa)
+            rot = {}
+            for key, n in (("Rh", 1), ("poses", 24)):
+                ra = Rotation.from_rotvec(a[key].reshape(n, 3))
+                rb = Rotation.from_rotvec(b[key].reshape(n, 3))
+                rot[key] = np.stack([Slerp([0.0, 1.0], Rotation.concatenate([ra[m], rb[m]]))(w).as_rotvec()
+                                     for m in range(n)]).reshape(-1)
+            recs[k] = {"poses": rot["poses"], "Rh": rot["Rh"], "Th": (1 - w) * a["Th"] + w * b["Th"],
+                       "shapes": (1 - w) * a["shapes"] + w * b["shapes"]}
+        i = j + 1
+
+
+def read_easymocap_smpl_dir(directory: str | os.PathLike, person_id: int | None = None,
+                            max_gap: int = 0) -> dict[str, Any]:
     """All ``<frame>.json`` files of an EasyMocap ``smpl`` folder, sorted by frame.
 
-    Returns dict(poses (T, 72), Rh (T, 3), Th (T, 3), shapes (T, S), frames list[int]).
+    Returns dict(poses (T, 72), Rh (T, 3), Th (T, 3), shapes (T, S), frames list[int],
+    interpolated list[int]).
+
+    person_id: as in :func:`read_easymocap_smpl_file` (None: every file must hold one
+    person). Frames without the person (an empty list or other ids only): with
+    ``max_gap`` = 0 (the default) the first such file is the error
+    (:class:`EmptyFrameError`, naming it and how many files lack the person); with
+    ``max_gap`` = k > 0, gaps of at most k consecutive files between two frames that
+    hold the person are interpolated (Th, shapes linearly, rotations by slerp) and
+    their frame numbers listed in ``interpolated``; a longer gap, or one at the start
+    or the end of the sequence, is still an error.
     """
     d = _exists(directory, "dir")
+    if isinstance(max_gap, bool) or not isinstance(max_gap, (int, np.integer)) or max_gap < 0:
+        raise ValueError(f"read_easymocap_smpl_dir: max_gap must be a non-negative int, got {max_gap!r}")
     files = [f for f in d.iterdir() if f.suffix == ".json"]
     bad = [f.name for f in files if not re.fullmatch(r"\d+", f.stem)]
     if bad:
@@ -309,7 +399,23 @@ def read_easymocap_smpl_dir(directory: str | os.PathLike, person_id: int | None 
     files.sort(key=lambda f: int(f.stem))
     if not files:
         raise ValueError(f"{d}: no <frame>.json files")
-    recs = [read_easymocap_smpl_file(f, person_id) for f in files]
+    recs: list = []
+    missing: list[int] = []
+    empty_errors: list[EmptyFrameError] = []
+    for i, f in enumerate(files):
+        try:
+            recs.append(read_easymocap_smpl_file(f, person_id))
+        except EmptyFrameError as exc:
+            recs.append(None)
+            missing.append(i)
+            empty_errors.append(exc)
+    frames = [int(f.stem) for f in files]
+    if missing:
+        if max_gap == 0:
+            n = len(missing)
+            raise EmptyFrameError(f"{empty_errors[0]}" + (f" ({n} files of {d} lack the person)" if n > 1 else "")
+                                  + "; pass max_gap (scene.yaml 'max_missing_frames') to interpolate short gaps")
+        _interpolate_gaps(d, frames, recs, missing, int(max_gap))
     sizes = {r["shapes"].size for r in recs}
     if len(sizes) != 1:
         raise ValueError(f"{d}: 'shapes' sizes differ between frames: {sorted(sizes)}")
@@ -318,8 +424,30 @@ def read_easymocap_smpl_dir(directory: str | os.PathLike, person_id: int | None 
         "Rh": np.stack([r["Rh"] for r in recs]),
         "Th": np.stack([r["Th"] for r in recs]),
         "shapes": np.stack([r["shapes"] for r in recs]),
-        "frames": [int(f.stem) for f in files],
+        "frames": frames,
+        "interpolated": [frames[i] for i in missing],
     }
+
+
+def smpl_selection(info: dict, seq: str, where: str | os.PathLike = "scene.yaml") -> dict[str, Any]:
+    """``person_id`` / ``max_gap`` of :func:`read_easymocap_smpl_dir` from a parsed scene.yaml.
+
+    Keys (optional): ``person_id`` (int: the EasyMocap ``id`` to take when files hold
+    several people) and ``max_missing_frames`` (int >= 0, default 0: how many
+    consecutive frames without the person are interpolated), at the top level or in a
+    ``sequences`` entry (which wins). ``where`` names the file in errors.
+    """
+    entry = next((s for s in info.get("sequences") or [] if isinstance(s, dict) and s.get("name") == seq), {})
+    out: dict[str, Any] = {}
+    for key, arg, lo in (("person_id", "person_id", None), ("max_missing_frames", "max_gap", 0)):
+        value = entry.get(key, info.get(key))
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int) or (lo is not None and value < lo):
+            raise ValueError(f"{where}: '{key}' must be " + ("a non-negative integer" if lo is not None else
+                             "an integer (an EasyMocap person id)") + f", got {value!r}")
+        out[arg] = value
+    return out
 
 
 def _flat(name: str, x, n: int | None) -> list[float]:

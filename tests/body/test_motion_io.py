@@ -121,7 +121,9 @@ def test_easymocap_variants(tmp_path):
         {"id": 7, "Rh": [[0, 0, 0]], "Th": [[4, 5, 6]], "poses": [list(np.arange(78) / 100)], "shapes": [[0.0] * 10]},
     ]
     (tmp_path / "000010.json").write_text(json.dumps({"annots": people}))
-    first = read_easymocap_smpl_file(tmp_path / "000010.json")
+    with pytest.raises(ValueError, match=r"000010\.json: holds 2 people \(ids \[3, 7\]\)"):
+        read_easymocap_smpl_file(tmp_path / "000010.json")  # no id chosen: no silent "first entry"
+    first = read_easymocap_smpl_file(tmp_path / "000010.json", person_id=3)
     assert int(first["id"]) == 3 and first["Th"].tolist() == [1, 2, 3]
     smplh = read_easymocap_smpl_file(tmp_path / "000010.json", person_id=7)
     assert smplh["poses"].shape == (72,)
