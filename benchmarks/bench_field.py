@@ -43,11 +43,12 @@ import torch
 
 from anidress_core.config import load_config
 from anidress_core.io import files
+from anidress_core.io.field import read_field_checkpoint
+from anidress_core.io.scene import read_scene
 from anidress_core.metrics.image import load_dists, load_lpips
 from anidress_core.stages import setup_logging
 from anidress_core.stages.evaluate import run_evaluate
 from anidress_core.stages.field import run_render, run_train
-from anidress_core.io.scene import read_scene
 from benchmarks.benchutil import cpu_model, git_rev
 
 # the code whose uncommitted changes the git revision of a run's table flags
@@ -487,7 +488,7 @@ def collect(args) -> None:
     ra = {}
     for v in ("full", "body_only"):
         if (run_a / v / "summary.json").is_file():
-            d = torch.load(run_a / v / "field.pt", map_location="cpu", weights_only=False)
+            d = read_field_checkpoint(run_a / v / "field.pt").meta
             ra[v] = {"summary": json.loads((run_a / v / "summary.json").read_text()), "wall_s": d["wall_s"],
                      "steps": d["steps"], "sampling": d["sampling"],
                      "np": json.loads((run_a / v / "render_np.json").read_text()),
@@ -554,7 +555,7 @@ def collect(args) -> None:
         rj = work / "ablation" / name / "render" / "render.json"
         a = {}
         if fp.is_file():
-            d = torch.load(fp, map_location="cpu", weights_only=False)
+            d = read_field_checkpoint(fp).meta
             a.update(steps=d["steps"], cpu=d["cpu_s"] / d["steps"], kept=d["sampling"]["samples_per_ray"],
                      seen=d["sampling"]["considered_per_ray"])
         if rj.is_file():

@@ -197,15 +197,19 @@ def check_outputs(work: Path, scene: str, ran: set[tuple[str, str]]) -> list[tup
             add(f"data/{scene}/scene.yaml", False, repr(e))
     if "template" in rules:
         try:
-            t = np.load(work / "results" / scene / "template.npz")
-            add(f"results/{scene}/template.npz verts ({V}, 3)", t["verts"].shape == (V, 3), str(t["verts"].shape))
+            from anidress_core.io.template import read_template
+
+            t = read_template(work / "results" / scene / "template.npz")
+            add(f"results/{scene}/template.npz verts ({V}, 3)", t.verts.shape == (V, 3), str(t.verts.shape))
         except Exception as e:  # noqa: BLE001
             add(f"results/{scene}/template.npz", False, repr(e))
     for name, T in ran_sims:
         try:
-            s = np.load(work / "results" / scene / "sim" / f"{name}.npz")
-            ok = s["frames"].shape == (T, V, 3) and np.isfinite(s["frames"]).all() and s["nan_count"].sum() == 0
-            add(f"results/{scene}/sim/{name}.npz frames ({T}, {V}, 3), finite", ok, str(s["frames"].shape))
+            from anidress_core.io.sim import read_sim
+
+            s = read_sim(work / "results" / scene / "sim" / f"{name}.npz")
+            ok = s.frames.shape == (T, V, 3) and np.isfinite(s.frames).all() and s.nan_count.sum() == 0
+            add(f"results/{scene}/sim/{name}.npz frames ({T}, {V}, 3), finite", ok, str(s.frames.shape))
         except Exception as e:  # noqa: BLE001
             add(f"results/{scene}/sim/{name}.npz", False, repr(e))
     if "rig" in rules:
