@@ -202,7 +202,7 @@ def main() -> None:
     load1 = os.getloadavg()
     notes.insert(0, f"lambda_N = {lam_n:g} in every row except those with L_an on texture references "
                  f"(`anchor_texture`, `collision`): {lam_n_an:g} there (config `fit/weights/normal_texture_anchor`; "
-                 "benchmarks/fit_normal_weight.md)")
+                 "studies/fit/fit_normal_weight.md)")
     write(rows, notes, args, command, load0, load1)
 
 
@@ -294,7 +294,7 @@ def write(rows, notes, args, command, load0, load1) -> None:
         "(fit and ground truth); acceleration error = the same of (fit - ground truth), the jitter a fit adds; "
         "rig floor Chamfer = the Chamfer of the rig floor's meshes (the surface error the rig cannot avoid; unlike the "
         "vertex RMSE, the Chamfer does not count material sliding along the surface, which images cannot see at "
-        "frame 0: fit_frame0.md). "
+        "frame 0: studies/fit/fit_frame0.md). "
         "Columns give mean / 95th percentile / worst frame (normal consistency: mean / 5th percentile / worst).",
         "- fps = frames / wall time of the fitting loop (cue loading and body occluder rasterisation included, "
         "rig and camera loading excluded); CPU s/frame = process CPU time of that loop per frame (all threads; "
