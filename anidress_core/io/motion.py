@@ -527,6 +527,10 @@ def read_zju_params_dir(directory: str | os.PathLike) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------ AMASS
+AMASS_KEYS = ("poses", "trans", "betas", "mocap_framerate", "mocap_frame_rate", "gender")
+"""The only keys :func:`read_amass_npz` reads from an AMASS .npz (the others are never loaded)."""
+
+
 def read_amass_npz(path: str | os.PathLike) -> dict[str, Any]:
     """An AMASS motion: dict(poses (T, 72), trans (T, 3), betas (S,), fps float, gender str).
 
@@ -535,12 +539,31 @@ def read_amass_npz(path: str | os.PathLike) -> dict[str, Any]:
     (66 numbers: root + 21 body joints) are shared with SMPL; SMPL's joints 22-23
     (left_hand, right_hand) have no SMPL-H counterpart (SMPL-H's joint 22 is the
     left index finger root) and are set to ZERO rather than copied from a finger.
+
+    Only the keys of :data:`AMASS_KEYS` are read, without pickle: the SMPL-X stage-II
+    files' other entries (``markers_latent_vids``, a pickled dict, ``root_orient``,
+    ``pose_body`` ...) are not loaded, so they neither fail nor get unpickled.
     """
     p = _exists(path)
+    data = {}
     try:
         with np.load(p, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+            # np.load of an .npz is lazy per key: read only the keys used here, so a
+            # pickled object array beside them (SMPL-X stage-II 'markers_latent_vids',
+            # a dict) is never unpickled nor refused.
+            for k in AMASS_KEYS:
+                if k not in z.files:
+                    continue
+                try:
+                    data[k] = z[k]
+                except ValueError as exc:  # "Object arrays cannot be loaded when allow_pickle=False"
+                    raise ValueError(f"{p}: key '{k}' is a pickled object array; AMASS stores it as a plain "
+                                     "numeric / string array (it is not unpickled here)") from exc
+    except ValueError as exc:
+        if str(exc).startswith(str(p)):
+            raise
+        raise ValueError(f"{p}: not a readable AMASS .npz ({exc})") from exc
+    except (OSError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"{p}: not a readable AMASS .npz ({exc})") from exc
     _require(p, data, ("poses", "trans"))
     poses = np.asarray(data["poses"], dtype=np.float64)
