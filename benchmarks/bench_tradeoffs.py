@@ -344,13 +344,6 @@ def main():
     for old in (ROOT / "benchmarks").glob("tradeoffs_*.svg"):  # charts of an earlier run's layout
         if old.name not in written:
             old.unlink()
-    # the hand-written reading of the previous file is kept (the script cannot rewrite it), flagged
-    hand = next((i for i, l in enumerate(prev_md) if l.startswith("## Reading (added by hand")), None)
-    if hand is not None:
-        flag = (f"> Kept from the file before the run of {started.isoformat(timespec='seconds')} (`--only "
-                f"{args.only}`): written for the rows before it; check it against the rows above.")
-        lines += ["", prev_md[hand], "", flag, *[l for l in prev_md[hand + 1:] if not l.startswith("> Kept from")]]
-        print(f"{md}: the hand-written reading is kept as it was; check it against the new rows", flush=True)
     md.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
