@@ -128,7 +128,7 @@ def test_report_shows_no_reference_table_unless_passed(tmp_path):
     assert d["tradeoffs"]["available"] is False and d["rig_sweep"] is None
     assert "reference figures in" not in html and "reference figures committed" not in html
     assert "No reference figures from earlier runs are shown" in html
-    assert "Not shown: no benchmarks/tradeoffs.csv" in html
+    assert "Not shown: benchmarks/tradeoffs.csv was not given to the report" in html
     with pytest.raises(ValueError, match="unknown keys"):
         collect_report(cfg, tmp_path, references={"fit": "benchmarks/fit.csv"})
 
