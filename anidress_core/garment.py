@@ -8,7 +8,9 @@ of a dress) is found, and every vertex gets body skinning weights from the neare
 point of the body surface, so the template can be posed by the body (the garment
 prior of the radiance field, the kinematic boundary condition of the cloth solver).
 
-Everything here is numpy/torch math; no file is opened (see ``stages.template``).
+Everything here is numpy/torch math; no file is opened (see ``stages.template``). The
+cleaning and remeshing (:func:`clean_and_remesh`, importable from here) and the defect
+checks live in :mod:`anidress_core.garment_mesh`.
 
 Shapes: V garment vertices, F garment faces, J = 24 body joints, T frames.
 UVs are per face corner ``face_uv (F, 3, 2)`` in the OBJ convention (v up).
@@ -27,6 +29,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from .body.kinematic import JOINT_INDEX, NUM_JOINTS
+from .garment_mesh import clean_and_remesh
 from .geometry import lbs
 
 __all__ = [
@@ -560,118 +563,6 @@ def make_dress(body, length: float = 0.80, flare: float = 0.30, ease: float = 0.
     and attached like :func:`make_skirt`."""
     v, f, uv = dress_surface(body, length, flare, ease, strap_width)
     return _finish_procedural(v, f, uv, "dress", body, target_vertices, margin)
-
-
-# ============================================================================ clean + remesh
-def _isotropic(ms, L: float, iterations: int, split_collapse: bool = True) -> None:
-    """pymeshlab isotropic explicit remeshing (Botsch & Kobbelt 2004) with every
-    parameter spelled out: pymeshlab 2025.7 remembers a filter's last arguments as
-    the defaults of its next call (see body/mannequin.py)."""
-    import pymeshlab
-
-    ms.meshing_isotropic_explicit_remeshing(
-        iterations=iterations, adaptive=False, selectedonly=False, targetlen=pymeshlab.PureValue(L),
-        featuredeg=180.0, checksurfdist=False, maxsurfdist=pymeshlab.PureValue(L), splitflag=split_collapse,
-        collapseflag=split_collapse, swapflag=True, smoothflag=True, reprojectflag=True)
-
-
-def _clean(ms, merge_tol: float, min_component: float) -> None:
-    """Cleaning filters (names: pymeshlab filter list, pymeshlab.readthedocs.io)."""
-    import pymeshlab
-
-    ms.meshing_merge_close_vertices(threshold=pymeshlab.PureValue(merge_tol))
-    ms.meshing_remove_duplicate_faces()
-    ms.meshing_remove_null_faces()
-    ms.meshing_remove_unreferenced_vertices()
-    ms.meshing_repair_non_manifold_edges(method="Remove Faces")
-    ms.meshing_repair_non_manifold_vertices(vertdispratio=0.0)
-    nf = ms.current_mesh().face_number()
-    ms.meshing_remove_connected_component_by_face_number(
-        mincomponentsize=max(int(min_component * nf), 1), removeunref=True)
-    ms.meshing_remove_unreferenced_vertices()
-    ms.meshing_re_orient_faces_coherently()
-
-
-def _euler_and_boundary(faces: np.ndarray, n_verts: int) -> tuple[int, int]:
-    """(Euler characteristic V - E + F, number of boundary vertices)."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    _, cnt = np.unique(np.sort(e, 1), axis=0, return_counts=True)
-    E = len(cnt)
-    nb = int((cnt == 1).sum())  # boundary edges == boundary vertices on closed loops
-    return n_verts - E + len(faces), nb
-
-
-def clean_and_remesh(verts: np.ndarray, faces: np.ndarray, target_vertices: int, merge_tol: float = 1e-6,
-                     min_component: float = 0.01, iterations: int = 6, tolerance: float = 0.03
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Clean a garment mesh and remesh it isotropically to ``target_vertices`` (within ~3%).
-
-    1. Clean (pymeshlab): merge vertices closer than ``merge_tol`` metres, drop
-       duplicate and zero-area faces, unreferenced vertices, non-manifold edges and
-       vertices, components smaller than ``min_component`` of the faces; orient
-       faces coherently.
-    2. Isotropic explicit remeshing (Botsch & Kobbelt 2004, vcglib via pymeshlab) with
-       reprojection onto the input surface; the edge length starts from
-       V ~ area / (sqrt(3)/2 L^2) aiming a little above the target and shrinks by the
-       observed count ratio while the result has too few vertices. Boundary edges are kept on the boundary, so the
-       open loops (hem, waist, neck, arm holes) survive.
-    3. Quadric edge-collapse decimation (Garland & Heckbert 1997) with boundary
-       preservation down to the face count of the target (Euler: F = 2 (V - chi) - nb),
-       then a relaxation pass without splits/collapses.
-    tolerance: the remesher aims ``(1 + tolerance / 2) * target_vertices`` before the
-    decimation (the count is exact whenever the remesh overshoots, the usual case).
-    Returns (verts (V, 3) float64, faces (F, 3) int64).
-    """
-    import pymeshlab
-
-    v = np.asarray(verts, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    if target_vertices < 100:
-        raise ValueError(f"clean_and_remesh: target_vertices must be >= 100, got {target_vertices}")
-
-    def fresh() -> "pymeshlab.MeshSet":
-        ms = pymeshlab.MeshSet()
-        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=f.astype(np.int32)))
-        _clean(ms, merge_tol, min_component)
-        return ms
-
-    ms = fresh()  # keep the MeshSet alive while its mesh is read (see body/mannequin.py)
-    m = ms.current_mesh()
-    cv, cf = m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64)
-    if len(cf) == 0:
-        raise ValueError("clean_and_remesh: no faces left after cleaning (all degenerate?)")
-    t = cv[cf]
-    area = float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
-    goal = (1.0 + tolerance / 2) * target_vertices
-    L = float(np.sqrt(area / (np.sqrt(3) / 2 * goal)))
-    # 1-2. Remesh; while that leaves fewer vertices than the target, shrink the edge
-    #      length by the observed ratio (vertex count ~ 1 / L^2) and start again.
-    for attempt in range(5):
-        if attempt:
-            del ms
-            ms = fresh()
-        _isotropic(ms, L, iterations)
-        n = ms.current_mesh().vertex_number()
-        if n >= target_vertices:
-            break
-        L *= 0.98 * float(np.sqrt(n / goal))
-    # 3. Decimate the excess to the exact count, keeping the boundary.
-    m = ms.current_mesh()
-    n = m.vertex_number()
-    if n > target_vertices:
-        chi, nb = _euler_and_boundary(m.face_matrix().astype(np.int64), n)
-        ms.meshing_decimation_quadric_edge_collapse(
-            targetfacenum=int(2 * (target_vertices - chi) - nb), targetperc=0.0, qualitythr=0.5,
-            preserveboundary=True, boundaryweight=10.0, preservenormal=True, preservetopology=True,
-            optimalplacement=True, planarquadric=False, planarweight=0.001, qualityweight=False,
-            autoclean=True, selected=False)
-        _isotropic(ms, L, 3, split_collapse=False)
-    ms.meshing_remove_unreferenced_vertices()
-    ms.meshing_re_orient_faces_coherently()
-    m = ms.current_mesh()
-    out_v, out_f = m.vertex_matrix().astype(np.float64).copy(), m.face_matrix().astype(np.int64).copy()
-    del ms
-    return out_v, out_f
 
 
 # ============================================================================ UV transfer

@@ -12,7 +12,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import torch
@@ -23,8 +22,7 @@ from anidress_core.config import default_schema_path, validate_config
 from anidress_core.io import easymocap, files
 from anidress_core.io.files import SceneError
 from anidress_core.io.mesh import read_mesh, write_obj
-from anidress_core.stages.validate import (SELF_INTERSECTION_TOLERANCE, image_size_from_header, mesh_defects,
-                                           run_validate, unit_guess, validate_scene)
+from anidress_core.stages.validate import SELF_INTERSECTION_TOLERANCE, run_validate, unit_guess, validate_scene
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = {
@@ -301,42 +299,6 @@ def test_scene_yaml_unquoted_camera_names(scene):
 
 
 # --------------------------------------------------------------------------- pieces
-
-
-def test_mesh_defects_counts_each_kind():
-    # two triangles of a unit square, one vertex duplicated (merged), one duplicate face,
-    # one degenerate face, then a third face on the shared diagonal
-    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [1, 1, 0], [0.5, 0.5, 1.0]], float)
-    f = np.array([[0, 1, 2], [0, 4, 3], [2, 1, 0], [0, 1, 1]])
-    d = mesh_defects(v, f)
-    assert d.merged_vertices == 1
-    assert d.duplicate_faces.tolist() == [2] and d.degenerate_faces.tolist() == [3]
-    assert len(d.non_manifold_edges) == 0 and len(d.self_intersecting_faces) == 0
-    d = mesh_defects(v, np.vstack([f, [[0, 2, 5]]]))
-    assert d.non_manifold_edges.tolist() == [[0, 2]] and d.non_manifold_counts.tolist() == [3]
-
-
-def test_mesh_defects_finds_a_crossing_triangle():
-    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, -0.5], [0.3, 0.2, 0.5], [0.2, 0.3, 0.5]], float)
-    d = mesh_defects(v, np.array([[0, 1, 2], [3, 4, 5]]))
-    assert sorted(d.self_intersecting_faces.tolist()) == [0, 1]
-    v[3:, 2] += 1.0  # lifted clear of the first triangle
-    assert len(mesh_defects(v, np.array([[0, 1, 2], [3, 4, 5]])).self_intersecting_faces) == 0
-
-
-def test_image_headers(tmp_path):
-    img = (np.random.default_rng(1).random((20, 30, 3)) * 255).astype(np.uint8)
-    for ext in (".png", ".jpg"):
-        p = tmp_path / f"a{ext}"
-        cv2.imwrite(str(p), img)
-        assert image_size_from_header(p) == (20, 30)
-    p = tmp_path / "b.jpg"
-    p.write_bytes((tmp_path / "a.jpg").read_bytes()[:-100])
-    with pytest.raises(SceneError, match="truncated JPEG"):
-        image_size_from_header(p)
-    (tmp_path / "e.png").write_bytes(b"")
-    with pytest.raises(SceneError, match="empty"):
-        image_size_from_header(tmp_path / "e.png")
 
 
 def test_unit_guess():

@@ -19,7 +19,8 @@ What is checked (in this order; the first problem found is the error):
    millimetres" / "kilometres".
 3. Garment template (when scene.yaml names one): readable
    (:func:`anidress_core.io.mesh.read_mesh`), units and placement against the body
-   (:func:`anidress_core.garment.check_placement`), then :func:`mesh_defects`:
+   (:func:`anidress_core.garment.check_placement`), then
+   :func:`anidress_core.garment_mesh.mesh_defects`:
    degenerate or duplicate faces are repairable by the template stage's cleaning
    unless they are more than 10% of the faces (then the file is not the mesh it
    claims to be: a broken export, wrong index base); any edge shared by more than
@@ -48,32 +49,27 @@ import logging
 import math
 import os
 import re
-import struct
 import time
 from collections import Counter
 from pathlib import Path
-from typing import NamedTuple, NoReturn
+from typing import NoReturn
 
 import cv2
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from .. import __version__, garment
 from ..garment import KINDS
+from ..garment_mesh import mesh_defects
 from ..io import files
 from ..io.easymocap import read_extri, read_intri
 from ..io.files import SceneError
+from ..io.images import check_exr_magic, image_size_from_header
 from ..io.mesh import read_mesh
 from ..io.motion import read_easymocap_smpl_dir
-from ..io.scene import garment_texture_path, load_body, read_scene
+from ..io.scene import IMAGE_EXTS, garment_texture_path, load_body, read_scene
 
 __all__ = [
     "SceneError",
-    "MeshDefects",
-    "mesh_defects",
-    "image_size_from_header",
     "unit_guess",
     "validate_scene",
     "run_validate",
@@ -82,15 +78,12 @@ __all__ = [
 
 log = logging.getLogger("anidress.validate")
 
-IMAGE_EXTS = (".png", ".jpg", ".jpeg")  # what the cue stages read (stages.cues.IMAGE_EXTS)
 PERSON_EXTENT_M = (0.3, 3.0)
 """Largest bounding-box side of the body's rest vertices: a person from a small child to a tall adult in T-pose."""
 JOINT_EXTENT_M = (0.2, 3.0)
 """Largest bounding-box side of the rest joints (1.7 m mannequin: 1.54 m wrist to wrist)."""
 CAMERA_DISTANCE_M = (0.2, 200.0)
 """Median distance between the body root and the camera centres of a capture."""
-MERGE_TOL_M = 1e-6
-"""Vertices closer than this are one vertex (garment.clean_and_remesh's merge_tol)."""
 MAX_REPAIRABLE_FRACTION = 0.10
 """Degenerate + duplicate faces above this fraction of the faces: not a repairable template."""
 SELF_INTERSECTION_TOLERANCE = 2
@@ -105,9 +98,6 @@ templates have none."""
 _TYPICAL_BODY_M = 1.7
 _TYPICAL_JOINTS_M = 1.5
 _UNITS = {1000.0: "millimetres", 100.0: "centimetres", 10.0: "decimetres", 1e-3: "kilometres"}
-_PNG_SIG = b"\x89PNG\r\n\x1a\n"
-_PNG_END = b"IEND\xaeB`\x82"
-_EXR_MAGIC = b"\x76\x2f\x31\x01"
 _NAME_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
@@ -144,171 +134,6 @@ def _units_problem(what: str, extent: float, bounds: tuple[float, float], typica
     scale = "too large" if ratio > 1 else "too small"
     return (f"{what} spans {extent:.4g} m (largest bounding-box side; a person is {lo:g}-{hi:g} m): "
             f"it looks like {unit_guess(ratio)} ({ratio:.4g}x {scale}); the pipeline works in metres")
-
-
-# =========================================================================== meshes
-class MeshDefects(NamedTuple):
-    """Problems of a triangle mesh, in the input's numbering (see :func:`mesh_defects`)."""
-
-    merged_vertices: int
-    """vertices within ``merge_tol`` of another one (merged by cleaning)."""
-    degenerate_faces: np.ndarray
-    """(K,) faces with a repeated vertex (after merging) or zero area."""
-    duplicate_faces: np.ndarray
-    """(K,) faces over the same three vertices as an earlier face."""
-    non_manifold_edges: np.ndarray
-    """(E, 2) vertex pairs (input numbering) of edges shared by more than two faces."""
-    non_manifold_counts: np.ndarray
-    """(E,) how many faces share each of those edges."""
-    self_intersecting_faces: np.ndarray
-    """(K,) faces that intersect a face they share no vertex or edge with (pymeshlab)."""
-
-    @property
-    def repairable_faces(self) -> int:
-        return int(len(self.degenerate_faces) + len(self.duplicate_faces))
-
-
-def _merge_map(verts: np.ndarray, tol: float) -> np.ndarray:
-    """(V,) representative of each vertex: the smallest index within ``tol`` (transitively)."""
-    V = len(verts)
-    pairs = cKDTree(verts).query_pairs(tol, output_type="ndarray")
-    if len(pairs) == 0:
-        return np.arange(V)
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(V, V))
-    _, comp = connected_components(g, directed=False)
-    rep = np.full(comp.max() + 1, V, dtype=np.int64)
-    np.minimum.at(rep, comp, np.arange(V))
-    return rep[comp]
-
-
-def mesh_defects(verts: np.ndarray, faces: np.ndarray, merge_tol: float = MERGE_TOL_M,
-                 self_intersections: bool = True) -> MeshDefects:
-    """Degenerate, duplicate, non-manifold and self-intersecting faces of a triangle mesh.
-
-    verts (V, 3) metres, faces (F, 3). Steps, mirroring what the template stage's
-    cleaning (:func:`anidress_core.garment.clean_and_remesh`) sees:
-    1. vertices closer than ``merge_tol`` are merged (exported meshes often split them);
-    2. degenerate faces: a repeated vertex after merging, or area below
-       1e-14 x (bounding-box diagonal)^2 (zero in float64 terms);
-    3. duplicate faces: the same vertex set as an earlier face (either orientation);
-    4. edges of the remaining faces shared by more than two faces (non-manifold);
-    5. faces of the remaining mesh crossing another face they are not adjacent to
-       (pymeshlab ``compute_selection_by_self_intersections_per_face``, vcglib's
-       triangle-triangle test over a uniform grid).
-    """
-    v = np.asarray(verts, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    # 1.
-    rep = _merge_map(v, merge_tol)
-    fm = rep[f]  # (F, 3)
-    # 2.
-    t = v[fm]
-    area2 = np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
-    diag = float(np.linalg.norm(v.max(0) - v.min(0))) or 1.0
-    degenerate = (fm[:, 0] == fm[:, 1]) | (fm[:, 1] == fm[:, 2]) | (fm[:, 0] == fm[:, 2]) | (area2 <= 2e-14 * diag ** 2)
-    # 3.
-    keep = np.flatnonzero(~degenerate)
-    key = np.sort(fm[keep], axis=1)
-    _, first = np.unique(key, axis=0, return_index=True)
-    dup_mask = np.ones(len(keep), bool)
-    dup_mask[first] = False
-    duplicate = keep[dup_mask]
-    kept = keep[~dup_mask]
-    # 4. undirected edge counts over the kept faces
-    fk = fm[kept]
-    e = np.sort(np.concatenate([fk[:, [0, 1]], fk[:, [1, 2]], fk[:, [2, 0]]]), axis=1)
-    edges, cnt = np.unique(e, axis=0, return_counts=True) if len(e) else (np.zeros((0, 2), np.int64), np.zeros(0))
-    bad = cnt > 2
-    # 5.
-    inter = np.zeros(0, dtype=np.int64)
-    if self_intersections and len(kept):
-        import pymeshlab
-
-        ms = pymeshlab.MeshSet()
-        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=fk.astype(np.int32)))
-        ms.compute_selection_by_self_intersections_per_face()
-        sel = np.asarray(ms.current_mesh().face_selection_array(), dtype=bool)
-        del ms
-        inter = kept[sel]
-    return MeshDefects(
-        merged_vertices=int((rep != np.arange(len(v))).sum()),
-        degenerate_faces=np.flatnonzero(degenerate),
-        duplicate_faces=duplicate,
-        non_manifold_edges=edges[bad].astype(np.int64),
-        non_manifold_counts=cnt[bad].astype(np.int64),
-        self_intersecting_faces=np.asarray(inter, dtype=np.int64),
-    )
-
-
-# =========================================================================== image headers
-def _jpeg_size(fh, path: Path) -> tuple[int, int]:
-    """(H, W) from the first SOF segment of a JPEG (markers walked by their lengths)."""
-    pos = 2
-    while True:
-        fh.seek(pos)
-        m = fh.read(4)
-        if len(m) < 2 or m[0] != 0xFF:
-            _fail(path, "corrupt JPEG: broken marker structure before the frame header")
-        marker = m[1]
-        if marker == 0xFF:  # fill byte
-            pos += 1
-            continue
-        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
-            pos += 2
-            continue
-        if marker in (0xD9, 0xDA) or len(m) < 4:
-            _fail(path, "corrupt JPEG: no frame header (SOF) before the image data")
-        length = struct.unpack(">H", m[2:4])[0]
-        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            sof = fh.read(5)
-            if len(sof) < 5:
-                _fail(path, "truncated JPEG frame header")
-            h, w = struct.unpack(">HH", sof[1:5])
-            return h, w
-        pos += 2 + length
-
-
-def image_size_from_header(path: str | os.PathLike) -> tuple[int, int]:
-    """(H, W) of a PNG or JPEG from its header, after checking its start and end markers.
-
-    No pixel is decoded: a PNG must start with the PNG signature and an IHDR chunk and
-    end with the IEND chunk; a JPEG must start with SOI and end with EOI (within its
-    last 4 KiB) and have a frame header. Raises SceneError naming the file otherwise.
-    """
-    path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(32)
-            fh.seek(0, os.SEEK_END)
-            size = fh.tell()
-            fh.seek(max(0, size - 4096))
-            tail = fh.read()
-            if head[:8] == _PNG_SIG:
-                if head[12:16] != b"IHDR" or len(head) < 24:
-                    _fail(path, "corrupt PNG: no IHDR header chunk")
-                if not tail.endswith(_PNG_END):
-                    _fail(path, "truncated or corrupt PNG: it does not end with the IEND chunk")
-                w, h = struct.unpack(">II", head[16:24])
-                return h, w
-            if head[:3] == b"\xff\xd8\xff":
-                if b"\xff\xd9" not in tail:
-                    _fail(path, "truncated JPEG: no end-of-image marker")
-                return _jpeg_size(fh, path)
-    except OSError as e:
-        _fail(path, f"cannot read the image file ({e.strerror or e})")
-    if size == 0:
-        _fail(path, "unreadable image: the file is empty")
-    _fail(path, f"unreadable image: not a PNG or JPEG file (it starts with bytes {head[:8].hex(' ')})")
-
-
-def _check_exr_magic(path: Path) -> None:
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(4)
-    except OSError as e:
-        _fail(path, f"cannot read the file ({e.strerror or e})")
-    if head != _EXR_MAGIC:
-        _fail(path, "not an OpenEXR file (bad magic number)")
 
 
 # =========================================================================== scene.yaml
@@ -409,7 +234,7 @@ def _check_garment(scene_dir: Path, info: dict, body, checks: list[str], warning
     if info.get("garment_texture") and not tex.is_file():
         _fail(tex, "garment texture not found (scene.yaml garment_texture)")
     if tex.is_file():  # optional; fit/anchor_reference: texture samples it at the template's UVs
-        th, tw = image_size_from_header(tex)
+        th, tw = _wrap(image_size_from_header, tex)
         texture = {"file": str(tex), "size": [th, tw]}
         if face_uv is None:
             warnings.append(f"{tex}: the garment has a texture but {path} has no UVs (vt) on every face; "
@@ -576,7 +401,7 @@ def _check_images(sdir: Path, used: list[str], size: tuple | None, images: str, 
     for cam in used:
         for fr in frames:
             p = per[cam][fr]
-            hw = image_size_from_header(p)
+            hw = _wrap(image_size_from_header, p)
             if expect is None:
                 expect = hw
             elif hw != tuple(expect):
@@ -616,11 +441,11 @@ def _check_optional(sdir: Path, sub: str, used: list[str], train: list[str], fra
                      + (f" (extra {_fmt_frames(extra, ext)})" if extra else ""))
         for fr in frames:
             if ext == ".png":
-                hw = image_size_from_header(have[fr])
+                hw = _wrap(image_size_from_header, have[fr])
                 if hw != size:
                     _fail(have[fr], f"mask is {hw[1]}x{hw[0]} (WxH), the images are {size[1]}x{size[0]}")
             else:
-                _check_exr_magic(have[fr])
+                _wrap(check_exr_magic, have[fr])
         for fr in sorted({frames[0], frames[-1]}):
             p = have[fr]
             if ext == ".png":
