@@ -336,9 +336,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--flows", help="flows folder <cam>/<frame>.exr (X, Y, valid); none: no flow loss")
     s.add_argument("--normals", help="normal maps folder (default: <scene>/<seq>/normals if present)")
     s.add_argument("--no-normals", action="store_true", help="normal loss off")
-    s.add_argument("--ablation", choices=["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth",
-                                              "anchor_texture", "collision"],
-                   help="run an ablation instead (anidress_core.fit.ABLATIONS)")
+    from .fit.variants import VARIANTS as FIT_VARIANTS
+
+    s.add_argument("--ablation", choices=list(FIT_VARIANTS),
+                   help="run this loss variant instead of fit/loss (anidress_core.fit.variants.VARIANTS)")
     s.add_argument("--views", type=int, help="use N training cameras spread evenly (default: fit/views)")
     s.add_argument("--anchor-reference", choices=["images", "texture"],
                    help="L_an's references (default: fit/anchor_reference, or the scene's scenes/<scene>/fit)")

@@ -33,23 +33,27 @@ import torch
 
 from anidress_core.config import load_config
 from anidress_core.stages import setup_logging
-from anidress_core.stages.fit import fit_config, load_garment_poses, run_fit, run_fit_eval
+from anidress_core.fit import FitConfig
+from anidress_core.stages.fit import load_garment_poses, run_fit, run_fit_eval
 from anidress_core.io.scene import read_scene
 from benchmarks.benchutil import git_rev
 
 REPO = Path(__file__).resolve().parents[1]
 
 # the code whose uncommitted changes the git revision of a run's table flags
-CODE_PATHS = ("anidress_core/fit.py", "anidress_core/raster.py", "anidress_core/stages/fit.py")
+CODE_PATHS = ("anidress_core/fit", "anidress_core/raster.py", "anidress_core/stages/fit.py")
 
-METHODS = ["full", "photo", "anchor", "anchor_smooth", "anchor_texture", "collision", "vertex", "no_normal_flow",
-           "no_flow"]
+METHODS = ["full", "collision", "vertex", "no_normal_flow", "no_flow"]
+# the loss variant (anidress_core.fit.variants) each method runs: `full` is the paper's loss, `collision`
+# the pipeline's (L_an on texture references, L_col, L_prior, filtered)
+VARIANT_OF = {"full": "paper", "collision": "pipeline", "vertex": "paper_vertex",
+              "no_normal_flow": "paper_no_normal_flow", "no_flow": "paper_no_flow"}
 LABEL = {"sim": "reference: simulation only (rig driven by the simulated poses, no fit)",
          "full": "full (rig, L_M + L_N + L_of)", "photo": "ours: full + L_ph (photo-consistency)",
          "anchor": "ours: full + L_an (chromaticity anchor)",
          "anchor_smooth": "ours: full + L_an, poses filtered over time (1 pass)",
          "anchor_texture": "ours: full + L_an with references from the garment texture, filtered (1 pass)",
-         "collision": "ours: anchor_texture + L_col (body collision)",
+         "collision": "ours: the pipeline's loss (L_an on texture references + L_col + L_prior, filtered)",
          "vertex": "(a) vertex fit, no rig", "no_normal_flow": "(b) L_M only", "no_flow": "(c) L_M + L_N"}
 PAPER_ABLATIONS = ("vertex", "no_normal_flow", "no_flow")
 
@@ -132,11 +136,8 @@ def main() -> None:
     cfg = load_config("config/config.yaml")
     params = {k: v for k, v in cfg["fit"].items() if k not in ("ablations", "eval")}
     params["threads"] = args.threads
-    # `full` is the paper's loss whatever the pipeline's config adds; the variants add our terms
-    params["weights"] = dict(params["weights"], photo=0.0, anchor=0.0, collision=0.0)
-    params["smooth_passes"] = 0
-    # lambda_N as the stage sets it: without L_an (`full`) and with texture references (`collision`)
-    lam_n, lam_n_an = fit_config(params).w_normal, fit_config(params, "collision").w_normal
+    # lambda_N of the paper's loss (`full` and its ablations) and of the pipeline's (`collision`)
+    lam_n, lam_n_an = FitConfig.from_config(params, "paper").weights.normal, FitConfig.from_config(params).weights.normal
     load0 = os.getloadavg()
     rows, notes = [], []
     command = "  ".join([".venv/bin/python -m benchmarks.bench_fit"] + sys.argv[1:])
@@ -161,7 +162,7 @@ def main() -> None:
                     if not (args.reuse and out.is_file()):
                         t0 = time.perf_counter()
                         run_fit(f"data/{scene}", seq, rig, f"results/{scene}/template.npz", dirs["masks"],
-                                dirs["flows"], dirs["normals"], p, out, ablation=None if method == "full" else method,
+                                dirs["flows"], dirs["normals"], p, out, ablation=VARIANT_OF.get(method, method),
                                 progress=False, cue_source=dirs["label"])
                         log.info("bench_fit: %s %s v%d %s: %.1f s", scene, seq, nv, method, time.perf_counter() - t0)
                     fits[method] = out
@@ -201,7 +202,7 @@ def main() -> None:
                              f"; cameras: {timing['full']['cameras']}")
     load1 = os.getloadavg()
     notes.insert(0, f"lambda_N = {lam_n:g} in every row except those with L_an on texture references "
-                 f"(`anchor_texture`, `collision`): {lam_n_an:g} there (config `fit/weights/normal_texture_anchor`; "
+                 f"(`collision`, the pipeline's loss): {lam_n_an:g} there (config `fit/weights/normal`; "
                  "studies/fit/fit_normal_weight.md)")
     write(rows, notes, args, command, load0, load1)
 

@@ -55,41 +55,42 @@ def test_unknown_run_scene_and_bad_file(tmp_path):
 
 def test_section_defaults_are_the_validated_configs():
     from anidress_core.config import section_defaults
-    from anidress_core.stages.fit import fit_config
+    from anidress_core.fit import FitConfig
 
     full = validate_config({"run_scenes": ["s"], "scenes": {"s": {}}}, SCHEMA)
     assert section_defaults("fit") == full["fit"]
     assert section_defaults("fit", {"weights": {"flow": 1.5}, "frames": 7})["weights"] == \
         {**full["fit"]["weights"], "flow": 1.5}  # nested keys filled, the caller's kept
     # a caller with a raw dict gets the same fit settings as the workflow (one source of defaults)
-    assert fit_config({}) == fit_config(full["fit"])
-    assert fit_config({}).w_prior_first == SCHEMA["properties"]["fit"]["properties"]["first_frame_prior"]["default"]
+    assert FitConfig.from_config({}) == FitConfig.from_config(full["fit"])
+    fit_schema = SCHEMA["properties"]["fit"]["properties"]
+    assert FitConfig.from_config({}).weights.prior == fit_schema["weights"]["properties"]["prior"]["default"]
     with pytest.raises(ConfigError, match="no config section 'nope'"):
         section_defaults("nope")
 
 
-def test_fit_config_normal_texture_anchor_is_lambda_n_only_with_texture_references():
-    from anidress_core.stages.fit import anchor_reference, fit_config
+def test_fit_config_keys_are_the_schema_keys_and_the_weights_are_stored_as_used():
+    import dataclasses
 
-    w = {"normal": 0.1, "anchor": 1e5, "normal_texture_anchor": 100.0}
-    tex = {"weights": w, "anchor_reference": "texture"}
-    assert fit_config(tex).w_normal == 100.0  # the pipeline's full method on the skirt (L_an, texture references)
-    for abl in ("anchor_texture", "collision"):  # these variants always take texture references
-        assert anchor_reference({"anchor_reference": "images"}, abl) == "texture"
-        assert fit_config({"weights": w}, abl).w_normal == 100.0
-    # first-seen image references keep the paper's lambda_N (a larger one is worse there: fit_normal_weight.md)
-    assert fit_config({"weights": w, "anchor_reference": "images"}).w_normal == 0.1
-    for abl in ("anchor", "anchor_smooth"):
-        assert anchor_reference(tex, abl) == "images" and fit_config(tex, abl).w_normal == 0.1
-    # the paper's ablations drop L_an and keep the paper's lambda_N; (b) has no normal term at all
-    assert fit_config(tex, "no_flow").w_normal == 0.1
-    assert fit_config(tex, "vertex").w_normal == 0.1
-    assert fit_config(tex, "no_normal_flow").w_normal == 0.0
-    # without L_an, or with normal_texture_anchor 0 (the schema's default), weights/normal everywhere
-    assert fit_config(dict(tex, weights=dict(w, anchor=0.0))).w_normal == 0.1
-    assert fit_config(dict(tex, weights=dict(w, normal_texture_anchor=0.0))).w_normal == 0.1
-    # normals off (weight 0) stay off
-    assert fit_config(dict(tex, weights=dict(w, normal=0.0))).w_normal == 0.0
+    from anidress_core.fit import FitConfig, LossWeights
+    from anidress_core.fit.config import STAGE_KEYS
+
+    fit_schema = SCHEMA["properties"]["fit"]["properties"]
+    fields = {f.name for f in dataclasses.fields(FitConfig)}
+    assert fields | set(STAGE_KEYS) - {"frames"} == set(fit_schema)  # no renamed key, none missing
+    assert {f.name for f in dataclasses.fields(LossWeights)} == set(fit_schema["weights"]["properties"])
+    # the pipeline's defaults: lambda_N 300 with texture references, no swap hidden anywhere
+    cfg = FitConfig.from_config({})
+    assert cfg.loss == "pipeline" and cfg.anchor_reference == "texture" and cfg.weights.normal == 300.0
+    assert FitConfig.from_config({"anchor_reference": "images"}).weights.normal == 300.0
+    assert FitConfig.from_config({"weights": {"normal": 0.1}}).weights.normal == 0.1
+    # fit/loss switches the loss; an explicit variant wins over it
+    assert FitConfig.from_config({"loss": "paper"}) == FitConfig.from_config({}, "paper")
+    assert FitConfig.from_config({"loss": "paper"}, "pipeline").weights == cfg.weights
+    with pytest.raises(ValueError, match="unknown keys"):
+        FitConfig.from_config({"first_frame_prior": 10.0})
+    with pytest.raises(ValueError, match="unknown fit loss variant"):
+        FitConfig.from_config({"loss": "nope"})
 
 
 def test_scene_section_puts_the_scene_overrides_on_top():
@@ -102,3 +103,42 @@ def test_scene_section_puts_the_scene_overrides_on_top():
     assert scene_section(cfg, "fit", "not_configured") == cfg["fit"]
     scene_section(cfg, "fit", "skirt")["views"] = 3  # a copy
     assert cfg["fit"]["views"] == 0
+
+
+@pytest.mark.slow
+def test_installed_wheel_carries_the_one_schema_and_the_report_templates(tmp_path):
+    """A regular (non-editable) install finds the schema and the report templates (issue 24
+    item 7): the wheel maps workflow/schemas and reports/ into anidress_core/_data, byte for byte."""
+    import shutil
+    import subprocess
+    import sys
+    import zipfile
+
+    src = tmp_path / "src"  # build from a copy: an in-tree build would write build/ into the checkout
+    src.mkdir()
+    for rel in ("pyproject.toml", "setup.py", "README.md", "anidress_core", "workflow/schemas", "reports"):
+        (shutil.copytree if (REPO / rel).is_dir() else shutil.copy2)(REPO / rel, src / rel)
+    for junk in src.rglob("__pycache__"):
+        shutil.rmtree(junk)
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
+                    "-w", str(tmp_path / "whl"), str(src)], check=True, cwd=tmp_path)
+    (wheel,) = (tmp_path / "whl").glob("anidress_core-*.whl")
+    site = tmp_path / "site"
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(site)
+        requires = z.read(next(n for n in z.namelist() if n.endswith("METADATA"))).decode()
+    assert "Requires-Dist: jsonschema" in requires and "Requires-Dist: Jinja2" in requires
+    for rel, packaged in (("workflow/schemas/config.schema.yaml", "schemas/config.schema.yaml"),
+                          ("reports/report.html.j2", "reports/report.html.j2")):
+        assert (site / "anidress_core" / "_data" / packaged).read_bytes() == (REPO / rel).read_bytes()
+    code = ("import anidress_core, sys; from anidress_core.config import default_schema_path, load_config; "
+            "from anidress_core.resources import report_template_dir; "
+            f"assert anidress_core.__file__.startswith({str(site)!r}), anidress_core.__file__; "
+            "print(default_schema_path()); print(report_template_dir()); "
+            f"load_config({str(REPO / 'config' / 'config.yaml')!r})")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                         env={"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin", "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0, out.stderr
+    schema, tdir = out.stdout.split()
+    assert Path(schema) == site / "anidress_core" / "_data" / "schemas" / "config.schema.yaml"
+    assert (Path(tdir) / "report.html.j2").is_file() and Path(tdir).is_relative_to(site)

@@ -41,6 +41,7 @@ from ..field.sampler import build_occupancy, mask_boxes, occupancy_pixels, occup
 from ..field.subject import BodyRest, GarmentRest, canonical_setup, posed_parts, unified_pose
 from ..field.train import TrainConfig, TrainData, render_view, train_field
 from ..io import files
+from ..io.garment_poses import read_garment_poses
 from ..io.body_motion import read_motion
 from ..io.field import FIELD_FORMAT as FORMAT
 from ..io.field import (FieldCheckpoint, read_field_checkpoint, read_training_state, training_state_path,
@@ -120,18 +121,6 @@ def _rest_inputs(scene_dir: Path, info: dict, template_npz, rig_npz, variant: st
     return _Inputs(body, g, B)
 
 
-def _garment_poses(path, frames: int, bones: int) -> torch.Tensor:
-    a, _ = files.load_npz(path, required=("transforms",))
-    G = torch.as_tensor(a["transforms"]).float()
-    if G.ndim != 4 or G.shape[1:] != (bones, 4, 4):
-        raise files.ArtifactError(f"{path}: transforms must be (T, {bones}, 4, 4) to match the rig, got {tuple(G.shape)}")
-    if G.shape[0] != frames:
-        raise files.ArtifactError(f"{path}: {G.shape[0]} frames of garment poses for a {frames}-frame sequence")
-    if not torch.isfinite(G).all():
-        raise files.ArtifactError(f"{path}: transforms contain NaN or inf")
-    return G
-
-
 def _read_views(seq_dir: Path, cams: Sequence[str], frames: Sequence[int], masks_dir: Path | None,
                 background: Sequence[float]):
     """Images (T, C, H, W, 3) uint8 masked onto the background and labels (T, C, H, W) uint8."""
@@ -203,7 +192,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     if variant == "full" and inp.garment is not None:
         if garment_poses_npz is None:
             raise ValueError("variant 'full' of a garment scene needs garment poses (garment_poses.npz)")
-        G = _garment_poses(garment_poses_npz, T_all, inp.num_bones)[idx]
+        G = torch.as_tensor(read_garment_poses(garment_poses_npz, T_all, inp.num_bones).transforms).float()[idx]
     S = unified_pose(posed.transforms.float(), G, variant)
     parts = posed_parts(inp.body, posed.vertices.float(), inp.garment, variant, posed.transforms.float(), G,
                         sp["dilate_m"], sp["body_only_garment_dilate_m"])
@@ -390,7 +379,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
         else:
             if garment_poses_npz is None:
                 raise ValueError("rendering variant 'full' needs the garment poses of the sequence")
-            G = _garment_poses(garment_poses_npz, T_all, inp.num_bones)[idx]
+            G = torch.as_tensor(read_garment_poses(garment_poses_npz, T_all, inp.num_bones).transforms).float()[idx]
     S = unified_pose(posed.transforms.float(), G, variant)
     parts = posed_parts(inp.body, posed.vertices.float(), inp.garment, variant, posed.transforms.float(), G,
                         sp["dilate_m"], sp["body_only_garment_dilate_m"])

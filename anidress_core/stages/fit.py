@@ -9,23 +9,15 @@
   ``<normals_dir>/<cam>/<frame:06d>.exr`` (camera-space unit normals; no folder = normal
   loss off), ``<flows_dir>/<cam>/<frame:06d>.exr`` (channels X, Y, valid: forward flow
   frame-1 -> frame on frame-1's grid; none for frame 0);
-* with the photo-consistency term or the chromaticity anchor on (``weights/photo`` or
-  ``weights/anchor`` > 0) the training images
-  ``<seq>/images/<cam>/<frame:06d>.{png,jpg}``;
+* with the chromaticity anchor on (``weights/anchor`` > 0) the training images
+  ``<seq>/images/<cam>/<frame:06d>.{png,jpg}``, and with ``anchor_reference: texture`` the
+  scene's garment texture;
 * the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
 * ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start.
 
-and writes ``garment_poses.npz`` (:func:`load_garment_poses`):
-
-* ``transforms`` (T, B, 4, 4) float32: bone transforms rest -> world, the rig's convention
-  ``x = sum_b W[i, b] (M[b, :3, :3] rest_i + M[b, :3, 3])``;
-* ``verts`` (T, V, 3) float32 fitted meshes, ``faces`` (F, 3) int64;
-* ``loss``, ``loss_mask``, ``loss_normal``, ``loss_flow``, ``loss_photo``, ``loss_anchor`` (T,) float64:
-  weighted total and
-  unweighted terms at the result; ``iterations`` (T,) int64; ``converged`` (T,) bool;
-  ``wall_s`` (T,) float64 per frame (cue loading included); ``flow_targets`` (T,) int64;
-* ``curve`` (T, L) float64: weighted loss after each accepted step, NaN-padded;
-* header meta: method, config, cameras, cue folders, first-frame start, timings.
+and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts,
+the weighted loss and every unweighted term ``loss_<term>`` per frame, with the loss variant
+that ran and every weight as used in the header.
 
 ``fit_eval`` writes ``fit_metrics.csv``: per method and frame, vertex RMSE against the
 ground-truth garment carried onto the template's vertices, the rig's floor on that
@@ -46,67 +38,28 @@ import numpy as np
 import torch
 
 from .. import fit as FIT
+from ..io.garment_poses import load_garment_poses, save_garment_poses
 from ..camera import load_cameras
-from ..config import section_defaults
 from ..io import files
 from ..io.rig import read_rig
 from ..io.scene import garment_texture_path, image_path, load_body, load_sequence_motion, read_scene
 from ..io.template import read_template
 from ..synth import LABEL_GARMENT
 
-__all__ = ["fit_config", "select_views", "CueReader", "gt_correspondence", "gt_template_vertices", "run_fit", "load_garment_poses",
+__all__ = ["select_views", "CueReader", "gt_correspondence", "gt_template_vertices", "run_fit", "load_garment_poses",
            "run_fit_eval", "FIT_METRIC_COLUMNS"]
 
 log = logging.getLogger("anidress.fit")
 
 FIT_METRIC_COLUMNS = (
     "method", "frame", "vertex_rmse_m", "rig_floor_rmse_m", "chamfer_m", "rig_floor_chamfer_m", "normal_consistency",
-    "jitter_m", "gt_jitter_m", "accel_error_m", "loss", "loss_mask", "loss_normal", "loss_flow", "loss_photo", "loss_anchor",
-    "iterations", "wall_s",
+    "jitter_m", "gt_jitter_m", "accel_error_m", "loss", *(f"loss_{k}" for k in FIT.TERM_NAMES), "iterations", "wall_s",
 )
-
-
-def fit_config(params: Mapping, ablation: str | None = None) -> FIT.FitConfig:
-    """FitConfig of the config section ``fit`` (weights, iteration limits, tolerances), for an ablation.
-
-    Keys missing from ``params`` take the schema's defaults (workflow/schemas/config.schema.yaml),
-    the same as a validated config's.
-    """
-    p = section_defaults("fit", dict(params))
-    w, v = p["weights"], p["vertex"]
-    base = FIT.FitConfig(
-        w_mask=float(w["mask"]), w_normal=float(w["normal"]), w_flow=float(w["flow"]), w_photo=float(w["photo"]),
-        w_anchor=float(w["anchor"]), anchor_scale=float(p["anchor_scale"]),
-        w_collision=float(w["collision"]), collision_eps=float(p["collision_clearance"]),
-        photo_blur=float(p["photo_blur"]), photo_scale=float(p["photo_scale"]),
-        max_iters=int(p["max_iters"]), max_iters_first=int(p["max_iters_first"]), rel_tol=float(p["rel_tol"]),
-        step_tol=float(p["step_tol"]), damping=float(p["damping"]), vis_depth_tol=float(p["visibility_depth_tol"]),
-        vertex_lr=float(v["lr"]), vertex_max_iters=int(v["max_iters"]), vertex_patience=int(v["patience"]),
-        w_prior_first=float(p["first_frame_prior"]), smooth_passes=int(p["smooth_passes"]),
-    )
-    cfg = FIT.config_for(base, ablation)
-    # weights/normal_texture_anchor: lambda_N where L_an is on with references from the garment
-    # texture (everywhere else weights/normal, the paper's). At its weight L_an is ~99 % of the
-    # loss, and with the paper's lambda_N the normals barely count. With texture references a
-    # larger lambda_N lowers the error; with first-seen image references it raises it
-    # (benchmarks/fit_normal_weight.md).
-    lam = float(w["normal_texture_anchor"])
-    if lam > 0 and cfg.w_anchor > 0 and cfg.w_normal > 0 and anchor_reference(p, ablation) == "texture":
-        cfg = dataclasses.replace(cfg, w_normal=lam)
-    return cfg
-
-
-def anchor_reference(params: Mapping, ablation: str | None = None) -> str:
-    """Where L_an's references come from for a run: 'images' (first frame each vertex is seen) or
-    'texture' (:func:`texture_anchor_of`). The variants fix it (``anchor``, ``anchor_smooth``: images;
-    ``anchor_texture``, ``collision``: texture); else the config's ``anchor_reference``."""
-    fixed = {"anchor": "images", "anchor_smooth": "images", "anchor_texture": "texture", "collision": "texture"}
-    return fixed.get(ablation or "full", params.get("anchor_reference", "images"))
 
 
 def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.RigParts, views: FIT.Views,
                       G0: torch.Tensor, image_blur: float, device) -> tuple[FIT.AnchorRef, str]:
-    """L_an's references from the template's UVs and the scene's garment texture
+    """L_anchor's references from the template's UVs and the scene's garment texture
     (:func:`anidress_core.fit.texture_anchor`), blurred to the images' footprint at the start pose G0."""
     from ..geometry import lbs
 
@@ -248,14 +201,15 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             ablation: str | None = None, progress: bool = True, cue_source: str = "") -> dict:
     """Fit the garment poses of sequence ``seq`` and write ``out_npz`` (see the module docstring).
 
-    params: the config section ``fit``; ablation: None/'full' or a key of
-    :data:`anidress_core.fit.ABLATIONS`. Returns the header metadata written.
+    params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
+    None/'full' (the section's ``loss``) or a loss variant (:data:`anidress_core.fit.VARIANTS`) to
+    run instead. Returns the header metadata written.
     """
     t_start = time.perf_counter()
     scene_dir = Path(scene_dir)
     info = read_scene(scene_dir)
-    cfg = fit_config(params, ablation)
-    method = ablation or "full"
+    cfg = FIT.FitConfig.from_config(params, None if ablation in (None, "", "full") else ablation)
+    method = cfg.loss
     threads = int(params.get("threads", 0) or 0)
     if threads > 0:
         torch.set_num_threads(threads)
@@ -305,27 +259,26 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         if start == "auto":
             log.info("fit: the rig has no simulated sequence %s; frame 0 starts from the body-skinned template",
                      sim_name)
-    log.info("fit %s/%s (%s): %d frames, %d views %s, %d vertices, %d bones, weights M %.2f N %.2f of %.2f "
-             "ph %.1f an %.0f, start: %s, device %s", scene_dir.name, seq, method, T, len(names), names,
-             rig.rest.shape[0], rig.weights.shape[1], cfg.w_mask, cfg.w_normal, cfg.w_flow, cfg.w_photo, cfg.w_anchor,
-             start_used, device)
     if normals_dir is None:
         log.info("fit: no normal maps for %s; the normal loss is off (weight 0)", seq)
-        cfg = dataclasses.replace(cfg, w_normal=0.0)
-    reader = CueReader(cams, masks_dir, None if cfg.w_normal == 0 else normals_dir,
-                        None if cfg.w_flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device,
-                        num_frames=T, seq_dir=sdir if (cfg.w_photo > 0 or cfg.w_anchor > 0) else None)
+        cfg = cfg.replace(weights={"normal": 0.0})
+    log.info("fit %s/%s (loss %s, method %s): %d frames, %d views %s, %d vertices, %d bones, weights %s, "
+             "start: %s, device %s", scene_dir.name, seq, method, cfg.method, T, len(names), names,
+             rig.rest.shape[0], rig.weights.shape[1], dataclasses.asdict(cfg.weights), start_used, device)
+    w = cfg.weights
+    reader = CueReader(cams, masks_dir, None if w.normal == 0 else normals_dir,
+                        None if w.flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device,
+                        num_frames=T, seq_dir=sdir if w.anchor > 0 else None)
     for cam in names:  # fail early, naming the file
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():
             raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
-    # 5. L_an's references: from the images (first frame each vertex is seen) or the template's texture
+    # 5. L_anchor's references: from the images (first frame each vertex is seen) or the template's texture
     anchor_init, anchor_note = None, None
-    ref_mode = anchor_reference(params, ablation)
-    if cfg.w_anchor > 0 and ref_mode == "texture":
-        anchor_init, anchor_note = texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.photo_blur,
+    if w.anchor > 0 and cfg.anchor_reference == "texture":
+        anchor_init, anchor_note = texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.image_blur,
                                                      device)
-        log.info("fit: L_an references from the garment texture: %s", anchor_note)
+        log.info("fit: L_anchor references from the garment texture: %s", anchor_note)
     # 6. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
@@ -349,12 +302,12 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
 
         tf = fit_transforms(art.model, vs.to(art.model.rest.dtype)).double()
     meta = {
-        "method": method, "description": FIT.ABLATIONS.get(method, "full method (rig, L_M + L_N + L_of)"),
+        "method": cfg.method, "loss": method, "description": FIT.VARIANTS[method].description,
         "config": dataclasses.asdict(cfg), "params": dict(params), "scene": scene_dir.name,
         "sequence": seq, "cameras": names, "masks_dir": str(masks_dir), "normals_dir": None if normals_dir is None
         else str(normals_dir), "flows_dir": None if flows_dir is None else str(flows_dir), "cue_source": cue_source,
         "first_frame_start": start_used, "anchor_reference": anchor_note or (
-            "images (each vertex's chromaticity where first seen)" if cfg.w_anchor > 0 else None),
+            "images (each vertex's chromaticity where first seen)" if w.anchor > 0 else None),
         "rig": str(rig_npz), "frames": T, "device": str(device),
         "wall_fit_s": wall_fit, "wall_total_s": time.perf_counter() - t_start, "fps": T / wall_fit,
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
@@ -363,33 +316,20 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         else ("fitted bone transforms" + (f", then smooth_transforms ({cfg.smooth_passes} passes); the per-frame "
                                           "losses are those of the fit before it" if cfg.smooth_passes else "")),
     }
-    files.save_npz(out_npz, {
-        "transforms": tf.float().cpu().numpy(), "verts": vs.float().cpu().numpy(),
-        "faces": rig.faces.cpu().numpy().astype(np.int64),
-        "loss": np.array([r.loss for r in res]), "loss_mask": np.array([r.terms["mask"] for r in res]),
-        "loss_normal": np.array([r.terms["normal"] for r in res]), "loss_flow": np.array([r.terms["flow"] for r in res]),
-        "loss_photo": np.array([r.terms.get("photo", 0.0) for r in res]),
-        "loss_anchor": np.array([r.terms.get("anchor", 0.0) for r in res]),
-        "iterations": np.array([r.iterations for r in res], np.int64),
-        "converged": np.array([r.converged for r in res], bool),
-        "wall_s": np.array([r.terms["wall_s"] for r in res]),
-        "flow_targets": np.array([r.terms["flow_targets"] for r in res], np.int64), "curve": curve,
-    }, config=dict(params), meta=meta)
+    save_garment_poses(
+        out_npz, tf.float().cpu().numpy(), vs.float().cpu().numpy(), rig.faces.cpu().numpy().astype(np.int64),
+        loss=np.array([r.loss for r in res]),
+        terms={k: np.array([r.terms[k] for r in res]) for k in FIT.TERM_NAMES},
+        weights=dataclasses.asdict(cfg.weights),
+        iterations=np.array([r.iterations for r in res], np.int64),
+        converged=np.array([r.converged for r in res], bool),
+        wall_s=np.array([r.terms["wall_s"] for r in res]),
+        flow_targets=np.array([r.terms["flow_targets"] for r in res], np.int64), curve=curve,
+        config=dict(params), meta=meta)
     log.info("fit %s/%s (%s): %d frames in %.1f s (%.2f frames/s), mean %.1f iterations, %d/%d converged",
              scene_dir.name, seq, method, T, wall_fit, T / wall_fit, float(np.mean([r.iterations for r in res])),
              sum(r.converged for r in res), T)
     return meta
-
-
-def load_garment_poses(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict]:
-    """Read ``garment_poses.npz`` (arrays, header) with its shapes checked."""
-    a, h = files.load_npz(path, required=("transforms", "verts", "faces", "loss", "iterations"))
-    T = a["transforms"].shape[0]
-    if a["transforms"].ndim != 4 or a["transforms"].shape[2:] != (4, 4) or a["verts"].ndim != 3 or \
-            a["verts"].shape[0] != T:
-        raise files.ArtifactError(f"{path}: transforms must be (T, B, 4, 4) and verts (T, V, 3), got "
-                                  f"{a['transforms'].shape}, {a['verts'].shape}")
-    return a, h
 
 
 # --------------------------------------------------------------------------------------
@@ -499,11 +439,9 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
                 "jitter_m": float(jit[t - 1]) if inner else float("nan"),
                 "gt_jitter_m": float(gjit[t - 1]) if inner else float("nan"),
                 "accel_error_m": float(acc[t - 1]) if inner else float("nan"),
-                "loss": float(f["loss"][t]), "loss_mask": float(f.get("loss_mask", np.full(T, np.nan))[t]),
-                "loss_normal": float(f.get("loss_normal", np.full(T, np.nan))[t]),
-                "loss_flow": float(f.get("loss_flow", np.full(T, np.nan))[t]),
-                "loss_photo": float(f.get("loss_photo", np.full(T, np.nan))[t]),
-                "loss_anchor": float(f.get("loss_anchor", np.full(T, np.nan))[t]), "iterations": int(f["iterations"][t]),
+                "loss": float(f["loss"][t]),
+                **{f"loss_{k}": float(f.get(f"loss_{k}", np.full(T, np.nan))[t]) for k in FIT.TERM_NAMES},
+                "iterations": int(f["iterations"][t]),
                 "wall_s": float(f.get("wall_s", np.full(T, np.nan))[t]),
             })
         summary["methods"][name] = {"vertex_rmse_m": float(rm.mean()), "rig_floor_rmse_m": float(floor_t.mean()),

@@ -1,12 +1,18 @@
 # Garment dynamics fitting (paper §3.2, DESIGN.md §8) and its evaluation against ground truth:
-#   fit          -> results/{scene}/{seq}/garment_poses.npz            (full method)
+#   fit          -> results/{scene}/{seq}/garment_poses.npz            (loss variant fit/loss)
 #   fit_ablation -> results/{scene}/{seq}/fit_ablations/{ablation}/garment_poses.npz
 #   fit_eval     -> results/{scene}/{seq}/fit_metrics.csv              (synthetic scenes)
 # Cues: the pipeline's (rules masks / flows / normals in cues.smk, via masks_dir, flows_dir,
 # normals_dir), or with fit/cues: ground_truth the synthetic scene's true masks and flows
 # and its shipped (degraded) normals -- an upper bound for the fitting alone.
 
-FIT_ABLATIONS = ["vertex", "no_normal_flow", "no_flow", "photo", "anchor", "anchor_smooth", "anchor_texture", "collision"]
+from anidress_core.fit.variants import VARIANTS as _FIT_VARIANTS
+
+# the loss variants (anidress_core/fit/variants.py, the one list): fit/loss of rule fit, fit/ablations
+FIT_ABLATIONS = list(_FIT_VARIANTS)
+for _v in [config["fit"]["loss"], *config["fit"]["ablations"]]:
+    if _v not in _FIT_VARIANTS:
+        raise ValueError(f"config fit: unknown loss variant {_v!r}; choose from {FIT_ABLATIONS}")
 
 
 def _fit_sequences(scene):

@@ -1,0 +1,42 @@
+"""Garment dynamics fitting by differentiable rendering (AniDress paper §3.2, DESIGN.md §8).
+
+Per frame t the B bone transforms G^t (B, 4, 4) of the garment rig are estimated so that the
+skinned mesh ``x = LBS(rest, W, G^t)`` explains the 2D cues of C training views, by
+minimising a weighted sum of loss terms over bone increments with Levenberg-Marquardt:
+
+    L = w_silhouette L_silhouette + w_normal L_normal + w_flow L_flow     (paper: 2.0, 0.1, 3.0)
+      + w_anchor L_anchor + w_prior L_prior + w_collision L_collision     (ours)
+
+Modules: :mod:`.config` (:class:`FitConfig`, the config section ``fit``), :mod:`.variants`
+(the loss variants: ``pipeline``, ``paper``, their ablations), :mod:`.problem` (rig, views,
+cues, render windows), :mod:`.terms` (one module per loss term: value, Gauss-Newton block,
+autograd reference), :mod:`.objective` (the loss and its Gauss-Newton system), :mod:`.lm`
+(Levenberg-Marquardt), :mod:`.jacobians` (bone increments), :mod:`.sequence` (frames and
+sequences), :mod:`.images` (image sampling).
+"""
+from __future__ import annotations
+
+from .config import FitConfig, LossWeights, VertexSettings
+from .images import blurred, chromaticity, image_features, sample, sample_blurred
+from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
+from .lm import LMResult, levenberg_marquardt
+from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, total_loss
+from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, contour_length, crop_frame,
+                      crop_window, downsample, make_problem, occluder_depth, uncrop_fragments)
+from .sequence import FrameFit, fit_frame, fit_problem, fit_sequence, flow_align, smooth_transforms
+from .terms import TERM_NAMES, TERMS
+from .terms.anchor import AnchorRef, texture_anchor, texture_blur_texels, update_anchor
+from .terms.collision import Contacts, body_contacts
+from .terms.flow import flow_targets
+from .variants import PAPER_WEIGHTS, VARIANTS, apply_variant
+
+__all__ = [
+    "FitConfig", "LossWeights", "VertexSettings", "VARIANTS", "PAPER_WEIGHTS", "apply_variant",
+    "RigParts", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem", "Evaluation", "evaluate",
+    "gauss_newton_system", "loss_terms", "total_loss", "TERMS", "TERM_NAMES", "LMResult", "levenberg_marquardt",
+    "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "flow_align", "smooth_transforms", "flow_targets",
+    "AnchorRef", "update_anchor", "texture_anchor", "texture_blur_texels", "Contacts", "body_contacts",
+    "chromaticity", "image_features", "blurred", "sample", "sample_blurred", "contour_length", "occluder_depth",
+    "downsample", "Crop", "crop_window", "crop_frame", "uncrop_fragments", "JACOBIAN_DTYPE", "apply_increment",
+    "skin_jacobian", "projection_jacobian",
+]

@@ -1,0 +1,157 @@
+"""Settings of the garment fit: one frozen dataclass, field names = the keys of config section ``fit``.
+
+The defaults are the schema's (workflow/schemas/config.schema.yaml, section ``fit``), which are
+the pipeline's; :meth:`FitConfig.from_config` fills a (partial) section from them and applies
+the loss variant it names (``fit/loss``, :mod:`anidress_core.fit.variants`). Weights are stored
+as they are used: ``weights.<term>`` multiplies the unweighted term ``L_<term>``
+(:mod:`anidress_core.fit.terms`). Stage-level keys of the section (views, cues,
+first_frame_init, ablations, device, threads, eval) are read by :mod:`anidress_core.stages.fit`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+__all__ = ["LossWeights", "VertexSettings", "FitConfig", "STAGE_KEYS"]
+
+#: Keys of config section ``fit`` that the stage reads, not the fit itself.
+STAGE_KEYS = ("views", "cues", "first_frame_init", "ablations", "device", "threads", "eval", "frames")
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """``fit/weights``: the weight of each loss term (:mod:`anidress_core.fit.terms`); 0 = off."""
+
+    silhouette: float
+    """L_silhouette, rendered coverage vs garment mask, per garment pixel (the paper's lambda_M = 2.0)."""
+    normal: float
+    """L_normal, squared unit-normal difference per garment pixel (the paper's lambda_N = 0.1)."""
+    flow: float
+    """L_flow, squared pixel distance of flow targets per garment pixel (the paper's lambda_of = 3.0)."""
+    anchor: float
+    """L_anchor, Cauchy loss of the chromaticity against each vertex's reference, per garment pixel (ours)."""
+    collision: float
+    """L_collision, mean over vertices of the squared clearance shortfall outside the body, m^2 (ours)."""
+    prior: float
+    """L_prior, frame 0 only: mean squared vertex offset from the start pose, m^2 (ours)."""
+
+
+@dataclass(frozen=True)
+class VertexSettings:
+    """``fit/vertex``: ablation (a), direct vertex fitting with Adam (``method: vertex``)."""
+
+    lr: float
+    """Adam learning rate (metres)."""
+    max_iters: int
+    """Most Adam iterations per frame (first frame: 3x)."""
+    patience: int
+    """Stop when the best loss improved by less than rel_tol in this many iterations."""
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Parameters of the garment fit (config section ``fit``; build with :meth:`from_config`)."""
+
+    loss: str
+    """The loss variant these settings are of (:data:`anidress_core.fit.variants.VARIANTS`):
+    ``pipeline`` (the section as written), ``paper``, or a variant of either."""
+    method: str
+    """'rig' (bone transforms, Levenberg-Marquardt) or 'vertex' (ablation a, Adam on vertices)."""
+    weights: LossWeights
+    """Weight of each loss term, as used (dimensionless multipliers of the unweighted terms)."""
+    max_iters: int
+    """Most loss evaluations per frame t > 0 (the LM stops earlier on convergence)."""
+    max_iters_first: int
+    """Most loss evaluations for frame 0 (starts further from the answer)."""
+    rel_tol: float
+    """Converged when an accepted step lowers the loss by less than this fraction."""
+    step_tol: float
+    """Converged when the largest increment is below this (radians, metres)."""
+    damping: float
+    """Initial LM damping, relative to the largest diagonal entry of J^T J."""
+    visibility_depth_tol: float
+    """Relative depth tolerance of the vertex visibility test (flow targets, L_anchor)."""
+    flow_margin_px: int
+    """Flow targets and colours only where the mask (and the flow) is valid this many pixels around."""
+    flow_align_iters: int
+    """Frames t > 0: Gauss-Newton steps on L_flow alone before the full loss (no rasterisation); 0 = off."""
+    crop_margin: int
+    """Render only a window per view around the mask and the start pose, grown by this many pixels
+    (the same loss while the garment stays inside; faster); -1 = whole images."""
+    image_blur: float
+    """Gaussian blur (pixels, standard deviation) of the images for L_anchor."""
+    anchor_scale: float
+    """Cauchy scale of L_anchor (chromaticity difference; rgb / (r + g + b), each in [0, 1])."""
+    anchor_reference: str
+    """L_anchor's references: 'texture' (the garment texture at the template's UVs) or 'images'
+    (each vertex's chromaticity in the first frame it is seen)."""
+    collision_clearance: float
+    """L_collision: clearance (metres) the garment keeps from the body skin."""
+    collision_radius: float
+    """L_collision: only vertices within this distance (metres) of the body at the frame's start get a plane."""
+    smooth_passes: int
+    """After the whole sequence: passes of the temporal filter (1, 2, 1) / 4 over the bone transforms
+    (:func:`anidress_core.fit.smooth_transforms`; ours; 0 = off). The per-frame loss terms stay
+    those of the unfiltered fit."""
+    vertex: VertexSettings
+    """Ablation (a): Adam settings."""
+
+    def __post_init__(self):
+        from .variants import VARIANTS
+
+        if self.loss not in VARIANTS:
+            raise ValueError(f"FitConfig.loss must be one of {sorted(VARIANTS)}, got {self.loss!r}")
+        if self.method not in ("rig", "vertex"):
+            raise ValueError(f"FitConfig.method must be 'rig' or 'vertex', got {self.method!r}")
+        if self.anchor_reference not in ("images", "texture"):
+            raise ValueError(f"FitConfig.anchor_reference must be 'images' or 'texture', got {self.anchor_reference!r}")
+        for k, v in dataclasses.asdict(self.weights).items():
+            if not (v >= 0 and math.isfinite(v)):
+                raise ValueError(f"FitConfig.weights.{k} must be finite and >= 0, got {v}")
+        if not (self.image_blur >= 0 and self.anchor_scale > 0):
+            raise ValueError(f"FitConfig: image_blur must be >= 0 and anchor_scale > 0, got "
+                             f"{self.image_blur}, {self.anchor_scale}")
+        if not (self.collision_clearance >= 0 and self.collision_radius > 0):
+            raise ValueError(f"FitConfig: collision_clearance must be >= 0 and collision_radius > 0, got "
+                             f"{self.collision_clearance}, {self.collision_radius}")
+        if int(self.smooth_passes) != self.smooth_passes or self.smooth_passes < 0:
+            raise ValueError(f"FitConfig.smooth_passes must be an integer >= 0, got {self.smooth_passes}")
+        if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex.max_iters < 1:
+            raise ValueError("FitConfig: iteration limits must be >= 1")
+
+    @classmethod
+    def from_config(cls, section: Mapping | None = None, loss: str | None = None) -> "FitConfig":
+        """The settings of config section ``fit`` (keys left out: the schema's defaults), as the
+        loss variant ``loss`` (default: the section's ``loss``) uses them. No key is renamed;
+        the stage-level keys (:data:`STAGE_KEYS`) are ignored, any other unknown key is an error."""
+        from ..config import section_defaults
+        from .variants import apply_variant
+
+        p = section_defaults("fit", dict(section or {}))
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(p) - names - set(STAGE_KEYS))
+        if unknown:
+            raise ValueError(f"config section fit: unknown keys {unknown}")
+        kw = {k: p[k] for k in names}
+        kw["weights"] = LossWeights(**{k: float(v) for k, v in kw["weights"].items()})
+        kw["vertex"] = VertexSettings(float(kw["vertex"]["lr"]), int(kw["vertex"]["max_iters"]),
+                                      int(kw["vertex"]["patience"]))
+        for k in ("max_iters", "max_iters_first", "flow_margin_px", "flow_align_iters", "crop_margin", "smooth_passes"):
+            kw[k] = int(kw[k])
+        for k in ("rel_tol", "step_tol", "damping", "visibility_depth_tol", "image_blur", "anchor_scale",
+                  "collision_clearance", "collision_radius"):
+            kw[k] = float(kw[k])
+        kw["loss"] = "pipeline"
+        return apply_variant(cls(**kw), loss or p["loss"])
+
+    def replace(self, **changes) -> "FitConfig":
+        """A copy with fields changed; ``weights`` may be a mapping of the weights to change."""
+        w = changes.get("weights")
+        if isinstance(w, Mapping):
+            changes["weights"] = dataclasses.replace(self.weights, **w)
+        v = changes.get("vertex")
+        if isinstance(v, Mapping):
+            changes["vertex"] = dataclasses.replace(self.vertex, **v)
+        return dataclasses.replace(self, **changes)

@@ -1,0 +1,377 @@
+"""What one frame's fit holds fixed: rig, views, cues, render windows (AniDress §3.2, DESIGN.md §8).
+
+Per frame t the B bone transforms G^t (B, 4, 4) of the garment rig (rest (V, 3), weights
+(V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
+``x = LBS(rest, W, G^t)`` explains the 2D cues of C training views (:class:`FrameCues`).
+:func:`make_problem` gathers what stays fixed while one frame is optimised
+(:class:`Problem`): the masks, normals, flow targets, the body occluder's depth, L_anchor's
+references and L_collision's planes. As in the paper every term is a sum (over views and pixels
+or targets); all of them are divided by one common constant, the number of garment pixels
+in the masks (``Problem.n_px``), so that their ratios are the paper's whatever the image
+size and number of views. The renders are cut to a window per view around the mask and the
+start pose (``FitConfig.crop_margin``, :func:`crop_window`), the body occluder rasterised
+there. Shapes: T frames, V vertices, F faces, B bones, C cameras, H, W image size, N
+residuals. Float64 for poses and geometry; CPU or CUDA (whatever device the inputs are on).
+"""
+from __future__ import annotations
+
+import warnings
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch
+import torch.nn.functional as Fnn
+from torch import Tensor
+
+from .. import raster
+from ..geometry import nearest_rotation
+from .config import FitConfig
+from .images import chromaticity, eroded, image_features
+
+if TYPE_CHECKING:
+    from .terms.anchor import AnchorRef
+    from .terms.collision import Contacts
+
+__all__ = ["RigParts", "HessianLayout", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem",
+           "contour_length", "occluder_depth", "sanitize_normals", "occluder_or_inf", "check_cues", "Crop",
+           "crop_window", "crop_frame", "uncrop_fragments", "downsample"]
+
+
+class RigParts(NamedTuple):
+    """The garment rig as the fit uses it (float64, one device); build with :meth:`make`."""
+
+    rest: Tensor  # (V, 3) rest vertices (body canonical frame)
+    weights: Tensor  # (V, B) convex skinning weights
+    centres: Tensor  # (B, 3) rest-pose bone centres
+    faces: Tensor  # (F, 3) int64
+    edges: tuple  # raster.mesh_edges(faces): (E, 2) vertex ids, (E, 2) faces either side
+    layout: "HessianLayout"  # sparsity pattern of the vertex-space Gauss-Newton matrix
+
+    @staticmethod
+    def make(rest: Tensor, weights: Tensor, centres: Tensor, faces: Tensor) -> "RigParts":
+        rest = torch.as_tensor(rest).double()
+        dev = rest.device
+        weights = torch.as_tensor(weights, device=dev).double()
+        centres = torch.as_tensor(centres, device=dev).double()
+        faces = torch.as_tensor(faces, device=dev).long()
+        V = rest.shape[0]
+        if rest.shape != (V, 3) or weights.ndim != 2 or weights.shape[0] != V or centres.shape != (weights.shape[1], 3):
+            raise ValueError(f"RigParts: rest (V, 3), weights (V, B), centres (B, 3) expected, got "
+                             f"{tuple(rest.shape)}, {tuple(weights.shape)}, {tuple(centres.shape)}")
+        if faces.ndim != 2 or faces.shape[1] != 3 or (faces.numel() and (faces.min() < 0 or faces.max() >= V)):
+            raise ValueError(f"RigParts: faces must be (F, 3) indices into {V} vertices")
+        if not (bool(torch.isfinite(rest).all()) and bool(torch.isfinite(weights).all())
+                and bool(torch.isfinite(centres).all())):
+            raise ValueError("RigParts: rest, weights or centres contain NaN or inf")
+        return RigParts(rest, weights, centres, faces, raster.mesh_edges(faces), HessianLayout.make(faces, V))
+
+
+class HessianLayout(NamedTuple):
+    """Block pattern of sum_residuals J_x^T J_x for residuals living on one face or vertex.
+
+    Vertex pairs (a, b) that share a face (and every (v, v)), sorted by a * V + b; each
+    pair is a 3x3 block. ``face_pair`` (F, 3, 3) is the pair of (faces[f, k], faces[f, l]),
+    ``diag`` (V,) the pair (v, v); ``perm``, ``crow``, ``col`` turn the (pairs, 3, 3)
+    buffer into a (3V, 3V) CSR matrix.
+    """
+
+    num_vertices: int
+    face_pair: Tensor
+    diag: Tensor
+    perm: Tensor
+    crow: Tensor
+    col: Tensor
+
+    @staticmethod
+    def make(faces: Tensor, V: int) -> "HessianLayout":
+        dev = faces.device
+        fa = faces[:, :, None].expand(-1, 3, 3)
+        fb = faces[:, None, :].expand(-1, 3, 3)
+        ar = torch.arange(V, device=dev)
+        codes = torch.unique(torch.cat([(fa * V + fb).reshape(-1), ar * V + ar]))  # sorted
+        face_pair = torch.searchsorted(codes, fa * V + fb)
+        diag = torch.searchsorted(codes, ar * V + ar)
+        a, b = codes // V, codes % V
+        i = torch.arange(3, device=dev)
+        rows = (3 * a[:, None, None] + i[None, :, None]).expand(-1, 3, 3).reshape(-1)
+        cols = (3 * b[:, None, None] + i[None, None, :]).expand(-1, 3, 3).reshape(-1)
+        perm = torch.argsort(rows * (3 * V) + cols)
+        crow = torch.zeros(3 * V + 1, dtype=torch.int64, device=dev)
+        crow[1:] = torch.cumsum(torch.bincount(rows, minlength=3 * V), 0)
+        return HessianLayout(V, face_pair, diag, perm, crow, cols[perm])
+
+    def matrix(self, blocks: Tensor) -> Tensor:
+        """(pairs, 3, 3) blocks -> (3V, 3V) sparse CSR."""
+        n = 3 * self.num_vertices
+        with warnings.catch_warnings():  # "sparse CSR support is in beta"
+            warnings.simplefilter("ignore")
+            return torch.sparse_csr_tensor(self.crow, self.col, blocks.reshape(-1)[self.perm], (n, n))
+
+
+class Views(NamedTuple):
+    """C undistorted pinhole views (see :mod:`anidress_core.raster` for the conventions)."""
+
+    K: Tensor  # (C, 3, 3)
+    world_to_cam: Tensor  # (C, 4, 4)
+    height: int
+    width: int
+
+    @staticmethod
+    def from_cameras(cams) -> "Views":
+        """From :class:`anidress_core.camera.Cameras`; distortion is not modelled, so it must be 0."""
+        if bool((cams.dist.abs() > 1e-9).any()):
+            raise ValueError(f"fit: cameras {cams.names} have lens distortion, which the rasteriser does not "
+                             "model; undistort the images and cues first")
+        # Rotations read from float32 files are orthonormal to ~1e-7 only; the normal term
+        # uses R^T = R^-1 (per-face grouping in world space), so they are projected onto SO(3).
+        E = cams.world_to_cam.double().clone()
+        R = nearest_rotation(E[:, :3, :3])
+        off = (R - E[:, :3, :3]).abs().amax((-2, -1))
+        if bool((off > 1e-4).any()):
+            bad = [n for n, o in zip(cams.names, off.tolist()) if o > 1e-4]
+            raise ValueError(f"fit: cameras {bad} have a world_to_cam rotation that is not a rotation "
+                             f"(off by up to {float(off.max()):.2g})")
+        E[:, :3, :3] = R
+        return Views(cams.K.double(), E, cams.height, cams.width)
+
+
+class FrameCues(NamedTuple):
+    """The 2D observations of one frame in C views (pixels on the image grid)."""
+
+    mask: Tensor  # (C, H, W) bool garment pixels (label 2), or float garment coverage in [0, 1]
+    normals: Tensor | None  # (C, H, W, 3) camera-space unit normals; non-finite / zero = none
+    occluder: Tensor | None  # (C, H, W) camera z of the body (+inf where none), see occluder_depth
+    occluder_mesh: tuple | None = None
+    """(verts (Vb, 3), faces (Fb, 3)) of the occluder (the posed body), rasterised by
+    :func:`fit_frame` in its render windows when ``occluder`` is None (cheaper)."""
+    image: Tensor | None = None
+    """(C, H, W, 3) colour images in [0, 1] for L_anchor, or None (L_anchor off)."""
+
+
+class FlowTargets(NamedTuple):
+    """Where the flow says visible vertices of the previous fitted mesh went (N targets)."""
+
+    cam: Tensor  # (N,) int64
+    vert: Tensor  # (N,) int64
+    target: Tensor  # (N, 2) float64 pixel positions in frame t
+
+
+def contour_length(mask: Tensor) -> Tensor:
+    """(C,) number of horizontally or vertically adjacent pixel pairs with different labels in mask (C, H, W)."""
+    m = mask.bool()
+    return (m[:, :, 1:] != m[:, :, :-1]).sum((1, 2)) + (m[:, 1:, :] != m[:, :-1, :]).sum((1, 2))
+
+
+def occluder_depth(verts: Tensor, faces: Tensor, views: Views) -> Tensor:
+    """(C, H, W) camera z of an occluding mesh (the posed body), +inf where it is absent."""
+    return raster.rasterize(verts, faces, views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype),
+                            views.height, views.width, with_bary=False).depth
+
+
+def sanitize_normals(normals: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+    """(normals with NaN/inf replaced by 0, valid (C, H, W) bool) or (None, None)."""
+    if normals is None:
+        return None, None
+    n = normals.double()
+    ok = torch.isfinite(n).all(-1)
+    n = torch.where(ok[..., None], n, torch.zeros_like(n))
+    ok &= n.norm(dim=-1) > 0.5
+    return n, ok
+
+
+def occluder_or_inf(cues: FrameCues, views: Views) -> Tensor:
+    """(C, H, W) float64 occluder depth of the cues (rasterised from occluder_mesh if needed; +inf: none)."""
+    if cues.occluder is not None:
+        occ = cues.occluder.double()
+        return torch.where(torch.isnan(occ), torch.full_like(occ, float("inf")), occ)
+    if cues.occluder_mesh is not None:
+        v, f = cues.occluder_mesh
+        return occluder_depth(v.double(), f, views).double()
+    return torch.full(cues.mask.shape, float("inf"), dtype=torch.float64, device=cues.mask.device)
+
+
+def check_cues(views: Views, cues: FrameCues) -> None:
+    C, H, W = views.K.shape[0], views.height, views.width
+    if cues.mask.shape != (C, H, W):
+        raise ValueError(f"fit: mask must be ({C}, {H}, {W}), got {tuple(cues.mask.shape)}")
+    if cues.occluder is not None and cues.occluder.shape != (C, H, W):
+        raise ValueError(f"fit: occluder depth must be ({C}, {H}, {W}), got {tuple(cues.occluder.shape)}")
+    if cues.normals is not None and cues.normals.shape != (C, H, W, 3):
+        raise ValueError(f"fit: normals must be ({C}, {H}, {W}, 3), got {tuple(cues.normals.shape)}")
+
+
+class Problem(NamedTuple):
+    """Everything fixed during one frame's optimisation (:func:`make_problem`)."""
+
+    rig: RigParts
+    views: Views
+    cfg: FitConfig
+    mask: Tensor  # (C, H, W) bool garment pixels
+    mask_flat: Tensor  # (C H W,) float64 garment coverage in [0, 1]
+    n_px: float  # the common normaliser of every image term: garment pixels in the masks (at least 1)
+    normals: Tensor | None  # (C, H, W, 3) float64 or None (L_N off)
+    normal_ok: Tensor | None  # (C, H, W) bool: pixels with a normal target
+    occluder: Tensor  # (C, H, W) body depth (+inf: none)
+    flow: FlowTargets | None  # L_flow's targets, or None (off)
+    prior: Tensor | None = None  # (V, 3) start mesh of the first frame (proximal term), or None
+    w_prior: float = 0.0  # its weight per vertex: weights.prior / V
+    anchor_feat: Tensor | None = None  # (C, 9, H, W) image_features of the chromaticity, or None (L_anchor off)
+    anchor_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
+    anchor: "AnchorRef | None" = None
+    contacts: "Contacts | None" = None  # L_collision's planes, or None (L_collision off)
+
+
+def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig,
+                 prior: Tensor | None = None, anchor: "AnchorRef | None" = None,
+                 contacts: "Contacts | None" = None) -> Problem:
+    """The :class:`Problem` of one frame: cues checked and sanitised, terms with weight 0 (or without
+    their inputs) switched off. prior: (V, 3) start mesh of the first frame (used when
+    ``cfg.weights.prior`` > 0); anchor: L_anchor's references; contacts: L_collision's planes."""
+    check_cues(views, cues)
+    w = cfg.weights
+    soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
+    soft = torch.where(torch.isfinite(soft), soft.clamp(0, 1), torch.zeros_like(soft))
+    mask = soft > 0.5
+    normals, nok = sanitize_normals(cues.normals if w.normal > 0 else None)
+    if nok is not None:
+        nok = nok & (soft >= 1)
+    occ = occluder_or_inf(cues, views)
+    if flow is not None and (w.flow == 0 or flow.cam.numel() == 0):
+        flow = None
+    anchor_feat = region = None
+    if w.anchor > 0 and cues.image is not None and anchor is not None and bool(anchor.seen.any()):
+        anchor_feat = image_features(chromaticity(cues.image), cfg.image_blur)
+        region = eroded(soft, cfg.flow_margin_px)
+    else:
+        anchor = None
+    n_px = float(max(float(soft.sum()), 1.0))  # the paper's sums over pixels / targets, one common scale
+    return Problem(
+        rig=rig, views=views, cfg=cfg, mask=mask, mask_flat=soft.reshape(-1), n_px=n_px,
+        normals=normals, normal_ok=nok, occluder=occ, flow=flow,
+        prior=None if prior is None or w.prior == 0 else prior.detach().double(),
+        w_prior=w.prior / rig.rest.shape[0],
+        anchor_feat=anchor_feat, anchor_region=region, anchor=anchor,
+        contacts=contacts if w.collision > 0 and contacts is not None and contacts.vert.numel() else None,
+    )
+
+
+class Crop(NamedTuple):
+    """Per-camera windows (x0, y0) (C,) int64 of a common size height x width."""
+
+    x0: Tensor
+    y0: Tensor
+    height: int
+    width: int
+
+
+def crop_window(views: Views, mask: Tensor, verts: Tensor, margin: int) -> Crop:
+    """The smallest common window size holding, in every view, the mask's garment pixels
+    and the projection of ``verts`` (V, 3), grown by ``margin`` pixels, clamped to the image."""
+    C, H, W = mask.shape
+    uv, z = raster.project_vertices(verts.detach(), views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype))
+    ok = torch.isfinite(uv).all(-1) & (z > 0)
+    big = torch.tensor(1e9, dtype=uv.dtype, device=uv.device)
+    lo = torch.where(ok[..., None], uv, big).amin(1).floor()  # (C, 2)
+    hi = torch.where(ok[..., None], uv, -big).amax(1).ceil()
+    m = mask.bool() if not mask.is_floating_point() else mask > 0
+    rows, cols = m.any(2), m.any(1)  # (C, H), (C, W)
+    ar_h = torch.arange(H, device=mask.device, dtype=uv.dtype)
+    ar_w = torch.arange(W, device=mask.device, dtype=uv.dtype)
+    lo_x = torch.minimum(lo[:, 0], torch.where(cols, ar_w, big).amin(1))
+    hi_x = torch.maximum(hi[:, 0], torch.where(cols, ar_w, -big).amax(1))
+    lo_y = torch.minimum(lo[:, 1], torch.where(rows, ar_h, big).amin(1))
+    hi_y = torch.maximum(hi[:, 1], torch.where(rows, ar_h, -big).amax(1))
+    lo_x, lo_y = (lo_x - margin).clamp(0, W - 1), (lo_y - margin).clamp(0, H - 1)
+    hi_x, hi_y = (hi_x + margin).clamp(0, W - 1), (hi_y + margin).clamp(0, H - 1)
+    empty = hi_x < lo_x
+    lo_x, hi_x = torch.where(empty, torch.zeros_like(lo_x), lo_x), torch.where(empty, torch.zeros_like(hi_x), hi_x)
+    empty = hi_y < lo_y
+    lo_y, hi_y = torch.where(empty, torch.zeros_like(lo_y), lo_y), torch.where(empty, torch.zeros_like(hi_y), hi_y)
+    cw = int((hi_x - lo_x).max()) + 1
+    ch = int((hi_y - lo_y).max()) + 1
+    x0 = lo_x.long().clamp(max=W - cw)
+    y0 = lo_y.long().clamp(max=H - ch)
+    return Crop(x0, y0, ch, cw)
+
+
+def crop_frame(views: Views, cues: FrameCues, flow: FlowTargets | None, c: Crop
+               ) -> tuple[Views, FrameCues, FlowTargets | None]:
+    """The frame seen through the windows ``c``: principal points shifted, cue maps cut out."""
+    C = cues.mask.shape[0]
+    K = views.K.clone()
+    K[:, 0, 2] -= c.x0.to(K.dtype)
+    K[:, 1, 2] -= c.y0.to(K.dtype)
+    dev = cues.mask.device
+    rr = c.y0[:, None] + torch.arange(c.height, device=dev)[None]  # (C, h)
+    cc = c.x0[:, None] + torch.arange(c.width, device=dev)[None]  # (C, w)
+    ci = torch.arange(C, device=dev)[:, None, None]
+
+    def cut(x):
+        return None if x is None else x[ci, rr[:, :, None], cc[:, None, :]]
+
+    fl = None
+    if flow is not None:
+        off = torch.stack([c.x0, c.y0], -1).to(flow.target.dtype)[flow.cam]
+        fl = FlowTargets(flow.cam, flow.vert, flow.target - off)
+    return (Views(K, views.world_to_cam, c.height, c.width),
+            FrameCues(cut(cues.mask), cut(cues.normals), cut(cues.occluder), cues.occluder_mesh, cut(cues.image)), fl)
+
+
+def uncrop_fragments(frags: raster.Fragments, c: Crop, height: int, width: int,
+                     occluder: Tensor) -> raster.Fragments:
+    """Paste windowed fragments back into full (C, H, W) images (outside: occluder depth, face -1)."""
+    C = frags.face_id.shape[0]
+    dev = frags.face_id.device
+    fid = torch.full((C, height, width), -1, dtype=frags.face_id.dtype, device=dev)
+    depth = occluder.to(frags.depth.dtype).clone()
+    rr = c.y0[:, None] + torch.arange(c.height, device=dev)[None]
+    cc = c.x0[:, None] + torch.arange(c.width, device=dev)[None]
+    ci = torch.arange(C, device=dev)[:, None, None]
+    fid[ci, rr[:, :, None], cc[:, None, :]] = frags.face_id
+    depth[ci, rr[:, :, None], cc[:, None, :]] = frags.depth
+    return raster.Fragments(fid, None, depth)  # type: ignore[arg-type]
+
+
+def downsample(views: Views, cues: FrameCues, flow: FlowTargets | None, factor: int
+               ) -> tuple[Views, FrameCues, FlowTargets | None]:
+    """The same frame at 1/factor resolution: coarse pixel = factor x factor block of fine pixels.
+
+    Cameras: ``u_coarse = (u - (factor - 1) / 2) / factor`` (pixel centres stay at integer
+    coordinates), H // factor x W // factor (a remainder row/column is dropped). Masks
+    become soft (the garment fraction of each block, i.e. supersampled area coverage,
+    which the antialiased silhouette matches to sub-pixel accuracy); normals are the
+    normalised block mean where the whole block is garment with valid normals (else
+    none); the occluder depth is the block minimum; flow targets are mapped like pixels.
+    A wider basin for the silhouette loss (an edge is seen ``factor`` fine pixels away).
+    """
+    f = int(factor)
+    if f == 1:
+        return views, cues, flow
+    C, H, W = cues.mask.shape
+    Hc, Wc = H // f, W // f
+    if Hc < 1 or Wc < 1:
+        raise ValueError(f"downsample: {H}x{W} images cannot be reduced by {f}")
+    K = views.K.clone()
+    K[:, :2, :] = K[:, :2, :] / f
+    K[:, 0, 2] = (views.K[:, 0, 2] - (f - 1) / 2) / f
+    K[:, 1, 2] = (views.K[:, 1, 2] - (f - 1) / 2) / f
+    crop = lambda x: x[:, : Hc * f, : Wc * f]  # noqa: E731
+    pool = lambda x: Fnn.avg_pool2d(x, f)  # noqa: E731  (N, ch, H, W)
+    soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
+    m = pool(crop(soft)[:, None])[:, 0]
+    normals = None
+    if cues.normals is not None:
+        n, ok = sanitize_normals(crop(cues.normals))
+        ok = ok & (crop(soft) >= 1)
+        okf = ok.double()
+        ns = pool((n * okf[..., None]).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+        full = pool(okf[:, None])[:, 0] >= 1
+        ns = ns / ns.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        normals = torch.where(full[..., None], ns, torch.zeros_like(ns))
+    occ = -Fnn.max_pool2d(-crop(occluder_or_inf(cues, views))[:, None], f)[:, 0]
+    image = None
+    if cues.image is not None:
+        image = pool(crop(cues.image.double()).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+    fl = None
+    if flow is not None:
+        fl = FlowTargets(flow.cam, flow.vert, (flow.target - (f - 1) / 2) / f)
+    return Views(K, views.world_to_cam, Hc, Wc), FrameCues(m, normals, occ, None, image), fl

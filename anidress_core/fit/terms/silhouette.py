@@ -1,0 +1,82 @@
+"""L_silhouette (the paper's L_M): rendered garment coverage against the garment mask.
+
+Hard rasterisation, antialiased at the silhouette edges (:func:`anidress_core.raster.silhouette`;
+the body is an occluder, :func:`anidress_core.raster.occlude`) against the garment mask
+(label 2): squared difference summed over all pixels of all views, divided by the problem's
+garment pixel count. Weight ``fit/weights/silhouette`` (paper: lambda_M = 2.0). Every
+silhouette crossing depends on its edge's two end points, so its derivative is computed
+locally by autograd on the gathered end points and chained per pixel (a pixel can collect the
+crossings of several edges).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch
+from torch import Tensor
+
+from ... import raster
+
+if TYPE_CHECKING:
+    from ..problem import Problem
+
+NAME = "silhouette"
+
+
+class SilhouetteData(NamedTuple):
+    inside_xy: Tensor
+    outside_xy: Tensor
+    cam: Tensor
+    edge: Tensor  # (N, 2)
+    pixel: Tensor  # (N,) pixel whose coverage the crossing changes
+    residual: Tensor  # (C H W,) s - m
+
+
+def value(pb: "Problem", r) -> tuple[float, SilhouetteData]:
+    """Hard coverage + (t - 1/2) where each edge crosses (raster.silhouette), against the mask."""
+    uv, z, frags = r.uv, r.z, r.fragments
+    hard = (frags.face_id >= 0).reshape(-1).double()
+    cr = raster.silhouette_crossings(uv, z, pb.rig.faces, frags, pb.rig.edges)
+    V = uv.shape[1]
+    uvf = uv.reshape(-1, 2)
+    t = raster.crossing_fraction(uvf[cr.cam * V + cr.edge[:, 0]], uvf[cr.cam * V + cr.edge[:, 1]], cr.inside_xy,
+                                 cr.outside_xy)
+    pix = torch.where(t > 0.5, cr.outside, cr.inside)
+    soft = hard.index_add(0, pix, t - 0.5)
+    res = soft - pb.mask_flat
+    return float((res * res).sum()) / pb.n_px, SilhouetteData(cr.inside_xy, cr.outside_xy, cr.cam, cr.edge, pix, res)
+
+
+def gauss_newton(pb: "Problem", s: SilhouetteData, uv: Tensor, Puv: Tensor, Jx: Tensor, H: Tensor, g: Tensor,
+                 jdtype) -> None:
+    """Add w/n J^T J to H (P, P) and w/n J^T r to g (P,) in place: dt/dq by autograd on the gathered
+    edge end points, chained through Puv (C, V, 2, 3) and Jx (3V, P), summed per pixel."""
+    w_sil = pb.cfg.weights.silhouette
+    if not (w_sil > 0 and s.pixel.numel()):
+        return
+    V = uv.shape[1]
+    P = Jx.shape[-1]
+    uvf = uv.reshape(-1, 2)
+    with torch.enable_grad():
+        q1 = uvf[s.cam * V + s.edge[:, 0]].detach().requires_grad_()
+        q2 = uvf[s.cam * V + s.edge[:, 1]].detach().requires_grad_()
+        t = raster.crossing_fraction(q1, q2, s.inside_xy, s.outside_xy)
+        g1, g2 = torch.autograd.grad(t.sum(), (q1, q2))
+    e0, e1 = s.edge[:, 0], s.edge[:, 1]
+    a0 = torch.einsum("ni,nij->nj", g1, Puv[s.cam, e0])  # dt/dx_e0 (N, 3)
+    a1 = torch.einsum("ni,nij->nj", g2, Puv[s.cam, e1])
+    J3 = Jx.view(V, 3, P)
+    Jt = torch.einsum("nj,njp->np", a0.to(jdtype), J3[e0]) + torch.einsum("nj,njp->np", a1.to(jdtype), J3[e1])
+    upix, inv = torch.unique(s.pixel, return_inverse=True)
+    Jp = torch.zeros(upix.shape[0], P, dtype=jdtype, device=uv.device).index_add(0, inv, Jt)
+    w = w_sil / pb.n_px
+    H += w * (Jp.t() @ Jp).double()
+    g += w * (Jp.t() @ s.residual[upix].to(jdtype)).double()
+
+
+def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tensor:
+    """Differentiable L_silhouette of ``verts`` (V, 3) with the visibility of ``fragments`` held fixed."""
+    views, rig = pb.views, pb.rig
+    K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
+    s = raster.silhouette(verts, rig.faces, K, E, fragments, rig.edges)
+    return ((s - pb.mask.to(s.dtype)) ** 2).sum() / pb.n_px

@@ -1,0 +1,59 @@
+"""The loss variants of the garment fit, in one place (config ``fit/loss``, ``fit/ablations``,
+rules ``fit`` and ``fit_ablation``, the CLI).
+
+* ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
+* ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, or no
+  temporal filter).
+* ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress, supplementary), none
+  of our terms and no temporal filter; the solver settings are the section's.
+* ``paper_vertex``, ``paper_no_normal_flow``, ``paper_no_flow``: the paper's ablations (Fig. 9)
+  (a) direct vertex fitting without the rig (Adam on the vertex positions), (b) no normal and
+  no flow losses, (c) no flow loss, on the paper's loss.
+"""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+from .config import FitConfig, LossWeights
+
+__all__ = ["PAPER_WEIGHTS", "Variant", "VARIANTS", "apply_variant"]
+
+#: The paper's weights (lambda_M, lambda_N, lambda_of) = (2.0, 0.1, 3.0), none of ours.
+PAPER_WEIGHTS = LossWeights(silhouette=2.0, normal=0.1, flow=3.0, anchor=0.0, collision=0.0, prior=0.0)
+
+
+class Variant(NamedTuple):
+    description: str
+    apply: Callable[[FitConfig], FitConfig]
+
+
+def _paper(c: FitConfig) -> FitConfig:
+    return c.replace(weights=PAPER_WEIGHTS, smooth_passes=0, method="rig")
+
+
+VARIANTS: dict[str, Variant] = {
+    "pipeline": Variant("the pipeline's loss (config section fit as written)", lambda c: c),
+    "pipeline_no_normal": Variant("the pipeline's loss without L_normal", lambda c: c.replace(weights={"normal": 0.0})),
+    "pipeline_no_flow": Variant("the pipeline's loss without L_flow", lambda c: c.replace(weights={"flow": 0.0})),
+    "pipeline_no_anchor": Variant("the pipeline's loss without L_anchor", lambda c: c.replace(weights={"anchor": 0.0})),
+    "pipeline_no_collision": Variant("the pipeline's loss without L_collision",
+                                     lambda c: c.replace(weights={"collision": 0.0})),
+    "pipeline_no_prior": Variant("the pipeline's loss without L_prior (frame 0)",
+                                 lambda c: c.replace(weights={"prior": 0.0})),
+    "pipeline_no_smooth": Variant("the pipeline's loss without the temporal filter of the bone transforms",
+                                  lambda c: c.replace(smooth_passes=0)),
+    "paper": Variant("the paper's loss: 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow, rig, no temporal filter", _paper),
+    "paper_vertex": Variant("paper (a): direct vertex fitting without the rig (Adam on vertex positions), "
+                            "the paper's loss", lambda c: _paper(c).replace(method="vertex")),
+    "paper_no_normal_flow": Variant("paper (b): no normal and no flow losses (silhouettes only)",
+                                    lambda c: _paper(c).replace(weights={"normal": 0.0, "flow": 0.0})),
+    "paper_no_flow": Variant("paper (c): no flow loss (silhouettes and normals)",
+                             lambda c: _paper(c).replace(weights={"flow": 0.0})),
+}
+
+
+def apply_variant(cfg: FitConfig, name: str) -> FitConfig:
+    """The settings of variant ``name`` derived from the pipeline's ``cfg``; ``loss`` records the name."""
+    if name not in VARIANTS:
+        raise ValueError(f"unknown fit loss variant {name!r}; choose from {sorted(VARIANTS)}")
+    return VARIANTS[name].apply(cfg).replace(loss=name)
