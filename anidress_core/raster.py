@@ -1,5 +1,7 @@
 """Triangle rasteriser, differentiable interpolation, texturing and Lambert shading.
 
+One module (over 800 lines): the forward pass, its derivatives and the renders share the Fragments layout.
+
 One renderer serves the whole pipeline: synthetic data (:func:`render_mesh`), garment
 fitting (silhouettes and camera-space normals with gradients to the vertices, through
 :func:`barycentrics`, :func:`interpolate` and :func:`antialias`) and radiance-field

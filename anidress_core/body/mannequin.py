@@ -1,5 +1,7 @@
 """A procedural, rigged, UV-mapped mannequin body in the SMPL canonical frame.
 
+One module (over 800 lines): one build, run once and cached, whose steps share the primitives table.
+
 Stand-in for the SMPL body (Loper et al. 2015) when no licensed model file is
 available. The body is an implicit surface: a smooth union (polynomial smooth-min,
 Quilez, "Smooth minimum", iquilezles.org) of round cones and ellipsoids placed on a

@@ -1,5 +1,7 @@
 """Garment rigging model: Smooth Skinning Decomposition with Rigid Bones (SSDR).
 
+One module (over 800 lines): one algorithm whose steps share the _Data / _NormalEq moments.
+
 A garment simulated on a moving body, ``frames (T, V, 3)`` over a rest pose
 ``rest (V, 3)``, is decomposed into B "virtual bones" (Le & Deng 2012, "Smooth
 Skinning Decomposition with Rigid Bones"; AniDress uses B = 25 and 50 iterations):
