@@ -31,7 +31,6 @@ from benchmarks.benchutil import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
-OUT_DIR = Path(__file__).resolve().parent
 
 
 def bench_mesh() -> trimesh.Trimesh:
@@ -122,7 +121,10 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60, help="frames of the demo-scale sweep")
     ap.add_argument("--threads", default="", help="comma-separated torch thread counts to time (default: torch's)")
     ap.add_argument("--no-reference", action="store_true")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder of raster.md and raster.csv")
     args = ap.parse_args()
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
     thread_counts = [int(x) for x in args.threads.split(",") if x.strip()]
     command = " ".join([".venv/bin/python", "-m", "benchmarks.bench_raster", *sys.argv[1:]])
     mesh = bench_mesh()
@@ -227,7 +229,7 @@ def main() -> None:
         "method", "reference", "resolution", "cameras", "frames", "faces", "threads", "wall_s", "mpix_per_s",
         "face_agreement_pct", "depth_err_max_m", "depth_err_median_m", "notes",
     ]
-    with open(OUT_DIR / "raster.csv", "w", newline="") as fh:
+    with open(out_dir / "raster.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields)
         w.writeheader()
         for r in rows:
@@ -273,8 +275,8 @@ def main() -> None:
         "The machine is shared: other jobs running at the same time slow torch's parallel",
         "regions down a lot (see the load average above); rerun when it is idle to compare versions.",
     ]
-    (OUT_DIR / "raster.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {OUT_DIR / 'raster.md'} and {OUT_DIR / 'raster.csv'}")
+    (out_dir / "raster.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out_dir / 'raster.md'} and {out_dir / 'raster.csv'}")
 
 
 if __name__ == "__main__":

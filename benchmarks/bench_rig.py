@@ -158,6 +158,7 @@ def main():
     ap.add_argument("--sizes", default="3000:200:twirl,8000:500:dance", help="vertices:frames:motion,...")
     ap.add_argument("--bones-sweep", default="10,15,20,25,30")
     ap.add_argument("--no-dembones", action="store_true")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder of rig.md and rig.csv")
     args = ap.parse_args()
     if args.worker:
         spec = json.loads(args.worker)
@@ -214,7 +215,9 @@ def main():
 
 
 def write(rows, args, loads):
-    out_csv = ROOT / "benchmarks" / "rig.csv"
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    out_csv = out / "rig.csv"
     with open(out_csv, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
@@ -225,7 +228,8 @@ def write(rows, args, loads):
         "",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
         f"- command: `.venv/bin/python -m benchmarks.bench_rig --repeats {args.repeats} --sizes {args.sizes} "
-        f"--bones-sweep {args.bones_sweep}` (git {rev} + working tree)",
+        f"--bones-sweep {args.bones_sweep}{' --no-dembones' if args.no_dembones else ''}"
+        f"{'' if out == ROOT / 'benchmarks' else f' --out {args.out}'}` (git {rev} + working tree)",
         f"- machine: {machine()}",
         "- load average (1 min) before each repeat and at the end: " + ", ".join(f"{x[0]:.2f}" for x in loads),
         "- sequences: the project's flared skirt (`make_skirt(mannequin_model(), target_vertices=N)`) simulated by "
@@ -268,7 +272,7 @@ def write(rows, args, loads):
             lines.append(f"| {r['bones_asked']} | {r['bones']} | {r['wall_s']:.2f} | {r['cpu_s']:.2f} | "
                          f"{1e3 * r['rmse_m']:.3f} | {r['rmse_pct_diag']:.3f} |")
     lines += ["", "## Notes", "", *notes(rows)]
-    (ROOT / "benchmarks" / "rig.md").write_text("\n".join(lines) + "\n")
+    (out / "rig.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

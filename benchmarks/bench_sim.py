@@ -179,17 +179,21 @@ def write(rows, args, loads):
         lines.append(f"| {r['method']} | {r['mesh_vertices']} | {r['motion']} | {r['frames']} | "
                      f"{r['ms_per_frame']:.1f} | {ratio} | {r['stretch_p99']:.3f} | {r['stretch_max']:.3f} | "
                      f"{r['penetration_max_mm']:.1f} | {r['nan_count']} | {r['note']} |")
-    lines += ["", "## Notes", "", *method_notes()]
+    lines += ["", "## Notes", "", *method_notes(newton=any(r["reference"] == "yes" for r in rows))]
     (out / "sim.md").write_text("\n".join(lines) + "\n")
 
 
-def method_notes() -> list[str]:
+def method_notes(newton: bool = True) -> list[str]:
     """What the table's columns cannot say about the two solvers' setups (generated; the newton
-    constants are the defaults of ``run_newton``)."""
+    constants are the defaults of ``run_newton``). ``newton``: the run has newton rows."""
     import inspect
 
     from benchmarks.bench_sim_newton import run_newton
 
+    if not newton:
+        return ["- Penetration: ours pushes the free vertices out to its thickness (4 mm) every substep, and the "
+                "metric counts only vertices inside the body.",
+                "- Single runs on the machine above; if it is shared, compare rows of one run (load averages above)."]
     d = {k: p.default for k, p in inspect.signature(run_newton).parameters.items()
          if p.default is not inspect.Parameter.empty}
     return [

@@ -34,6 +34,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="skirt,tight,dress")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder of validate.md and validate.csv")
     args = ap.parse_args()
     os.environ.update(ENV1)
     import cv2
@@ -82,7 +83,8 @@ def main() -> None:
             })
     if not rows:
         raise SystemExit("no scene found under data/")
-    out = ROOT / "benchmarks"
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     with open(out / "validate.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()

@@ -61,6 +61,7 @@ def main() -> None:
     ap.add_argument("--scene", default="skirt")
     ap.add_argument("--wall-s", type=float, default=None, help="measured wall time of the whole run")
     ap.add_argument("--note", default="", help="how the run was made (added to the header)")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder of pipeline.md and pipeline.csv")
     args = ap.parse_args()
     scene = args.scene
     runs = ROOT / "benchmarks" / "runs" / scene
@@ -170,10 +171,12 @@ def main() -> None:
         lines += ["", "## Radiance field: full vs body_only (pipeline masks and fitted garment poses)", "",
                   "| trained on | variant | kind | images | PSNR (dB) | SSIM | IoU | train wall s | train CPU s |",
                   "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"] + field_lines
-    (ROOT / "benchmarks" / "pipeline.md").write_text("\n".join(lines) + "\n")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "pipeline.md").write_text("\n".join(lines) + "\n")
     fields = ["section", "scene", "rule", "method", "sequence", "kind", "jobs", "wall_s", "cpu_s", "max_rss_mb",
               "value", "metric", "reference"]
-    with files.atomic_path(ROOT / "benchmarks" / "pipeline.csv") as tmp:
+    with files.atomic_path(out / "pipeline.csv") as tmp:
         with open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=fields)
             w.writeheader()
