@@ -1,6 +1,7 @@
 """Configuration: JSON-schema validation with defaults filled at every depth.
 
-The schema is ``workflow/schemas/config.schema.yaml``; the workflow (``common.smk``)
+The schema is ``workflow/schemas/config.schema.yaml`` (an installed package carries it
+as package data, see :mod:`anidress_core.resources`); the workflow (``common.smk``)
 and the ``anidress`` command line both validate through :func:`validate_config`, so
 a config accepted by one is accepted by the other. Snakemake's own ``validate``
 fills defaults only where the parent object already exists; this fills them depth
@@ -24,8 +25,11 @@ class ConfigError(ValueError):
 
 
 def default_schema_path() -> Path:
-    """The schema of a source checkout: <repo>/workflow/schemas/config.schema.yaml."""
-    return Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "config.schema.yaml"
+    """The schema: ``<repo>/workflow/schemas/config.schema.yaml`` in a source checkout, else the
+    copy an installed package carries (:func:`anidress_core.resources.schema_path`)."""
+    from .resources import schema_path
+
+    return schema_path()
 
 
 def _resolve(schema: dict, root: dict) -> dict:

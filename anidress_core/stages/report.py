@@ -430,7 +430,12 @@ def run_report(config: dict, out_html: str | os.PathLike, root: str | os.PathLik
                references: Mapping[str, str | os.PathLike] | None = None) -> dict:
     """Collect and render the report; returns the collected data. ``references``: see
     :func:`collect_report`."""
-    tdir = Path(template_dir) if template_dir else Path(__file__).resolve().parents[2] / "reports"
+    if template_dir:
+        tdir = Path(template_dir)
+    else:  # the checkout's reports/, or the installed package's copy (anidress_core.resources)
+        from ..resources import report_template_dir
+
+        tdir = report_template_dir()
     if not (tdir / "report.html.j2").is_file():
         raise FileNotFoundError(f"{tdir / 'report.html.j2'}: report template not found")
     data = collect_report(config, root, references)
