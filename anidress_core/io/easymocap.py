@@ -24,6 +24,10 @@ Facts about the format that the readers and writers here honour:
 
 * EasyMocap takes the camera list from ``names`` in ``intri.yml`` only. List items
   that are numbers become ``str(int(value))`` and items equal to ``none`` are skipped.
+  A hand-written ``- 01`` (unquoted) is the number 1 to YAML, while the keys say
+  ``K_01``: when the file has no ``<key>_1`` but exactly one zero-padded spelling of
+  it (``K_01``), the name is read as that spelling (``"01"``); otherwise a missing
+  key of a numeric name says to quote camera names.
 * EasyMocap's ``read_camera`` ignores ``Rot_`` and rebuilds the rotation from ``R_``
   with ``cv2.Rodrigues``. We read ``Rot_`` when present (it is what round-trips
   exactly) and fall back to ``Rodrigues(R_)``; when both are present they must agree.
@@ -50,6 +54,7 @@ import numpy as np
 from .files import write_text
 
 __all__ = [
+    "read_names",
     "read_intri",
     "read_extri",
     "read_camera",
@@ -62,6 +67,9 @@ PathLike = str | os.PathLike
 
 # Camera names become parts of YAML keys (``K_<name>``); keep them to a safe set.
 _NAME_RE = re.compile(r"^[A-Za-z0-9_\-]+$")
+# Prefixes of the per-camera keys (``K_<cam>`` ...) of intri.yml and extri.yml.
+_CAM_KEY_PREFIXES = ("K_", "dist_", "D_", "H_", "W_", "R_", "Rot_", "T_")
+_QUOTE_HINT = "camera names must be strings: quote them ('01'); YAML reads an unquoted 01 as the number 1"
 # Max |Rot_ - Rodrigues(R_)| tolerated when a file holds both (six-decimal files
 # differ by ~1e-6).
 _ROT_TOL = 1e-4
@@ -92,6 +100,22 @@ def _node(fs: cv2.FileStorage, key: str):
     return None if node.empty() or node.isNone() else node
 
 
+def _padded_name(fs: cv2.FileStorage, number: int) -> str:
+    """The spelling of camera ``number`` in the file's keys: ``str(number)`` unless the
+    keys spell it only one other way with leading zeros (``K_01`` for 1)."""
+    plain = str(number)
+    spellings = set()
+    for key in fs.root().keys():
+        for prefix in _CAM_KEY_PREFIXES:
+            if key.startswith(prefix):
+                suffix = key[len(prefix):]
+                if suffix.isdigit() and int(suffix) == number:
+                    spellings.add(suffix)
+    if plain in spellings or len(spellings) != 1:
+        return plain
+    return spellings.pop()
+
+
 def _read_names(fs: cv2.FileStorage, path: Path) -> list[str]:
     node = _node(fs, "names")
     if node is None or not node.isSeq():
@@ -102,8 +126,9 @@ def _read_names(fs: cv2.FileStorage, path: Path) -> list[str]:
         if item.isString():
             name = item.string()
         elif item.isInt() or item.isReal():
-            # EasyMocap: an unquoted number becomes str(int(value)), so `- 01` reads "1".
-            name = str(int(item.real()))
+            # EasyMocap: an unquoted number becomes str(int(value)), so `- 01` reads "1";
+            # we take the keys' zero-padded spelling ("01") when it is the only one.
+            name = _padded_name(fs, int(item.real()))
         else:
             raise ValueError(f"{path}: 'names' item {i} is not a string or a number")
         if name != "none":  # EasyMocap skips 'none' entries
@@ -139,17 +164,35 @@ def _read_matrix(fs: cv2.FileStorage, path: Path, cam: str, key: str, sizes: tup
 
 
 def _missing(path: Path, cam: str, *keys: str) -> ValueError:
-    return ValueError(f"{path}: camera '{cam}': missing key " + " / ".join(f"'{k}'" for k in keys))
+    hint = f" ({_QUOTE_HINT})" if cam.isdigit() else ""
+    return ValueError(f"{path}: camera '{cam}': missing key " + " / ".join(f"'{k}'" for k in keys) + hint)
 
 
 def _pick(names_in_file: list[str], names: Iterable[str] | None, path: Path) -> list[str]:
     if names is None:
         return names_in_file
     names = list(names)
+    not_str = [n for n in names if not isinstance(n, str)]
+    if not_str:
+        raise ValueError(f"{path}: cameras {not_str} asked for are not strings: {_QUOTE_HINT} "
+                         f"(in scene.yaml cameras/train and cameras/test too); the file's cameras: {names_in_file}")
     unknown = [n for n in names if n not in names_in_file]
     if unknown:
         raise ValueError(f"{path}: cameras {unknown} not in 'names' {names_in_file}")
     return names
+
+
+def read_names(path: PathLike) -> list[str]:
+    """The camera names of ``intri.yml`` or ``extri.yml`` (``names``), as the readers here see them.
+
+    Items that are ``none`` are skipped; an unquoted number takes the zero-padded spelling
+    of the file's keys when there is exactly one (``- 01`` with ``K_01`` reads ``"01"``).
+    """
+    path, fs = _open(path)
+    try:
+        return _read_names(fs, path)
+    finally:
+        fs.release()
 
 
 def read_intri(path: PathLike, names: Iterable[str] | None = None) -> dict[str, dict[str, Any]]:
@@ -203,8 +246,10 @@ def read_extri(path: PathLike, names: Iterable[str] | None = None) -> dict[str, 
     path, fs = _open(path)
     try:
         cams = {}
-        if names is None:
-            names = _read_names(fs, path)
+        names = _read_names(fs, path) if names is None else list(names)
+        not_str = [n for n in names if not isinstance(n, str)]
+        if not_str:
+            raise ValueError(f"{path}: cameras {not_str} asked for are not strings: {_QUOTE_HINT}")
         for cam in names:
             rvec = _read_matrix(fs, path, cam, f"R_{cam}", (3,))
             rot = _read_matrix(fs, path, cam, f"Rot_{cam}", (9,))

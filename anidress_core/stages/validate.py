@@ -61,7 +61,7 @@ from .. import __version__, garment
 from ..garment import KINDS
 from ..garment_mesh import mesh_defects
 from ..io import files
-from ..io.easymocap import read_extri, read_intri
+from ..io.easymocap import read_extri, read_intri, read_names
 from ..io.files import SceneError
 from ..io.images import check_exr_magic, image_size_from_header
 from ..io.mesh import read_mesh
@@ -301,22 +301,18 @@ def _check_cameras(sdir: Path, info: dict, checks: list[str]) -> tuple[list[str]
             n = fs.getNode(k)
             return not (n.empty() or n.isNone())
 
-        for cam in intri:
+        yaml_cams = info["cameras"]  # extrinsics are needed only for the cameras scene.yaml uses
+        used_set = set(yaml_cams.get("train") or []) | set(yaml_cams.get("test") or [])
+        for cam in (c for c in intri if c in used_set):
             if not has(f"T_{cam}") and not has(f"R_{cam}") and not has(f"Rot_{cam}"):
                 _fail(extri_p, f"camera '{cam}' listed in intri.yml has no extrinsics (no T_{cam} / R_{cam} / Rot_{cam})")
-        node = fs.getNode("names")
-        extra = []
-        if node.isSeq():
-            for i in range(node.size()):
-                it = node.at(i)
-                name = it.string() if it.isString() else str(int(it.real())) if (it.isInt() or it.isReal()) else None
-                if name and name != "none" and name not in intri:
-                    extra.append(name)
+        # the names as the readers spell them (an unquoted 01 takes the keys' spelling "01")
+        extra = [n for n in _wrap(read_names, extri_p) if n not in intri] if fs.getNode("names").isSeq() else []
         if extra:
             _fail(intri_p, f"camera(s) {extra} listed in extri.yml have no intrinsics")
     finally:
         fs.release()
-    extri = _wrap(read_extri, extri_p, list(intri))
+    extri = _wrap(read_extri, extri_p, [c for c in intri if c in used_set])
     checks.append("camera files list the same cameras")
     cams = info["cameras"]
     used = list(dict.fromkeys(list(cams.get("train") or []) + list(cams.get("test") or [])))

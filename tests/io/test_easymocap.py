@@ -233,3 +233,61 @@ def test_writer_validates_and_is_atomic(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert (tmp_path / "intri.yml").read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["intri.yml"]
+
+
+# ---------------------------------------------- issue 24 item 8: unquoted names, used cameras
+SAMPLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "data", "easymocap_cams")
+
+
+def test_unquoted_names_take_the_zero_padded_spelling_of_the_keys():
+    intri, extri = os.path.join(SAMPLE, "intri.yml"), os.path.join(SAMPLE, "extri.yml")
+    assert "  - 01\r\n" in open(intri, newline="").read()  # the sample really is unquoted
+    assert em.read_names(intri) == em.read_names(extri) == ["01", "02", "03"]
+    cams = em.read_camera(intri, extri)
+    assert list(cams) == ["01", "02", "03"]
+    assert cams["02"]["K"][0, 0] == 501.0
+    np.testing.assert_allclose(cams["02"]["R"], _rot([0.0, 2 * np.pi / 3, 0.0]), atol=1e-6)
+    np.testing.assert_array_equal(cams["03"]["T"], [0.0, 0.0, 3.0])
+
+
+def test_numeric_name_without_one_spelling_says_to_quote(tmp_path):
+    k = "  rows: 3\n  cols: 3\n  dt: d\n  data: [2., 0., 1., 0., 2., 1., 0., 0., 1.]\n"
+    d = "  rows: 1\n  cols: 5\n  dt: d\n  data: [0., 0., 0., 0., 0.]\n"
+    # 7 is spelled two ways (07, 007): ambiguous, the name stays "7"
+    (tmp_path / "intri.yml").write_text("%YAML:1.0\n---\nnames:\n  - 7\n"
+                                        f"K_07: !!opencv-matrix\n{k}dist_07: !!opencv-matrix\n{d}"
+                                        f"K_007: !!opencv-matrix\n{k}dist_007: !!opencv-matrix\n{d}")
+    with pytest.raises(ValueError, match=r"intri\.yml: camera '7': missing key 'K_7' \(camera names must be "
+                                         r"strings: quote them \('01'\)"):
+        em.read_intri(tmp_path / "intri.yml")
+
+
+def test_camera_names_asked_as_numbers_say_to_quote():
+    intri, extri = os.path.join(SAMPLE, "intri.yml"), os.path.join(SAMPLE, "extri.yml")
+    with pytest.raises(ValueError, match=r"intri\.yml: cameras \[1\] asked for are not strings: .*quote them"):
+        em.read_camera(intri, extri, names=[1, "02"])
+    with pytest.raises(ValueError, match=r"extri\.yml: cameras \[2\] asked for are not strings"):
+        em.read_extri(extri, names=[2])
+
+
+def test_validation_needs_extrinsics_only_for_the_cameras_scene_yaml_uses(tmp_path):
+    from anidress_core.io.files import SceneError
+    from anidress_core.stages.validate import _check_cameras
+
+    seq = tmp_path / "walk"
+    seq.mkdir()
+    cams = em.read_camera(os.path.join(SAMPLE, "intri.yml"), os.path.join(SAMPLE, "extri.yml"))
+    em.write_intri(seq / "intri.yml", cams)  # intri.yml lists 01, 02, 03
+    em.write_extri(seq / "extri.yml", {c: cams[c] for c in ("01", "02")})  # extrinsics of 01, 02 only
+    info = {"cameras": {"train": ["01"], "test": ["02"]}}
+    used, raw, _ = _check_cameras(seq, info, [])
+    assert used == ["01", "02"] and sorted(raw) == ["01", "02"]
+    np.testing.assert_array_equal(raw["02"]["T"], cams["02"]["T"])
+    info = {"cameras": {"train": ["01", "03"], "test": ["02"]}}
+    with pytest.raises(SceneError, match=r"extri\.yml: camera '03' listed in intri\.yml has no extrinsics"):
+        _check_cameras(seq, info, [])
+    # unquoted names in both files (the sample): the same cameras, no "no intrinsics" error
+    for name in ("intri.yml", "extri.yml"):
+        (seq / name).write_bytes(open(os.path.join(SAMPLE, name), "rb").read())
+    used, raw, _ = _check_cameras(seq, info, [])
+    assert used == ["01", "03", "02"]
