@@ -16,12 +16,18 @@ Arrays:
 
 plus the header (code version, config hash of the rig parameters, ``meta``:
 parameters, timings, iteration history).
+
+Also the files of ``anidress rig-decompose`` (Dem Bones' layout, plain npz without a
+header): its input :class:`DemBonesSequence` (``rest`` (V, 3), ``frames`` (T, V, 3),
+optional ``faces`` (F, 3)) and its output :class:`DemBonesRig` (``weights`` (B, V),
+``transforms`` (T, B, 4, 4), ``bone_centres`` (B, 3), ``rmse`` ()).
 """
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -29,7 +35,8 @@ import torch
 from ..rig import RigModel
 from . import files
 
-__all__ = ["RigArtifact", "read_rig", "write_rig", "RIG_ARRAYS"]
+__all__ = ["RigArtifact", "read_rig", "write_rig", "RIG_ARRAYS", "DemBonesSequence", "read_dembones_sequence",
+           "write_dembones_sequence", "DemBonesRig", "read_dembones_rig", "write_dembones_rig"]
 
 RIG_ARRAYS = ("rest", "faces", "weights", "bone_centres", "transforms", "sequences", "offsets", "rmse_per_sequence",
               "rmse")
@@ -102,3 +109,83 @@ def read_rig(path: str | os.PathLike, device: str | torch.device = "cpu",
                        sequences={n: slice(int(off[i]), int(off[i + 1])) for i, n in enumerate(names)},
                        rmse_per_sequence={n: float(r) for n, r in zip(names, a["rmse_per_sequence"])},
                        meta=h.get("meta", {}))
+
+
+# --------------------------------------------------------------------------- Dem Bones layout (rig-decompose)
+class DemBonesSequence(NamedTuple):
+    """Input of ``anidress rig-decompose``."""
+
+    rest: np.ndarray
+    """(V, 3) rest vertices."""
+    frames: np.ndarray
+    """(T, V, 3) animated vertices."""
+    faces: np.ndarray | None
+    """(F, 3) triangles (optional: the weight smoothing uses the mesh edges)."""
+
+
+class DemBonesRig(NamedTuple):
+    """Output of ``anidress rig-decompose``: x[t,i] = sum_b W[b,i] (M[t,b,:3,:3] rest[i] + M[t,b,:3,3])."""
+
+    weights: np.ndarray
+    """(B, V) convex skinning weights (Dem Bones' order: bones first)."""
+    transforms: np.ndarray
+    """(T, B, 4, 4) rest -> frame transforms, column vectors."""
+    bone_centres: np.ndarray
+    """(B, 3) weighted rest centroid of each bone."""
+    rmse: float
+    """Reconstruction RMSE over all frames and vertices."""
+
+
+def _load_plain_npz(path: Path) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise files.ArtifactError(f"{path}: not a readable npz ({e})") from e
+
+
+def write_dembones_sequence(path: str | os.PathLike, seq: DemBonesSequence) -> None:
+    """Write a sequence for ``rig-decompose`` (plain npz, atomic)."""
+    arrays = {"rest": seq.rest, "frames": seq.frames}
+    if seq.faces is not None:
+        arrays["faces"] = seq.faces
+    with files.atomic_path(path) as tmp:
+        np.savez(tmp, **arrays)
+
+
+def read_dembones_sequence(path: str | os.PathLike) -> DemBonesSequence:
+    """Read the input of ``rig-decompose``; a missing array raises ArtifactError naming the file and the field
+    (the shapes are checked by :func:`anidress_core.rig.ssdr`)."""
+    path = Path(path)
+    z = _load_plain_npz(path)
+    missing = [k for k in ("rest", "frames") if k not in z]
+    if missing:
+        raise files.ArtifactError(f"{path}: missing arrays {missing} (needs rest (V,3), frames (T,V,3), faces (F,3))")
+    return DemBonesSequence(rest=z["rest"], frames=z["frames"], faces=z.get("faces"))
+
+
+def write_dembones_rig(path: str | os.PathLike, rig: DemBonesRig) -> None:
+    """Write the output of ``rig-decompose`` (plain npz, atomic)."""
+    out = {"weights": rig.weights, "transforms": rig.transforms, "bone_centres": rig.bone_centres,
+           "rmse": np.float64(rig.rmse)}
+    with files.atomic_path(path) as tmp:
+        np.savez(tmp, **out)
+
+
+def read_dembones_rig(path: str | os.PathLike) -> DemBonesRig:
+    """Read the output of ``rig-decompose``; missing arrays or inconsistent shapes raise ArtifactError naming
+    the file and the field."""
+    path = Path(path)
+    z = _load_plain_npz(path)
+    missing = [k for k in ("weights", "transforms", "bone_centres", "rmse") if k not in z]
+    if missing:
+        raise files.ArtifactError(f"{path}: missing arrays {missing}")
+    B = z["weights"].shape[0] if z["weights"].ndim == 2 else -1
+    if B < 0 or z["transforms"].ndim != 4 or z["transforms"].shape[1:] != (B, 4, 4) \
+            or z["bone_centres"].shape != (B, 3):
+        raise files.ArtifactError(f"{path}: inconsistent shapes: weights {z['weights'].shape} (B, V), transforms "
+                                  f"{z['transforms'].shape} (T, B, 4, 4), bone_centres {z['bone_centres'].shape}")
+    return DemBonesRig(weights=z["weights"], transforms=z["transforms"], bone_centres=z["bone_centres"],
+                       rmse=float(z["rmse"]))

@@ -20,7 +20,7 @@ import torch
 
 from .. import rig as R
 from ..io import files
-from ..io.rig import RigArtifact, read_rig, write_rig
+from ..io.rig import DemBonesRig, RigArtifact, read_dembones_sequence, read_rig, write_dembones_rig, write_rig
 from ..io.sim import read_sim
 from ..io.template import read_template
 
@@ -101,20 +101,7 @@ def run_rig_decompose(seq_npz: str | os.PathLike, out_npz: str | os.PathLike, bo
     plus ``rmse`` and ``bone_centres`` (B, 3).
     """
     path = Path(seq_npz)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in ("rest", "frames") if k not in z.files]
-            if missing:
-                raise files.ArtifactError(f"{path}: missing arrays {missing} (needs rest (V,3), frames (T,V,3), "
-                                          "faces (F,3))")
-            rest, frames = z["rest"], z["frames"]
-            faces = z["faces"] if "faces" in z.files else None
-    except (OSError, ValueError) as e:
-        if isinstance(e, files.ArtifactError):
-            raise
-        raise files.ArtifactError(f"{path}: not a readable npz ({e})") from e
+    rest, frames, faces = read_dembones_sequence(path)
     dev = torch.device(device or "cpu")
     dtype = torch.float64 if frames.dtype == np.float64 else torch.float32
     try:
@@ -123,8 +110,7 @@ def run_rig_decompose(seq_npz: str | os.PathLike, out_npz: str | os.PathLike, bo
                        nnz=nnz, smooth=smooth, seed=seed)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from e
-    out = {"weights": model.weights.T.contiguous().cpu().numpy(), "transforms": model.transforms.cpu().numpy(),
-           "bone_centres": model.bone_centres.cpu().numpy(), "rmse": np.float64(model.rmse)}
-    with files.atomic_path(out_npz) as tmp:
-        np.savez(tmp, **out)
+    write_dembones_rig(out_npz, DemBonesRig(
+        weights=model.weights.T.contiguous().cpu().numpy(), transforms=model.transforms.cpu().numpy(),
+        bone_centres=model.bone_centres.cpu().numpy(), rmse=model.rmse))
     return model

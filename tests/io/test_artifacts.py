@@ -10,7 +10,8 @@ from anidress_core.io import files
 from anidress_core.io.body_motion import read_motion, write_motion
 from anidress_core.io.field import (FIELD_FORMAT, FieldCheckpoint, read_field_checkpoint, read_training_state,
                                     training_state_path, write_field_checkpoint, write_training_state)
-from anidress_core.io.rig import RigArtifact, read_rig, write_rig
+from anidress_core.io.rig import (DemBonesRig, DemBonesSequence, RigArtifact, read_dembones_rig, read_dembones_sequence,
+                                  read_rig, write_dembones_rig, write_dembones_sequence, write_rig)
 from anidress_core.io.sim import SIM_STATS, SimSequence, read_sim, write_sim
 from anidress_core.io.template import read_template, write_template
 from anidress_core.rig import RigModel
@@ -195,3 +196,31 @@ def test_field_checkpoint_malformed_names_file_and_field(tmp_path):
         read_training_state(bad)
     with pytest.raises(FileNotFoundError, match="missing.pt"):
         read_field_checkpoint(tmp_path / "missing.pt")
+
+
+# --------------------------------------------------------------------------- rig-decompose files (Dem Bones layout)
+def test_dembones_files_round_trip(tmp_path):
+    seq = DemBonesSequence(rest=RNG.normal(size=(5, 3)), frames=RNG.normal(size=(3, 5, 3)), faces=np.array([[0, 1, 2]]))
+    write_dembones_sequence(tmp_path / "seq.npz", seq)
+    back = read_dembones_sequence(tmp_path / "seq.npz")
+    assert all(np.array_equal(a, b) for a, b in zip(back, seq))
+    write_dembones_sequence(tmp_path / "nofaces.npz", seq._replace(faces=None))
+    assert read_dembones_sequence(tmp_path / "nofaces.npz").faces is None
+    rig = DemBonesRig(weights=RNG.random((2, 5)), transforms=np.tile(np.eye(4), (3, 2, 1, 1)),
+                      bone_centres=RNG.normal(size=(2, 3)), rmse=0.5)
+    write_dembones_rig(tmp_path / "out.npz", rig)
+    got = read_dembones_rig(tmp_path / "out.npz")
+    assert got.rmse == 0.5 and all(np.array_equal(a, b) for a, b in zip(got[:3], rig[:3]))
+
+
+def test_dembones_files_malformed_name_file_and_field(tmp_path):
+    np.savez(tmp_path / "bad_seq.npz", rest=np.zeros((5, 3)))
+    with pytest.raises(files.ArtifactError, match=r"bad_seq\.npz: missing arrays \['frames'\]"):
+        read_dembones_sequence(tmp_path / "bad_seq.npz")
+    np.savez(tmp_path / "bad_out.npz", weights=np.zeros((2, 5)), transforms=np.zeros((3, 3, 4, 4)),
+             bone_centres=np.zeros((2, 3)), rmse=0.0)
+    with pytest.raises(files.ArtifactError, match=r"bad_out\.npz: inconsistent shapes: .*transforms \(3, 3, 4, 4\)"):
+        read_dembones_rig(tmp_path / "bad_out.npz")
+    (tmp_path / "junk.npz").write_bytes(b"junk")
+    with pytest.raises(files.ArtifactError, match=r"junk\.npz: not a readable npz"):
+        read_dembones_sequence(tmp_path / "junk.npz")
