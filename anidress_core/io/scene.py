@@ -15,7 +15,7 @@ import yaml
 from ..body.model import BodyModel, smpl_model
 from ..body.motions import Motion
 from . import files
-from .motion import read_easymocap_smpl_dir, read_smpl_model_file
+from .motion import read_easymocap_smpl_dir, read_smpl_model_file, smpl_selection
 
 __all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path"]
 
@@ -72,8 +72,11 @@ def load_body(scene_dir: str | os.PathLike, info: dict | None = None) -> BodyMod
 
 
 def load_sequence_motion(scene_dir: str | os.PathLike, seq: str, fps: float) -> Motion:
-    """The body motion of a captured sequence from its EasyMocap ``smpl/`` folder."""
-    d = read_easymocap_smpl_dir(Path(scene_dir) / seq / "smpl")
+    """The body motion of a captured sequence from its EasyMocap ``smpl/`` folder (the person
+    and the frames without them as scene.yaml's person_id / max_missing_frames say)."""
+    yml = Path(scene_dir) / "scene.yaml"
+    sel = smpl_selection(read_scene(scene_dir), seq, yml) if yml.is_file() else {}
+    d = read_easymocap_smpl_dir(Path(scene_dir) / seq / "smpl", **sel)
     shapes = np.asarray(d["shapes"], np.float32)
     return Motion(
         name=seq, fps=float(fps), poses=torch.as_tensor(np.asarray(d["poses"], np.float32)),

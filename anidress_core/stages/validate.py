@@ -65,7 +65,7 @@ from ..io.easymocap import read_extri, read_intri, read_names
 from ..io.files import SceneError
 from ..io.images import check_exr_magic, image_size_from_header
 from ..io.mesh import read_mesh
-from ..io.motion import read_easymocap_smpl_dir
+from ..io.motion import read_easymocap_smpl_dir, smpl_selection
 from ..io.scene import IMAGE_EXTS, garment_texture_path, load_body, read_scene
 
 __all__ = [
@@ -470,7 +470,8 @@ def _check_smpl(sdir: Path, frames: list[int], checks: list[str]) -> dict:
         _fail(d, f"{len(have)} body parameter files for {len(want)} image frames per camera"
                  + (f" (missing {_fmt_frames(missing, '.json')})" if missing else "")
                  + (f" (extra {_fmt_frames(extra, '.json')})" if extra else ""))
-    params = _wrap(read_easymocap_smpl_dir, d)
+    sel = _wrap(smpl_selection, read_scene(sdir.parent), sdir.name, sdir.parent / "scene.yaml")
+    params = _wrap(read_easymocap_smpl_dir, d, **sel)  # scene.yaml person_id / max_missing_frames
     checks.append("body parameters: one per frame, finite")
     return params
 
