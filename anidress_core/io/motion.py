@@ -6,7 +6,11 @@
   converted to ``.npz`` first (a clear error says so).
 * EasyMocap (zju3dv/EasyMocap, doc/02_output.md): ``smpl/<frame:06d>.json``, each a
   JSON list of people ``{"id", "Rh": [[3]], "Th": [[3]], "poses": [[72]],
-  "shapes": [[10]]}`` (some versions wrap the list as ``{"annots": [...]}``).
+  "shapes": [[10]]}`` (some versions wrap the list as ``{"annots": [...]}``);
+  EasyMocap >= 0.2 writes ``poses`` of 69 (SMPL without the root) or 63 (SMPL-H /
+  SMPL-X body, with ``handl`` / ``handr`` [/ ``expression``]): :func:`_smpl_poses`.
+  Several people per file: chosen by ``person_id``; frames without the person: an
+  error, or interpolated (``max_gap``); :func:`read_easymocap_smpl_dir`.
 * ZJU-MoCap ``params/<i>.npy``: a pickled dict with poses (1, 72), Rh (1, 3),
   Th (1, 3), shapes (1, 10) (EasyMocap convention).
 * AMASS ``.npz`` (Mahmood et al. 2019): ``poses`` (T, 156) SMPL-H or (T, 165) SMPL-X
