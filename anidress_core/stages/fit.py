@@ -303,6 +303,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         tf = fit_transforms(art.model, vs.to(art.model.rest.dtype)).double()
     meta = {
         "method": cfg.method, "loss": method, "description": FIT.VARIANTS[method].description,
+        "weights": dataclasses.asdict(cfg.weights),
         "config": dataclasses.asdict(cfg), "params": dict(params), "scene": scene_dir.name,
         "sequence": seq, "cameras": names, "masks_dir": str(masks_dir), "normals_dir": None if normals_dir is None
         else str(normals_dir), "flows_dir": None if flows_dir is None else str(flows_dir), "cue_source": cue_source,

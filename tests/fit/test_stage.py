@@ -1,0 +1,163 @@
+"""Stages fit and fit_eval on a tiny synthetic skirt scene (rig from its own ground truth), and the
+garment_poses.npz reader/writer (anidress_core.io.garment_poses)."""
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+from anidress_core import fit
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def tiny_skirt(tmp_path_factory):
+    import yaml
+
+    from anidress_core import rig as R
+    from anidress_core.config import default_schema_path, validate_config
+    from anidress_core.io import files
+    from anidress_core.io.mesh import read_mesh
+    from anidress_core.io.scene import load_body, read_scene
+    from anidress_core.metrics.mesh import barycentric_transfer
+    from anidress_core.stages.fit import gt_correspondence
+    from anidress_core.stages.synth import run_synth
+    from anidress_core.stages.template import run_template
+
+    root = tmp_path_factory.mktemp("fitscene")
+    scene = {"kind": "skirt", "image_size": [64, 64], "cameras": {"count": 6, "train": 4},
+             "sequences": [{"name": "walk", "motion": "walk", "frames": 4}],
+             "garment": {"vertices": 500, "cloth": {"settle_frames": 4}},
+             "render": {"texture_size": 64, "noise_std": 0.0, "supersample": 1}}
+    cfg = validate_config({"run_scenes": ["s"], "scenes": {"s": scene}}, yaml.safe_load(default_schema_path().read_text()))
+    data = run_synth(cfg["scenes"]["s"], "s", root / "data" / "s", threads=1, progress=False)
+    info = read_scene(data)
+    res = root / "results"
+    tpl = run_template(data / "garment" / "template.obj", "skirt", load_body(data, info), 500, res / "template.ply",
+                       res / "template.npz")
+    # a 6-bone rig decomposed from the ground truth carried onto the template (stands in for rule rig)
+    a, _ = files.load_npz(data / "walk" / "gt" / "meshes.npz")
+    rv, rf, _ = read_mesh(data / "garment" / "template.obj")
+    face, bary, _ = gt_correspondence(tpl.verts, rv, rf)
+    Y = barycentric_transfer(torch.as_tensor(a["garment_vertices"]).double(), torch.as_tensor(rf),
+                             torch.as_tensor(face), torch.as_tensor(bary))
+    model = R.ssdr(torch.as_tensor(tpl.verts).double(), Y, torch.as_tensor(tpl.faces), num_bones=6, iters=5, nnz=4)
+    files.save_npz(res / "rig.npz", {
+        "rest": tpl.verts.astype(np.float32), "faces": tpl.faces.astype(np.int64),
+        "weights": model.weights.float().numpy(), "bone_centres": model.bone_centres.float().numpy(),
+        "transforms": model.transforms.float().numpy(), "sequences": np.asarray(["seq-walk"]),
+        "offsets": np.asarray([0, Y.shape[0]], np.int64), "rmse_per_sequence": np.asarray([model.rmse]),
+        "rmse": np.float64(model.rmse)})
+    return data, res
+
+
+def stored_loss_is_the_weighted_sum(gp) -> None:
+    assert set(gp.terms) == set(fit.TERM_NAMES) and set(gp.weights) == set(fit.TERM_NAMES)
+    total = sum(gp.weights[k] * gp.terms[k] for k in fit.TERM_NAMES)
+    np.testing.assert_allclose(gp.loss, total, rtol=1e-12, atol=0)
+
+
+def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
+    pytest.importorskip("warp")  # L_collision's body planes
+    from anidress_core.geometry import lbs
+    from anidress_core.io.garment_poses import load_garment_poses, read_garment_poses
+    from anidress_core.io.rig import read_rig
+    from anidress_core.stages.fit import FIT_METRIC_COLUMNS, run_fit, run_fit_eval
+
+    data, res = tiny_skirt
+    seq = data / "walk"
+    params = {"views": 3, "max_iters": 4, "max_iters_first": 6}
+    args = (data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows")
+    meta = run_fit(*args, seq / "normals", params, res / "walk" / "garment_poses.npz", progress=False)
+    gp = read_garment_poses(res / "walk" / "garment_poses.npz", frames=4, bones=6)
+    a = load_garment_poses(res / "walk" / "garment_poses.npz")[0]
+    assert gp.transforms.shape == (4, 6, 4, 4) and gp.transforms.dtype == np.float32
+    assert gp.verts.shape == (4, 500, 3) and np.isfinite(gp.verts).all()
+    assert a["curve"].shape[0] == 4 and gp.iterations.shape == (4,) and (a["flow_targets"][1:] > 0).all()
+    assert a["flow_targets"][0] == 0 and len(meta["cameras"]) == 3
+    # the pipeline's loss by default, every weight stored as used, every minimised term stored
+    assert meta["loss"] == "pipeline" and meta["weights"] == {k: float(v) for k, v in
+                                                              fit.FitConfig.from_config({}).weights.__dict__.items()}
+    assert gp.header["meta"]["weights"]["normal"] == 300.0
+    stored_loss_is_the_weighted_sum(gp)
+    assert (gp.terms["anchor"] > 0).all() and "texture.png" in meta["anchor_reference"]  # texture refs: from frame 0
+    assert gp.terms["prior"][0] > 0 and (gp.terms["prior"][1:] == 0).all()
+    assert gp.header["meta"]["first_frame_start"].startswith("rig transforms of the simulated sequence seq-walk")
+    # the fitted transforms reproduce the fitted vertices through the rig (the field stage's contract)
+    art = read_rig(res / "rig.npz", dtype=torch.float64)
+    x = lbs(art.model.rest, art.model.weights, torch.as_tensor(gp.transforms).double())
+    assert float((x - torch.as_tensor(gp.verts).double()).abs().max()) < 1e-4
+    # fit/loss: paper switches to the paper's loss; first-seen image references start at frame 1
+    meta = run_fit(*args, seq / "normals", dict(params, loss="paper"), res / "walk" / "paper.npz", progress=False)
+    gp = read_garment_poses(res / "walk" / "paper.npz")
+    assert meta["loss"] == "paper" and gp.weights["normal"] == 0.1 and (gp.terms["anchor"] == 0).all()
+    stored_loss_is_the_weighted_sum(gp)
+    run_fit(*args, seq / "normals", dict(params, anchor_reference="images"), res / "walk" / "images.npz",
+            ablation="pipeline_no_collision", progress=False)
+    gp = read_garment_poses(res / "walk" / "images.npz")
+    assert gp.header["meta"]["loss"] == "pipeline_no_collision" and (gp.terms["collision"] == 0).all()
+    assert gp.terms["anchor"][0] == 0 and (gp.terms["anchor"][1:] > 0).all()
+    # references from the garment texture without a texture: a clear error
+    tex = data / "garment" / "texture.png"
+    tex.rename(tex.with_suffix(".bak"))
+    try:
+        with pytest.raises(FileNotFoundError, match="texture"):
+            run_fit(*args, seq / "normals", params, res / "walk" / "x.npz", progress=False)
+    finally:
+        tex.with_suffix(".bak").rename(tex)
+    # no normal maps: the normal weight is stored as 0
+    run_fit(*args, None, params, res / "walk" / "no_flow.npz", ablation="paper_no_flow", progress=False)
+    gp = read_garment_poses(res / "walk" / "no_flow.npz")
+    assert gp.weights["normal"] == 0 and gp.weights["flow"] == 0
+    summ = run_fit_eval(data, "walk", res / "rig.npz", {"full": res / "walk" / "garment_poses.npz",
+                                                         "no_flow": res / "walk" / "no_flow.npz"},
+                        res / "walk" / "fit_metrics.csv", samples=500)
+    with open(res / "walk" / "fit_metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0].keys()) == FIT_METRIC_COLUMNS and len(rows) == 8
+    assert all(f"loss_{k}" in FIT_METRIC_COLUMNS for k in fit.TERM_NAMES)
+    assert summ["correspondence_max_m"] < 0.01
+    for r in rows:
+        assert 0 <= float(r["vertex_rmse_m"]) < 0.1 and 0 < float(r["normal_consistency"]) <= 1
+        assert float(r["rig_floor_rmse_m"]) < 0.05
+        assert 0 <= float(r["rig_floor_chamfer_m"]) < 0.1
+    # the floor's Chamfer (with its sampling bias) is one reference per frame, the same for every method
+    per_frame = {}
+    for r in rows:
+        per_frame.setdefault(r["frame"], set()).add(r["rig_floor_chamfer_m"])
+    assert all(len(v) == 1 for v in per_frame.values())
+    # a missing mask is named in the error
+    with pytest.raises(FileNotFoundError, match="mask"):
+        run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "nope", None, None, params,
+                res / "walk" / "x.npz", progress=False)
+
+
+def test_garment_poses_reader_checks_the_caller_shapes(tmp_path):
+    from anidress_core.io import files
+    from anidress_core.io.garment_poses import read_garment_poses, save_garment_poses
+
+    T, B, V = 3, 2, 5
+    G = np.tile(np.eye(4, dtype=np.float32), (T, B, 1, 1))
+    terms = {k: np.full(T, 0.5) for k in fit.TERM_NAMES}
+    weights = {k: 2.0 for k in fit.TERM_NAMES}
+    p = tmp_path / "garment_poses.npz"
+    save_garment_poses(p, G, np.zeros((T, V, 3)), np.zeros((1, 3), np.int64), np.full(T, 6.0), terms, weights,
+                       np.ones(T), np.ones(T, bool), np.zeros(T), np.zeros(T), np.zeros((T, 2)), {}, {"loss": "x"})
+    gp = read_garment_poses(p, frames=T, bones=B)
+    assert gp.weights == weights and set(gp.terms) == set(fit.TERM_NAMES) and gp.header["meta"]["loss"] == "x"
+    stored_loss_is_the_weighted_sum(gp)
+    with pytest.raises(files.ArtifactError, match="to match the rig"):
+        read_garment_poses(p, bones=B + 1)
+    with pytest.raises(files.ArtifactError, match="frames of garment poses"):
+        read_garment_poses(p, frames=T + 1)
+    G[1, 0, 0, 0] = np.nan
+    save_garment_poses(p, G, np.zeros((T, V, 3)), np.zeros((1, 3), np.int64), np.full(T, 6.0), terms, weights,
+                       np.ones(T), np.ones(T, bool), np.zeros(T), np.zeros(T), np.zeros((T, 2)), {}, {})
+    with pytest.raises(files.ArtifactError, match="NaN"):
+        read_garment_poses(p)
+    with pytest.raises(ValueError, match="without values"):
+        save_garment_poses(p, G, np.zeros((T, V, 3)), np.zeros((1, 3), np.int64), np.full(T, 6.0), {}, weights,
+                           np.ones(T), np.ones(T, bool), np.zeros(T), np.zeros(T), np.zeros((T, 2)), {}, {})

@@ -1,0 +1,50 @@
+"""anidress_core.fit.variants: the loss variants in one place, used by the workflow, the schema and the CLI."""
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+from anidress_core import fit
+from anidress_core.cli import build_parser
+from tests.fit.scenes import PAPER
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_variant_names_come_from_one_place():
+    """rule fit_ablation's wildcard and fit/loss check read VARIANTS; the CLI offers exactly them; the
+    schema lists no copy of them."""
+    smk = (ROOT / "workflow/rules/fit.smk").read_text()
+    assert "from anidress_core.fit.variants import VARIANTS" in smk and re.search(r"^FIT_ABLATIONS = list\(", smk, re.M)
+    schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]["fit"]
+    assert "enum" not in schema["properties"]["ablations"]["items"] and "enum" not in schema["properties"]["loss"]
+    assert schema["properties"]["loss"]["default"] in fit.VARIANTS
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    opt = next(a for a in sub.choices["fit"]._actions if "--ablation" in a.option_strings)
+    assert sorted(opt.choices) == sorted(fit.VARIANTS)
+
+
+def test_variant_configs():
+    base = fit.FitConfig.from_config({})
+    assert base.loss == "pipeline" and fit.apply_variant(base, "pipeline") == base
+    for term in ("normal", "flow", "anchor", "collision", "prior"):  # leave-one-out of the pipeline
+        c = fit.FitConfig.from_config({}, f"pipeline_no_{term}")
+        assert getattr(c.weights, term) == 0 and c.loss == f"pipeline_no_{term}"
+        others = {k: getattr(c.weights, k) for k in fit.TERM_NAMES if k != term}
+        assert others == {k: getattr(base.weights, k) for k in others}
+    assert fit.FitConfig.from_config({}, "pipeline_no_smooth").smooth_passes == 0
+    paper = fit.FitConfig.from_config({"weights": {"anchor": 7.0, "normal": 300.0}}, "paper")
+    assert paper.weights == fit.PAPER_WEIGHTS and paper.smooth_passes == 0 and paper.method == "rig"
+    assert {k: getattr(paper.weights, k) for k in fit.TERM_NAMES} == PAPER
+    assert paper.max_iters == base.max_iters  # the solver is the section's
+    assert fit.FitConfig.from_config({}, "paper_vertex").method == "vertex"
+    nf = fit.FitConfig.from_config({}, "paper_no_normal_flow").weights
+    assert nf.flow == 0 and nf.normal == 0 and nf.silhouette == 2.0
+    c = fit.FitConfig.from_config({}, "paper_no_flow").weights
+    assert c.flow == 0 and c.normal == 0.1 and c.anchor == 0 and c.collision == 0 and c.prior == 0
+    with pytest.raises(ValueError, match="unknown fit loss variant"):
+        fit.FitConfig.from_config({}, "nope")
