@@ -62,4 +62,4 @@ def test_fit_command_applies_the_scene_overrides(monkeypatch, tmp_path):
     other = tmp_path / "custom"  # a scene config.yaml does not define
     other.mkdir()
     assert main(["fit", str(other)] + base[2:]) in (0, None)
-    assert seen["params"]["anchor_reference"] == "images"  # the top-level fit section
+    assert seen["params"]["anchor_reference"] == "texture"  # the top-level fit section (the schema's default)
