@@ -120,13 +120,11 @@ def main() -> None:
         if poses.is_file():  # the loss the pipeline's fit minimised (its header)
             meta = files.load_npz(poses)[1].get("meta", {})
             c = meta.get("config", {})
-            an = "L_an"
+            an = "L_anchor"
             if meta.get("anchor_reference"):
                 an += " (texture references)" if "texture" in meta["anchor_reference"] else " (image references)"
-            loss = " + ".join(f"{w:g} {name}" for name, w in (("L_M", c.get("w_mask", 0)), ("L_N", c.get("w_normal", 0)),
-                                                              ("L_of", c.get("w_flow", 0)), ("L_ph", c.get("w_photo", 0)),
-                                                              (an, c.get("w_anchor", 0)),
-                                                              ("L_col", c.get("w_collision", 0))) if w)
+            loss = f"{meta.get('loss', '?')}: " + " + ".join(  # the weights as used (garment_poses.npz meta)
+                f"{w:g} {an if name == 'anchor' else 'L_' + name}" for name, w in meta.get("weights", {}).items() if w)
             if c.get("smooth_passes", 0):
                 loss += f", {c['smooth_passes']} filter pass"
         for method in dict.fromkeys(r["method"] for r in rows):
