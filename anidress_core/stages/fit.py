@@ -99,7 +99,7 @@ class CueReader:
     flows_dir: EXR folders of the same layout, or None (that term off); body_verts
     (T, Vb, 3) and body_faces: the posed body, rasterised as the occluder; views:
     :class:`anidress_core.fit.Views` of ``cams``; num_frames: the last frame read ahead;
-    seq_dir: the sequence folder whose images L_ph and L_an read (None: not read).
+    seq_dir: the sequence folder whose images L_anchor reads (None: not read).
     ``cues(t)`` -> :class:`anidress_core.fit.FrameCues`, ``flow(t)`` -> (flow, valid) of
     t-1 -> t or None; ``close()`` stops the helper thread. The files of frame t + 1 are
     read by that thread while frame t is fitted. Used by :func:`run_fit` and the
@@ -112,7 +112,7 @@ class CueReader:
 
         self.cams, self.views, self.device = cams, views, device
         self.masks_dir, self.normals_dir, self.flows_dir = Path(masks_dir), normals_dir, flows_dir
-        self.seq_dir = seq_dir  # images for L_ph / L_an (None: not read)
+        self.seq_dir = seq_dir  # images for L_anchor (None: not read)
         self.body_verts, self.body_faces = body_verts, body_faces
         self.H, self.W = cams.height, cams.width
         self.bad_values = 0
