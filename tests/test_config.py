@@ -142,3 +142,23 @@ def test_installed_wheel_carries_the_one_schema_and_the_report_templates(tmp_pat
     schema, tdir = out.stdout.split()
     assert Path(schema) == site / "anidress_core" / "_data" / "schemas" / "config.schema.yaml"
     assert (Path(tdir) / "report.html.j2").is_file() and Path(tdir).is_relative_to(site)
+
+
+def test_fit_defaults_quoted_in_config_yaml_comments_are_the_schema_defaults():
+    """config.yaml lists the fit section's defaults in a comment (the schema holds them): each
+    quoted `key: value` must be the schema's default, so the comment cannot drift."""
+    import re
+
+    text = (Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text()
+    block = text[text.index("# Stages `fit`"):text.index("\nfit:")]
+    from anidress_core.config import section_defaults
+
+    defaults = section_defaults("fit")
+    flat = dict(defaults, **defaults["weights"])
+    quoted = re.findall(r"(?:#\s+|,\s+)([a-z_]+): ([0-9][0-9.e+-]*|[a-z_]+)\b", block)
+    assert len(quoted) >= 20, quoted
+    for key, value in quoted:
+        assert key in flat, f"config.yaml's fit comment quotes {key!r}, which is not a fit key"
+        want = flat[key]
+        got = yaml.safe_load(value)
+        assert got == want, f"config.yaml's fit comment says {key}: {value}, the schema's default is {want!r}"

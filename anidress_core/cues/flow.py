@@ -188,7 +188,7 @@ def refine_lk(img0: np.ndarray, img1: np.ndarray, flow: np.ndarray, where: np.nd
     IJCAI 1981; OpenCV's pyramidal implementation, Bouguet 2001:
     ``cv2.calcOpticalFlowPyrLK``), started at the dense flow, has no smoothness term:
     window 7 leaves 2 / 9 / 10 % at about the same mean end-point error; smaller windows
-    less bias and more noise (benchmarks/flow_refine.md).
+    less bias and more noise (studies/cues/flow_refine.md).
 
     img0, img1: (H, W) uint8 grey (or (H, W, 3) RGB, converted); flow: (H, W, 2) float
     pixels (dx, dy) from img0 to img1; where: (H, W) bool, the pixels to refine;

@@ -6,7 +6,7 @@ chromaticity there (blurred image, bilinear) against that reference, summed and 
 problem's garment pixel count. Weight ``fit/weights/anchor``, Cauchy scale ``fit/anchor_scale``.
 Chromaticity does not change with Lambertian shading under white light, which the colour
 itself does as the garment turns; a reference that follows the material point is what L_flow's
-chained targets lack (benchmarks/fit_drift.md), so L_anchor is what holds a vertex on its
+chained targets lack (studies/fit/fit_drift.md), so L_anchor is what holds a vertex on its
 material point over many frames -- it sees sliding.
 
 References (``fit/anchor_reference``): ``images``, each vertex's chromaticity in the first
@@ -14,7 +14,7 @@ frame it is seen (:func:`update_anchor`; a start error stays), or ``texture``, t
 texture at the template's UVs (:func:`texture_anchor`): then L_anchor sees where each material
 point is from frame 0 on, which masks, normals and flow cannot (skirt, floral print: frame-0
 tangential error 18 -> 6 mm; on a repeating, nearly one-hue plaid only together with a larger
-normal weight, benchmarks/fit_normal_weight.md).
+normal weight, studies/fit/fit_normal_weight.md).
 
 Gauss-Newton: IRLS, residual sqrt(weight) (colour - reference), d colour / d x = dI/duv duv/dx
 with dI/duv the central differences of the blurred image (:func:`anidress_core.fit.images.image_features`).
@@ -90,7 +90,7 @@ def texture_anchor(faces: Tensor, face_uv: Tensor, texture: Tensor, blur_texels:
     ``blur_texels`` texels (what one image pixel, blurred like the images, covers:
     :func:`texture_blur_texels`), at its UV. Every vertex gets one (``seen`` all True), so L_anchor
     holds each vertex on its own material point from frame 0 on: the material placement that
-    no mask, normal or flow observes (benchmarks/fit_frame0.md) is then seen in the images.
+    no mask, normal or flow observes (studies/fit/fit_frame0.md) is then seen in the images.
     num_vertices: V (default: the largest index in ``faces`` + 1); every vertex must be in a face.
     """
     V = num_vertices if num_vertices is not None else (int(faces.max()) + 1 if faces.numel() else 0)
