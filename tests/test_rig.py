@@ -13,7 +13,7 @@ from anidress_core.rig import decompose as S
 
 
 @pytest.fixture(autouse=True)
-def _one_thread():
+def one_thread():
     # tiny problems: thread start-up dominates, and on a busy machine it is 30x slower
     n = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -21,7 +21,7 @@ def _one_thread():
     torch.set_num_threads(n)
 
 
-def _tube(nr=20, nh=15, dtype=torch.float64):
+def tube(nr=20, nh=15, dtype=torch.float64):
     th = torch.arange(nr, dtype=dtype) * 2 * math.pi / nr
     z = torch.linspace(0, 1.5, nh, dtype=dtype)
     Z, TH = torch.meshgrid(z, th, indexing="ij")
@@ -36,10 +36,10 @@ def _tube(nr=20, nh=15, dtype=torch.float64):
     return rest, torch.tensor(f)
 
 
-def _known_rig(T=20, B=4, seed=0, dtype=torch.float64):
+def known_rig(T=20, B=4, seed=0, dtype=torch.float64):
     """300-vertex tube, B bones along its axis with smooth (squared hat) weights."""
     gen = torch.Generator().manual_seed(seed)
-    rest, faces = _tube(dtype=dtype)
+    rest, faces = tube(dtype=dtype)
     centres = torch.linspace(0.0, 1.5, B, dtype=dtype)
     W = (1 - (rest[:, 2:3] - centres[None]).abs() / (1.5 / (B - 1))).clamp_min(0) ** 2
     W = W / W.sum(-1, keepdim=True)
@@ -64,7 +64,7 @@ def _match(M_true, M_est):
 
 
 def test_recovers_known_rig_float64():
-    rest, faces, W, M, X = _known_rig()
+    rest, faces, W, M, X = known_rig()
     model = rig.ssdr(rest, X, faces, num_bones=4, iters=500, smooth=0.0)
     assert model.num_bones == 4
     assert model.transforms.shape == (20, 4, 4, 4) and model.weights.shape == (300, 4)
@@ -82,7 +82,7 @@ def test_recovers_known_rig_float64():
 
 
 def test_float32_runs_and_decreases():
-    rest, faces, W, M, X = _known_rig(dtype=torch.float32)
+    rest, faces, W, M, X = known_rig(dtype=torch.float32)
     model = rig.ssdr(rest, X, faces, num_bones=4, iters=20)
     assert model.weights.dtype == torch.float32 and model.transforms.dtype == torch.float32
     _check_weights(model.weights, 8)
@@ -94,7 +94,7 @@ def test_float32_runs_and_decreases():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_fit_transforms_recovers_known(dtype):
-    rest, faces, W, M, X = _known_rig(dtype=dtype)
+    rest, faces, W, M, X = known_rig(dtype=dtype)
     model = rig.RigModel(rest=rest, weights=W, transforms=M[:1], bone_centres=rest[:4], rmse=0.0)
     est = rig.fit_transforms(model, X, iters=30)
     tol = 1e-4 if dtype == torch.float32 else 1e-9
@@ -102,14 +102,14 @@ def test_fit_transforms_recovers_known(dtype):
 
 
 def test_nnz_limit_and_convexity():
-    rest, faces, W, M, X = _known_rig(B=6, T=10)
+    rest, faces, W, M, X = known_rig(B=6, T=10)
     model = rig.ssdr(rest, X, faces, num_bones=6, iters=5, nnz=2)
     _check_weights(model.weights, 2)
     assert model.bone_centres.shape == (model.num_bones, 3)
 
 
 def test_static_sequence_is_exact():
-    rest, faces = _tube()
+    rest, faces = tube()
     X = rest.expand(5, -1, -1).clone()
     with pytest.warns(UserWarning):
         model = rig.ssdr(rest, X, faces, num_bones=5, iters=3)
@@ -119,7 +119,7 @@ def test_static_sequence_is_exact():
 
 
 def test_rigid_sequence_one_bone_exact():
-    rest, faces = _tube()
+    rest, faces = tube()
     gen = torch.Generator().manual_seed(1)
     R = g.axis_angle_to_matrix(torch.randn(6, 3, generator=gen, dtype=rest.dtype))
     X = rest @ R.transpose(-1, -2) + torch.randn(6, 1, 3, generator=gen, dtype=rest.dtype)
@@ -129,7 +129,7 @@ def test_rigid_sequence_one_bone_exact():
 
 
 def test_degenerate_inputs_are_finite():
-    rest, faces, W, M, X = _known_rig(T=5)
+    rest, faces, W, M, X = known_rig(T=5)
     # more bones than distinct motions, duplicated vertices
     rest2 = torch.cat([rest, rest[:50]])
     X2 = torch.cat([X, X[:, :50]], 1)
@@ -148,7 +148,7 @@ def test_degenerate_inputs_are_finite():
 
 
 def test_errors():
-    rest, faces, W, M, X = _known_rig(T=3)
+    rest, faces, W, M, X = known_rig(T=3)
     bad = X.clone()
     bad[1, 7, 2] = float("nan")
     with pytest.raises(ValueError, match="frames contains NaN"):
@@ -163,11 +163,11 @@ def test_simplex_projection_matches_reference():
     v = torch.randn(50, 6, dtype=torch.float64)
     mask = torch.rand(50, 6) > 0.3
     mask[:, 0] = True
-    w = S._simplex_project(v, mask)
+    w = S.simplex_project(v, mask)
     assert torch.allclose(w.sum(-1), torch.ones(50, dtype=torch.float64)) and (w[~mask] == 0).all()
     # reference: the projection is optimal, so no feasible point on a random ray is closer
     for _ in range(20):
-        u = S._simplex_project(torch.rand(50, 6, dtype=torch.float64), mask)
+        u = S.simplex_project(torch.rand(50, 6, dtype=torch.float64), mask)
         assert (((w - v) ** 2 * mask).sum(-1) <= ((u - v) ** 2 * mask).sum(-1) + 1e-12).all()
 
 
@@ -187,12 +187,12 @@ def _hard_covariances(n=400, dtype=torch.float64, seed=3):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_kabsch_polar_matches_svd(dtype):
     H = _hard_covariances(dtype=dtype)
-    R_svd, R_pol = g.nearest_rotation(H), S._kabsch_polar(H)
+    R_svd, R_pol = g.nearest_rotation(H), S.kabsch_polar(H)
     tol = 1e-5 if dtype == torch.float32 else 1e-12
     eye = torch.eye(3, dtype=dtype)
     for R in (R_svd, R_pol):
         assert torch.allclose(R @ R.transpose(-1, -2), eye.expand_as(R), atol=10 * tol)
-        assert torch.allclose(S._det3(R), torch.ones(R.shape[0], dtype=dtype), atol=10 * tol)
+        assert torch.allclose(S.det3(R), torch.ones(R.shape[0], dtype=dtype), atol=10 * tol)
     # both maximise tr(R^T H) (the rotation itself is not unique for rank-deficient H)
     scale = H.abs().amax((-2, -1)).clamp_min(1e-30)
     gap = ((R_svd * H).sum((-2, -1)) - (R_pol * H).sum((-2, -1))) / scale
@@ -218,8 +218,8 @@ def _moments_problem(n=300, seed=4):
 def test_procrustes_kernel_matches_torch_reference():
     K, U, H = _moments_problem()
     M_old = torch.randn(K.shape[0], 3, 4, dtype=torch.float64)
-    a = S._procrustes(K, U, M_old)
-    b = S._procrustes_torch(K, U, M_old, exact=True)
+    a = S.procrustes(K, U, M_old)
+    b = S.procrustes_torch(K, U, M_old, exact=True)
     assert torch.isfinite(a).all()
     assert torch.equal(a[-5:], M_old[-5:])
     scale = H.abs().amax((-2, -1)).clamp_min(1e-30)[:-5]
@@ -231,9 +231,9 @@ def test_procrustes_kernel_matches_torch_reference():
 
 
 def test_bone_sweeps_kernel_matches_torch_reference():
-    rest, faces, W, M, X = _known_rig(T=6, B=5)
-    P, Xn, c, d, s = S._normalise(rest, X)
-    D = S._data(P, Xn)
+    rest, faces, W, M, X = known_rig(T=6, B=5)
+    P, Xn, c, d, s = S.normalise(rest, X)
+    D = S.ssdr_data(P, Xn)
     Wp = W.clone()
     Wp[Wp < 0.05] = 0
     Wp = Wp / Wp.sum(-1, keepdim=True)
@@ -241,12 +241,12 @@ def test_bone_sweeps_kernel_matches_torch_reference():
     M0 = torch.eye(3, 4, dtype=torch.float64).expand(6, 5, 3, 4) + 0.01 * torch.randn(6, 5, 3, 4, generator=gen,
                                                                                           dtype=torch.float64)
     for sweeps in (1, 3):
-        a = S._update_transforms(D, Wp, M0, sweeps)
-        b = S._update_transforms_torch(D, Wp, M0, sweeps)
+        a = S.update_transforms(D, Wp, M0, sweeps)
+        b = S.update_transforms_torch(D, Wp, M0, sweeps)
         assert torch.isfinite(a).all()
         # the kernel sweeps bones in index order, the reference by colour groups: after a full
         # sweep both decrease the same energy; compare energies, not transforms
-        e0, ea, eb = (S._energy(D, m, Wp) for m in (M0, a, b))
+        e0, ea, eb = (S.energy(D, m, Wp) for m in (M0, a, b))
         assert ea < e0 and eb < e0
         assert abs(ea - eb) <= 0.05 * e0
 
@@ -258,8 +258,8 @@ def test_simplex_qp_kernel_matches_torch_and_kkt(k):
     A = torch.randn(V, k, k, generator=gen, dtype=torch.float64)
     G = A @ A.transpose(1, 2) * 0.1 + 1e-3 * torch.eye(k, dtype=torch.float64)
     h = torch.randn(V, k, generator=gen, dtype=torch.float64)
-    w0 = S._simplex_project(torch.rand(V, k, generator=gen, dtype=torch.float64))
-    a, b = S._simplex_qp(G, h, w0), S._simplex_qp_torch(G, h, w0)
+    w0 = S.simplex_project(torch.rand(V, k, generator=gen, dtype=torch.float64))
+    a, b = S.simplex_qp(G, h, w0), S.simplex_qp_torch(G, h, w0)
     _check_weights(a, k)
     assert (a - b).abs().max() < 1e-8
     # KKT on the simplex: gradient components equal on the support, not smaller off it
@@ -280,7 +280,7 @@ def test_simplex_qp_kernel_matches_torch_and_kkt(k):
 
 
 def test_progress_and_history_rmse_agree():
-    rest, faces, W, M, X = _known_rig(T=8)
+    rest, faces, W, M, X = known_rig(T=8)
     model = rig.ssdr(rest, X, faces, num_bones=4, iters=6, progress=True)
     assert len(model.history) == 7
     # the history is computed from normal equations; the last entry matches the reconstruction
@@ -288,12 +288,12 @@ def test_progress_and_history_rmse_agree():
 
 
 def test_energy_from_normal_equations_matches_reconstruction():
-    rest, faces, W, M, X = _known_rig(T=5, B=4)
-    P, Xn, c, d, s = S._normalise(rest, X)
-    D = S._data(P, Xn)
+    rest, faces, W, M, X = known_rig(T=5, B=4)
+    P, Xn, c, d, s = S.normalise(rest, X)
+    D = S.ssdr_data(P, Xn)
     Mn = M[..., :3, :] + 0.01  # not the exact rig: a non-zero residual
     W2 = W.clone()
     W2[W2 < 0.1] = 0
     W2 = W2 / W2.sum(-1, keepdim=True)
     rec = g.lbs(P, W2, torch.cat([Mn, torch.tensor([0, 0, 0, 1.0], dtype=Mn.dtype).expand(*Mn.shape[:2], 1, 4)], -2))
-    assert S._energy(D, Mn, W2) == pytest.approx(float(((rec - Xn) ** 2).sum()), rel=1e-9)
+    assert S.energy(D, Mn, W2) == pytest.approx(float(((rec - Xn) ** 2).sum()), rel=1e-9)

@@ -9,7 +9,7 @@ from anidress_core.io import files
 from anidress_core.io.rig import read_rig
 from anidress_core.stages.rig import run_rig
 
-from .test_rig import _known_rig
+from .test_rig import known_rig
 
 
 @pytest.fixture(autouse=True)
@@ -28,8 +28,8 @@ def _write_template(path, rest, faces):
 
 
 def _two_sequences(tmp_path):
-    rest, faces, W, M, X = _known_rig(T=20, B=4, seed=0)
-    _, _, _, M2, _ = _known_rig(T=7, B=4, seed=1)
+    rest, faces, W, M, X = known_rig(T=20, B=4, seed=0)
+    _, _, _, M2, _ = known_rig(T=7, B=4, seed=1)
     X2 = g.lbs(rest, W, M2)
     tpl = tmp_path / "template.npz"
     _write_template(tpl, rest, faces)
@@ -75,7 +75,7 @@ def test_run_rig_names_the_bad_file(tmp_path):
 
 
 def test_rig_decompose_command_uses_dem_bones_layout(tmp_path, capsys):
-    rest, faces, W, M, X = _known_rig(T=10, B=3)
+    rest, faces, W, M, X = known_rig(T=10, B=3)
     seq = tmp_path / "seq.npz"
     np.savez(seq, rest=rest.numpy(), faces=faces.numpy(), frames=X.numpy())
     out = tmp_path / "out.npz"

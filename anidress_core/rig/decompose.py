@@ -1,6 +1,6 @@
 """Garment rigging model: Smooth Skinning Decomposition with Rigid Bones (SSDR).
 
-One module (over 800 lines): one algorithm whose steps share the _Data / _NormalEq moments.
+One module (over 800 lines): one algorithm whose steps share the SSDRData / _NormalEq moments.
 
 A garment simulated on a moving body, ``frames (T, V, 3)`` over a rest pose
 ``rest (V, 3)``, is decomposed into B "virtual bones" (Le & Deng 2012, "Smooth
@@ -67,7 +67,10 @@ from torch import Tensor
 
 from ..geometry import edges_of_faces, lbs, make_transform, nearest_rotation
 
-__all__ = ["RigModel", "ssdr", "fit_transforms", "reconstruct", "rmse"]
+__all__ = ["RigModel", "ssdr", "fit_transforms", "reconstruct", "rmse",
+           # the solver's steps, public so that tests compare each Warp kernel with its torch reference
+           "SSDRData", "ssdr_data", "normalise", "energy", "det3", "kabsch_polar", "procrustes", "procrustes_torch",
+           "update_transforms", "update_transforms_torch", "simplex_project", "simplex_qp", "simplex_qp_torch"]
 
 
 @dataclass(frozen=True)
@@ -141,7 +144,7 @@ def _eps(dtype) -> float:
     return float(torch.finfo(dtype).eps)
 
 
-def _det3(A: Tensor) -> Tensor:
+def det3(A: Tensor) -> Tensor:
     """Determinant of (..., 3, 3) by the triple product (cheaper than LU for 3x3)."""
     return (torch.cross(A[..., 0, :], A[..., 1, :], dim=-1) * A[..., 2, :]).sum(-1)
 
@@ -150,7 +153,7 @@ def _homogeneous(P: Tensor) -> Tensor:
     return torch.cat([P, torch.ones_like(P[:, :1])], -1)
 
 
-def _simplex_project(v: Tensor, mask: Tensor | None = None) -> Tensor:
+def simplex_project(v: Tensor, mask: Tensor | None = None) -> Tensor:
     """Euclidean projection of each row of v (N, B) onto the probability simplex.
 
     With ``mask`` (N, B) bool, entries outside the mask are forced to zero and the
@@ -173,7 +176,7 @@ def _simplex_project(v: Tensor, mask: Tensor | None = None) -> Tensor:
 # --------------------------------------------------------------------------- moments
 
 
-class _Data(NamedTuple):
+class SSDRData(NamedTuple):
     """The fixed arrays of a decomposition, laid out once for the two products per iteration.
 
     P (V, 3) rest, Ph (V, 4) homogeneous rest, X (T, V, 3) frames, Xt (3T, V) and
@@ -188,21 +191,22 @@ class _Data(NamedTuple):
     Xv: Tensor
 
 
-def _data(P: Tensor, X: Tensor) -> _Data:
+def ssdr_data(P: Tensor, X: Tensor) -> SSDRData:
+    """Lay out rest P (V, 3) and frames X (T, V, 3) (normalised, :func:`normalise`) as :class:`SSDRData`."""
     T, V = X.shape[:2]
     Xt = X.transpose(1, 2).reshape(T * 3, V).contiguous()
     Xv = X.permute(1, 0, 2).reshape(V, T * 3).contiguous()
-    return _Data(P, _homogeneous(P), X, Xt, Xv)
+    return SSDRData(P, _homogeneous(P), X, Xt, Xv)
 
 
-def _xm(D: _Data, M: Tensor) -> Tensor:
+def _xm(D: SSDRData, M: Tensor) -> Tensor:
     """sum_t x_ti . M_tb p~_i for every vertex and bone, (V, B)."""
     T, B = M.shape[:2]
     Mf = M.transpose(1, 2).reshape(T * 3, B * 4)  # Mf[(t, j), (b, k)] = M[t, b, j, k]
     return ((D.Xv @ Mf).reshape(-1, B, 4) * D.Ph[:, None, :]).sum(-1)
 
 
-def _moments(D: _Data, W: Tensor) -> tuple[Tensor, Tensor]:
+def _moments(D: SSDRData, W: Tensor) -> tuple[Tensor, Tensor]:
     """Moments of the bone problem, W (V, B) ->
     Q (T, B, 3, 4): Q[t, b] = sum_i W_ib x_ti p~_i^T, and
     U (B, B, 4, 4): U[b, c] = sum_i W_ib W_ic p~_i p~_i^T.
@@ -243,7 +247,7 @@ def _cofactor(X: Tensor) -> Tensor:
     return torch.stack([torch.cross(r1, r2, dim=-1), torch.cross(r2, r0, dim=-1), torch.cross(r0, r1, dim=-1)], -2)
 
 
-def _kabsch_polar(H: Tensor) -> Tensor:
+def kabsch_polar(H: Tensor) -> Tensor:
     """Rotation maximising tr(R^T H) (Kabsch, det R = +1) without a batched SVD.
 
     With H = U S V^T and d = det(U V^T), the cofactor matrix is
@@ -256,23 +260,23 @@ def _kabsch_polar(H: Tensor) -> Tensor:
     to :func:`anidress_core.geometry.nearest_rotation` (SVD).
     """
     Hn = H / H.abs().amax((-2, -1), keepdim=True).clamp_min(torch.finfo(H.dtype).tiny)
-    det = _det3(Hn)
+    det = det3(Hn)
     easy = det > -1e-3
     eye = torch.eye(3, dtype=H.dtype, device=H.device)
     R = _polar_rotation(torch.where(easy[..., None, None], Hn + _cofactor(Hn), eye))
-    ok = easy & torch.isfinite(R).all(-1).all(-1) & (_det3(R) > 0.5)
+    ok = easy & torch.isfinite(R).all(-1).all(-1) & (det3(R) > 0.5)
     if not bool(ok.all()):
         R = R.clone()
         R[~ok] = nearest_rotation(Hn[~ok])
     return R
 
 
-def _procrustes_torch(K: Tensor, Ubb: Tensor, M_old: Tensor, exact: bool = False) -> Tensor:
-    """Weighted rigid fit from moments in torch (reference for :func:`_procrustes`).
+def procrustes_torch(K: Tensor, Ubb: Tensor, M_old: Tensor, exact: bool = False) -> Tensor:
+    """Weighted rigid fit from moments in torch (reference for :func:`procrustes`).
 
     K (..., 3, 4) = [sum a_i y_i p_i^T | sum a_i y_i], Ubb (..., 4, 4) = sum a_i p~_i p~_i^T.
     Returns (..., 3, 4) [R | t] minimising sum_i a_i |R p_i + t - y_i|^2 with det R = +1.
-    ``exact``: every rotation by SVD; otherwise by :func:`_kabsch_polar`. Where the bone has
+    ``exact``: every rotation by SVD; otherwise by :func:`kabsch_polar`. Where the bone has
     no weight (sum a_i = 0) ``M_old`` is kept; rank-deficient covariances (collinear or
     single points) still give a rotation.
     """
@@ -284,7 +288,7 @@ def _procrustes_torch(K: Tensor, Ubb: Tensor, M_old: Tensor, exact: bool = False
     # 1. centred covariance sum a (y - ybar)(p - pbar)^T = sum a y p^T - S ybar pbar^T
     cov = K[..., :, :3] - Ss[..., None] * ybar[..., :, None] * pbar[..., None, :]
     # 2. rotation maximising tr(R^T cov) with det R = +1
-    R = nearest_rotation(cov) if exact else _kabsch_polar(cov)
+    R = nearest_rotation(cov) if exact else kabsch_polar(cov)
     # 3. t = ybar - R pbar
     t = ybar - (R @ pbar[..., None])[..., 0]
     Mn = torch.cat([R, t[..., None]], -1)
@@ -292,10 +296,10 @@ def _procrustes_torch(K: Tensor, Ubb: Tensor, M_old: Tensor, exact: bool = False
     return torch.where(good, Mn, M_old)
 
 
-def _procrustes(K: Tensor, Ubb: Tensor, M_old: Tensor) -> Tensor:
+def procrustes(K: Tensor, Ubb: Tensor, M_old: Tensor) -> Tensor:
     """Weighted rigid fit from moments (SSDR Sec. 3.2; the 4x4 form of Dem Bones' qpT2m).
 
-    Same contract as :func:`_procrustes_torch`, computed by the Warp kernel
+    Same contract as :func:`procrustes_torch`, computed by the Warp kernel
     :func:`anidress_core.rig.kernels.procrustes` (one thread per matrix, float64): the
     bone update calls this once per colour and sweep on a few hundred 3x3 problems, where
     a chain of ~150 small torch operations cost ~5x more than the compiled kernel
@@ -335,14 +339,14 @@ def _bone_colours(W: Tensor) -> list[Tensor]:
     return [torch.as_tensor(np.nonzero(colour == c)[0], device=W.device) for c in range(colour.max() + 1)]
 
 
-def _update_transforms(D: _Data, W: Tensor, M: Tensor, sweeps: int) -> Tensor:
+def update_transforms(D: SSDRData, W: Tensor, M: Tensor, sweeps: int) -> Tensor:
     """SSDR bone update (Le & Deng 2012, Sec. 3.2): ``sweeps`` Gauss-Seidel sweeps over the bones.
 
     W (V,B), M (T,B,3,4) -> updated M. The moments Q (T,B,3,4), U (B,B,4,4) come from two
     matrix products (:func:`_moments`); the sweeps run in one Warp launch
     (:func:`anidress_core.rig.kernels.bone_sweeps`, a thread per frame, the bones in
     order as Dem Bones does), which replaces ~15 colour groups x ~150 small torch
-    operations per sweep of :func:`_update_transforms_torch` (same result up to rounding).
+    operations per sweep of :func:`update_transforms_torch` (same result up to rounding).
     """
     import warp as wp
 
@@ -376,8 +380,8 @@ def _update_transforms(D: _Data, W: Tensor, M: Tensor, sweeps: int) -> Tensor:
     return m44[:, :, :3].to(M.dtype)
 
 
-def _update_transforms_torch(D: _Data, W: Tensor, M: Tensor, sweeps: int) -> Tensor:
-    """SSDR bone update in torch (reference of :func:`_update_transforms`), batched over frames and bones.
+def update_transforms_torch(D: SSDRData, W: Tensor, M: Tensor, sweeps: int) -> Tensor:
+    """SSDR bone update in torch (reference of :func:`update_transforms`), batched over frames and bones.
 
     W (V,B), M (T,B,3,4) -> updated M. Bone b is fitted to the
     residual target q_ti = x_ti - sum_{c != b} W_ic M_tc p~_i by W_ib (R p_i + t): a
@@ -396,7 +400,7 @@ def _update_transforms_torch(D: _Data, W: Tensor, M: Tensor, sweeps: int) -> Ten
             MU = MU.reshape(T, 3, g.shape[0], 4).transpose(1, 2)
             Ubb = U[g, g]  # (G, 4, 4)
             K = Q[:, g] - MU + M[:, g] @ Ubb
-            M[:, g] = _procrustes_torch(K, Ubb.expand(T, -1, -1, -1), M[:, g])
+            M[:, g] = procrustes_torch(K, Ubb.expand(T, -1, -1, -1), M[:, g])
     return M
 
 
@@ -414,7 +418,7 @@ class _NormalEq(NamedTuple):
     diag: Tensor  # (V, B) G[i, b, b]
 
 
-def _normal_equations(D: _Data, M: Tensor) -> _NormalEq:
+def _normal_equations(D: SSDRData, M: Tensor) -> _NormalEq:
     """Per-vertex normal equations of the weights problem for transforms M (T, B, 3, 4)."""
     T, B = M.shape[:2]
     V = D.P.shape[0]
@@ -502,22 +506,23 @@ def _solve_on_free(G: Tensor, h: Tensor, free: Tensor) -> tuple[Tensor, Tensor, 
     return w, mu, ok
 
 
-def _simplex_qp(G: Tensor, h: Tensor, w0: Tensor, max_iters: int | None = None) -> Tensor:
-    """min_w w^T G w - 2 h^T w  s.t. w >= 0, sum w = 1 per row: the Warp kernel
+def simplex_qp(G: Tensor, h: Tensor, w0: Tensor, max_iters: int | None = None) -> Tensor:
+    """min_w w^T G w - 2 h^T w  s.t. w >= 0, sum w = 1 per row; G (N, k, k) SPD, h (N, k), start w0 (N, k)
+    -> w (N, k). The Warp kernel
     :func:`anidress_core.rig.kernels.simplex_qp` (one thread per vertex, float64) for up to
-    16 candidate bones, else :func:`_simplex_qp_torch`. Same algorithm; the kernel avoids
+    16 candidate bones, else :func:`simplex_qp_torch`. Same algorithm; the kernel avoids
     the ~100 small batched torch operations of the reference (measured ~4x faster on
     3K vertices, benchmarks/rig.md)."""
     from . import kernels
 
     N, k = h.shape
     if k > kernels.KMAX or N == 0:
-        return _simplex_qp_torch(G, h, w0, max_iters)
+        return simplex_qp_torch(G, h, w0, max_iters)
     import warp as wp
 
     g64 = G.to(torch.float64).contiguous()
     h64 = h.to(torch.float64).contiguous()
-    w64 = _simplex_project(w0).to(torch.float64).contiguous()
+    w64 = simplex_project(w0).to(torch.float64).contiguous()
     out = torch.empty_like(w64)
     wp.init()
     dev = "cpu" if G.device.type == "cpu" else str(G.device)
@@ -527,8 +532,9 @@ def _simplex_qp(G: Tensor, h: Tensor, w0: Tensor, max_iters: int | None = None) 
     return out.to(G.dtype)
 
 
-def _simplex_qp_torch(G: Tensor, h: Tensor, w0: Tensor, max_iters: int | None = None) -> Tensor:
-    """min_w w^T G w - 2 h^T w  s.t. w >= 0, sum w = 1, batched over rows; G (N, k, k) SPD.
+def simplex_qp_torch(G: Tensor, h: Tensor, w0: Tensor, max_iters: int | None = None) -> Tensor:
+    """min_w w^T G w - 2 h^T w  s.t. w >= 0, sum w = 1, batched over rows; G (N, k, k) SPD, h (N, k),
+    w0 (N, k) -> w (N, k).
 
     Primal-dual active set, warm-started at the support of ``w0`` (after one SSDR
     iteration the support rarely changes, so most rows finish after one Cholesky solve):
@@ -550,7 +556,7 @@ def _simplex_qp_torch(G: Tensor, h: Tensor, w0: Tensor, max_iters: int | None = 
     def obj(w, Gm, hm):
         return (w * (Gm @ w[..., None])[..., 0]).sum(-1) - 2 * (hm * w).sum(-1)
 
-    w0 = _simplex_project(w0)
+    w0 = simplex_project(w0)
     free = w0 > 0
     w = w0.clone()
     rows = torch.arange(N, device=G.device)
@@ -582,7 +588,7 @@ def _simplex_qp_torch(G: Tensor, h: Tensor, w0: Tensor, max_iters: int | None = 
     return torch.where(better0[:, None], w0, w)
 
 
-def _update_weights(D: _Data, M, W, nbr, nnz, smooth, iters) -> tuple[Tensor, float]:
+def _update_weights(D: SSDRData, M, W, nbr, nnz, smooth, iters) -> tuple[Tensor, float]:
     """SSDR weights update (Le & Deng 2012, Sec. 3.3) with Dem Bones' regularisation.
 
     Per vertex: min |A_i w - x_i|^2 / T + smooth |w - ws_i|^2 on the simplex with at most
@@ -600,14 +606,14 @@ def _update_weights(D: _Data, M, W, nbr, nnz, smooth, iters) -> tuple[Tensor, fl
         idx = _candidates(ws, ne, k)  # (V, k)
         Gk = _gram(ne, idx)  # (V, k, k), unnormalised
         hk = ne.h.gather(1, idx)
-        wk = _simplex_qp(Gk / T + smooth * eyek, hk / T + smooth * ws.gather(1, idx), W.gather(1, idx))
+        wk = simplex_qp(Gk / T + smooth * eyek, hk / T + smooth * ws.gather(1, idx), W.gather(1, idx))
         W = torch.zeros_like(W).scatter_(1, idx, wk)
         e = float(((wk * (Gk @ wk[..., None])[..., 0]).sum(-1) - 2 * (hk * wk).sum(-1)).double().sum())
     return W, e
 
 
-def _energy(D: _Data, M: Tensor, W: Tensor) -> float:
-    """sum_i |A_i w_i - x_i|^2 for transforms M and weights W, from the normal equations
+def energy(D: SSDRData, M: Tensor, W: Tensor) -> float:
+    """sum_i |A_i w_i - x_i|^2 for transforms M (T, B, 3, 4) and weights W (V, B), from the normal equations
     (float64 sum; in float32 the cancellation against sum |x|^2 leaves ~0.1 % of the
     residual energy, fine for the iteration history; the final RMSE is measured on the
     reconstruction)."""
@@ -622,7 +628,7 @@ def _energy(D: _Data, M: Tensor, W: Tensor) -> float:
 # --------------------------------------------------------------------------- initialisation
 
 
-def _label_transforms(D: _Data, labels: Tensor, nb: int) -> Tensor:
+def _label_transforms(D: SSDRData, labels: Tensor, nb: int) -> Tensor:
     """Per-cluster, per-frame Kabsch: labels (V,) -> (T, nb, 3, 4)."""
     T, V = D.X.shape[:2]
     W = torch.nn.functional.one_hot(labels, nb).to(D.P.dtype)
@@ -631,16 +637,16 @@ def _label_transforms(D: _Data, labels: Tensor, nb: int) -> Tensor:
     pp = (D.Ph[:, :, None] * D.Ph[:, None, :]).reshape(V, 16)
     Ubb = (W.T @ pp).reshape(nb, 4, 4)  # U[b, b] = sum_{i in b} p~ p~^T (one-hot: no cross terms)
     eye = torch.eye(3, 4, dtype=D.P.dtype, device=D.P.device).expand(T, nb, 3, 4)
-    return _procrustes(Q, Ubb.expand(T, -1, -1, -1), eye)
+    return procrustes(Q, Ubb.expand(T, -1, -1, -1), eye)
 
 
-def _own_bone_error(D: _Data, M: Tensor, labels: Tensor) -> Tensor:
+def _own_bone_error(D: SSDRData, M: Tensor, labels: Tensor) -> Tensor:
     """e[t, i] residual vector x_ti - M_t,label(i) p~_i, (T, V, 3)."""
     Ml = M[:, labels]  # (T, V, 3, 4)
     return D.X - ((Ml[..., :3] @ D.P[:, :, None])[..., 0] + Ml[..., 3])
 
 
-def _assign_labels(D: _Data, M: Tensor) -> Tensor:
+def _assign_labels(D: SSDRData, M: Tensor) -> Tensor:
     """Label of each vertex = argmin_b sum_t |M_tb p~_i - x_ti|^2, (V,)."""
     cross = _xm(D, M)  # sum_t x_ti . M_tb p~_i
     # sum_t |M_tb p~|^2 = p~^T (sum_t M_tb^T M_tb) p~
@@ -672,7 +678,7 @@ def _dominant_split(F: Tensor, gen: torch.Generator) -> Tensor | None:
     return side
 
 
-def _init_clusters(D: _Data, num_bones, init_iters, seed) -> tuple[Tensor, int]:
+def _init_clusters(D: SSDRData, num_bones, init_iters, seed) -> tuple[Tensor, int]:
     """(a) Dem Bones-style initialisation: rigid clusters grown by splitting.
 
     Returns labels (V,) in [0, nb) and nb <= num_bones.
@@ -764,8 +770,12 @@ def _validate(rest, frames, faces):
     return rest, frames, edges
 
 
-def _normalise(rest: Tensor, frames: Tensor):
-    """Centre the rest pose and every frame, scale to unit RMS model size (precision)."""
+def normalise(rest: Tensor, frames: Tensor):
+    """Centre the rest pose and every frame, scale to unit RMS model size (precision).
+
+    rest (V, 3), frames (T, V, 3) -> (P (V, 3), X (T, V, 3), c (3,), d (T, 3), s ()) with
+    P = (rest - c) / s and X[t] = (frames[t] - d[t]) / s.
+    """
     c = rest.mean(0)
     d = frames.mean(1)  # (T, 3)
     s = ((rest - c) ** 2).sum(-1).mean().sqrt()
@@ -826,13 +836,13 @@ def ssdr(
         warnings.warn(f"ssdr: num_bones={num_bones} > V={V}; clamped to {V}", stacklevel=2)
         num_bones = V
     with torch.no_grad():
-        P, X, c, d, s = _normalise(rest, frames)
+        P, X, c, d, s = normalise(rest, frames)
         # (a) initialisation: clusters of rigidly moving vertices, one-hot weights
         # (clustering in float64 on a stride of frames, so that float32 and float64
         # inputs start alike)
         stride = max(1, math.ceil(T / max(1, init_frames)))
-        labels, nb = _init_clusters(_data(P.double(), X[::stride].double()), num_bones, init_iters, seed)
-        D = _data(P, X)
+        labels, nb = _init_clusters(ssdr_data(P.double(), X[::stride].double()), num_bones, init_iters, seed)
+        D = ssdr_data(P, X)
         M = _label_transforms(D, labels, nb)
         W = torch.nn.functional.one_hot(labels, nb).to(P.dtype)
         nbr = _neighbour_mean(edges, V, P.dtype, P.device)
@@ -841,7 +851,7 @@ def ssdr(
         def rmse_of(e: float) -> float:
             return float(s) * math.sqrt(max(e + c_all, 0.0) / (T * V))
 
-        history = [rmse_of(_energy(D, M, W) - c_all)]
+        history = [rmse_of(energy(D, M, W) - c_all)]
         it = range(iters)
         if progress:
             from tqdm import tqdm
@@ -849,7 +859,7 @@ def ssdr(
             it = tqdm(it, desc="ssdr", unit="iter")
         for _ in it:
             # (b) bone transforms: weighted Procrustes on residual targets
-            M = _update_transforms(D, W, M, trans_iters)
+            M = update_transforms(D, W, M, trans_iters)
             # (c) weights: convex, <= nnz non-zeros, Laplacian smoothness
             W, e = _update_weights(D, M, W, nbr, nnz, smooth, weights_iters)
             # (d) drop bones that lost all their vertices
@@ -889,14 +899,14 @@ def fit_transforms(rig: RigModel, verts: Tensor, iters: int = 20) -> Tensor:
     if verts.shape[0] == 0:
         return rest.new_zeros(0, rig.num_bones, 4, 4)
     with torch.no_grad():
-        P, X, c, d, s = _normalise(rest, verts)
+        P, X, c, d, s = normalise(rest, verts)
         W = rig.weights.to(rest.dtype)
         T, B = X.shape[0], W.shape[1]
         # initial guess: each bone's own weighted Kabsch (point weights W_ib)
-        D = _data(P, X)
+        D = ssdr_data(P, X)
         Q, _ = _moments(D, W)
         Uw = torch.einsum("vb,vk,vl->bkl", W, D.Ph, D.Ph)  # sum_i W_ib p~ p~^T
         eye = torch.eye(3, 4, dtype=P.dtype, device=P.device).expand(T, B, 3, 4)
-        M = _procrustes(Q, Uw.expand(T, -1, -1, -1), eye)
-        M = _update_transforms(D, W, M, iters)
+        M = procrustes(Q, Uw.expand(T, -1, -1, -1), eye)
+        M = update_transforms(D, W, M, iters)
         return _denormalise(M, c, d, s)

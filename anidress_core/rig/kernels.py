@@ -5,7 +5,7 @@ One thread per (frame, bone): the weighted Procrustes problem of Le & Deng 2012
 rotation maximising tr(R^T H) with det R = +1 (Kabsch). The rotation is the polar factor
 of H + cof(H) by Higham's scaled Newton iteration (cof(H) = det(H) H^-T turns the
 smallest singular value of a flat or weakly reflected covariance into the Kabsch sign,
-see ``decompose._kabsch_polar``), with Warp's ``svd3`` (McAdams et al. 2011) where that does
+see ``decompose.kabsch_polar``), with Warp's ``svd3`` (McAdams et al. 2011) where that does
 not apply. Float64 throughout.
 """
 from __future__ import annotations
@@ -56,7 +56,7 @@ def _kabsch_svd(H: wp.mat33d):
 @wp.func
 def kabsch(H: wp.mat33d):
     """Rotation maximising tr(R^T H), det R = +1: polar factor of H + cof(H) by scaled
-    Newton iterations (see ssdr._kabsch_polar for why), SVD where that does not apply."""
+    Newton iterations (see decompose.kabsch_polar for why), SVD where that does not apply."""
     m = _maxabs(H)
     if m == f64(0.0):
         return wp.identity(3, dtype=f64)
@@ -188,7 +188,7 @@ def simplex_qp(
 ):
     """min w^T G w - 2 h^T w, w >= 0, sum w = 1, one thread per vertex (primal-dual active set).
 
-    Same algorithm as ``decompose._simplex_qp`` (its batched torch reference): solve the
+    Same algorithm as ``decompose.simplex_qp_torch`` (its batched torch reference): solve the
     equality-constrained problem on the free set (Cholesky), drop the most negative free
     weight, else add the fixed weight with the most negative KKT multiplier, stop when
     neither exists; never worse than the warm start.

@@ -13,7 +13,7 @@ import torch
 from anidress_core import geometry as g
 from anidress_core import rig
 
-from tests.test_rig import _known_rig, _one_thread, _tube  # noqa: F401 (_one_thread: autouse fixture)
+from tests.test_rig import known_rig, one_thread, tube  # noqa: F401 (one_thread: autouse fixture)
 
 
 def _finite(model):
@@ -27,7 +27,7 @@ def _finite(model):
 def test_scale_invariance(scale):
     # a scene in millimetres (x1000) or kilometres (x0.001) decomposes like one in metres:
     # the relative error is the same (SSDR works in coordinates normalised to unit size)
-    rest, faces, W, M, X = _known_rig(T=20)
+    rest, faces, W, M, X = known_rig(T=20)
     ref = rig.ssdr(rest, X, faces, num_bones=4, iters=40)
     m = rig.ssdr(rest * scale, X * scale, faces, num_bones=4, iters=40)
     _finite(m)
@@ -36,7 +36,7 @@ def test_scale_invariance(scale):
 
 
 def test_float32_and_float64_agree():
-    rest, faces, W, M, X = _known_rig(T=20)
+    rest, faces, W, M, X = known_rig(T=20)
     a = rig.ssdr(rest, X, faces, num_bones=4, iters=60)
     b = rig.ssdr(rest.float(), X.float(), faces, num_bones=4, iters=60)
     _finite(b)
@@ -63,7 +63,7 @@ def test_collinear_vertices_and_frames():
 
 def test_teleporting_and_exploding_frames_stay_finite():
     # frames with huge jumps (a body teleported 1 km) and a frame collapsed to a point
-    rest, faces = _tube()
+    rest, faces = tube()
     gen = torch.Generator().manual_seed(2)
     X = rest.expand(6, -1, -1).clone() + 0.01 * torch.randn(6, rest.shape[0], 3, generator=gen, dtype=rest.dtype)
     X[2] += 1000.0
@@ -75,7 +75,7 @@ def test_teleporting_and_exploding_frames_stay_finite():
 
 
 def test_duplicated_and_coincident_vertices():
-    rest, faces, W, M, X = _known_rig(T=10)
+    rest, faces, W, M, X = known_rig(T=10)
     idx = torch.arange(0, rest.shape[0], 3)
     rest2 = torch.cat([rest, rest[idx]])
     X2 = torch.cat([X, X[:, idx]], 1)
@@ -88,7 +88,7 @@ def test_duplicated_and_coincident_vertices():
 
 
 def test_more_bones_than_motions_and_single_frame():
-    rest, faces = _tube()
+    rest, faces = tube()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         m1 = rig.ssdr(rest, rest[None] + 0.5, faces, num_bones=25, iters=3)  # one frame, pure translation
@@ -97,7 +97,7 @@ def test_more_bones_than_motions_and_single_frame():
 
 
 def test_nan_input_is_a_clear_error():
-    rest, faces, W, M, X = _known_rig(T=4)
+    rest, faces, W, M, X = known_rig(T=4)
     X = X.clone()
     X[3, 10, 1] = float("inf")
     with pytest.raises(ValueError, match=r"frames contains NaN or inf \(first at index \(3, 10, 1\)\)"):
@@ -109,7 +109,7 @@ def test_nan_input_is_a_clear_error():
 
 def test_large_sequence_memory_is_linear():
     # 30K vertex-frames x 25 bones (a paper-scale block) in float32: finite and fast
-    rest, faces = _tube(nr=40, nh=25, dtype=torch.float32)
+    rest, faces = tube(nr=40, nh=25, dtype=torch.float32)
     gen = torch.Generator().manual_seed(3)
     T = 30
     aa = 0.3 * torch.randn(T, 3, generator=gen)
