@@ -14,10 +14,13 @@ import yaml
 
 from ..body.model import BodyModel, smpl_model
 from ..body.motions import Motion
+from ..camera import Cameras, load_cameras
 from . import files
+from .images import image_size_from_header
 from .motion import read_easymocap_smpl_dir, read_smpl_model_file, smpl_selection
 
-__all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path"]
+__all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path",
+           "scene_image_size", "scene_cameras"]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 """Extensions of a sequence's ``images/<cam>/<frame:06d>.<ext>`` files, in the order they are looked for."""
@@ -93,3 +96,44 @@ def image_path(seq_dir: Path, cam: str, frame: int) -> Path:
         if p.is_file():
             return p
     return base.with_suffix(".png")
+
+
+def scene_image_size(scene_dir: str | os.PathLike, seq: str, info: dict | None = None) -> tuple[int, int]:
+    """(H, W) of the sequence's images: scene.yaml's ``image_size``, else the header of its first image.
+
+    What the camera files may lack: ``intri.yml`` as EasyMocap's ``write_intri`` and OpenCV
+    write it has no ``H_<cam>`` / ``W_<cam>``. validate_scene checks that every image, mask
+    and the files' ``H_``/``W_`` (when present) agree with this size.
+    """
+    scene_dir = Path(scene_dir)
+    info = read_scene(scene_dir) if info is None else info
+    size = info.get("image_size")
+    if size:
+        return int(size[0]), int(size[1])
+    root = scene_dir / seq / "images"
+    for cam_dir in sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []:
+        for p in sorted(cam_dir.iterdir()):
+            if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit():
+                return image_size_from_header(p)
+    raise files.ArtifactError(f"{scene_dir / 'scene.yaml'}: no image_size and no images under {root} "
+                              "to take the image size from")
+
+
+def scene_cameras(scene_dir: str | os.PathLike, seq: str, names: list[str] | None = None,
+                  info: dict | None = None, dtype: torch.dtype = torch.float64) -> Cameras:
+    """The cameras of sequence ``seq`` (``<scene_dir>/<seq>/intri.yml``, ``extri.yml``) with the
+    scene's image size (:func:`scene_image_size`), so that ``intri.yml`` without ``H_``/``W_``
+    loads. Every stage that reads a scene's cameras goes through this function.
+
+    names: the cameras to keep, in that order (default: all, in file order). Returns
+    :class:`anidress_core.camera.Cameras` in ``dtype``.
+    """
+    scene_dir = Path(scene_dir)
+    seq_dir = scene_dir / seq
+    intri = seq_dir / "intri.yml"
+    h, w = scene_image_size(scene_dir, seq, info)
+    try:
+        return load_cameras(intri, seq_dir / "extri.yml", names, height=h, width=w, dtype=dtype)
+    except (ValueError, KeyError) as e:
+        msg = str(e)
+        raise ValueError(msg if str(intri) in msg else f"{intri}: {msg}") from e

@@ -37,13 +37,12 @@ from torch import Tensor
 from tqdm import tqdm
 
 from .. import __version__
-from ..camera import load_cameras
 from ..cues import evaluate as cue_eval
 from ..cues import flow as cue_flow
 from ..cues import masks as cue_masks
 from ..geometry import lbs
 from ..io import files
-from ..io.scene import IMAGE_EXTS, image_path, load_body, load_sequence_motion, read_scene
+from ..io.scene import IMAGE_EXTS, image_path, load_body, load_sequence_motion, read_scene, scene_cameras
 from ..io.template import read_template
 from ..synth import LABEL_GARMENT
 
@@ -122,12 +121,7 @@ def atomic_dir(out_dir: str | os.PathLike) -> Iterator[Path]:
 
 
 def _cameras(seq_dir: Path, names: Sequence[str], info: dict):
-    size = info.get("image_size") or [None, None]
-    try:
-        return load_cameras(seq_dir / "intri.yml", seq_dir / "extri.yml", names, height=size[0], width=size[1],
-                            dtype=torch.float32)
-    except (ValueError, KeyError) as e:
-        raise ValueError(f"{seq_dir / 'intri.yml'}: {e}") from e
+    return scene_cameras(seq_dir.parent, seq_dir.name, list(names), info, dtype=torch.float32)
 
 
 def _read_rgb(path: Path, shape: tuple[int, int] | None) -> np.ndarray:

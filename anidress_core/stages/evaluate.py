@@ -29,9 +29,8 @@ import numpy as np
 import torch
 
 from .. import __version__
-from ..camera import load_cameras
 from ..io import files
-from ..io.scene import load_body, load_sequence_motion, read_scene
+from ..io.scene import load_body, load_sequence_motion, read_scene, scene_cameras
 from ..metrics import image as M
 
 __all__ = ["run_evaluate", "COLUMNS", "read_metrics_csv"]
@@ -85,7 +84,7 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
         folder = Path(folder)
         rj = files.read_json(folder / "render.json")
         frames, cams_names = rj["frames"], rj["cameras"]
-        cams = load_cameras(scene_dir / seq / "intri.yml", scene_dir / seq / "extri.yml", names=cams_names)
+        cams = scene_cameras(scene_dir, seq, cams_names, info)
         bg = torch.tensor(rj.get("background", [0.0, 0.0, 0.0]), dtype=torch.float32)
         pts, box_source = _subject_points(scene_dir, seq, info, frames)
         todo = [(f, ci) for f in frames for ci in range(len(cams_names))]

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from .. import __version__
-from ..camera import load_cameras, pixel_rays, project
+from ..camera import pixel_rays, project
 from ..field.encoding import HashGridConfig
 from ..field.model import AnimatableField, FieldConfig
 from ..field.sampler import build_occupancy, mask_boxes, occupancy_pixels, occupied_centres
@@ -47,7 +47,7 @@ from ..io.field import FIELD_FORMAT as FORMAT
 from ..io.field import (FieldCheckpoint, read_field_checkpoint, read_training_state, training_state_path,
                         write_field_checkpoint, write_training_state)
 from ..io.rig import read_rig
-from ..io.scene import load_body, load_sequence_motion, read_scene
+from ..io.scene import load_body, load_sequence_motion, read_scene, scene_cameras
 from ..io.template import read_template
 
 __all__ = ["run_train", "run_render", "load_field", "field_config_from_params", "train_config_from_params",
@@ -206,8 +206,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
              grid.num_frames, 100 * grid.occupied_fraction(), S.shape[1], 24, S.shape[1] - 24,
              time.perf_counter() - t0)
     # 2. the images: training cameras, masked; rays in the dilated mask boxes
-    cameras = load_cameras(scene_dir / seq / "intri.yml", scene_dir / seq / "extri.yml", names=cams).to(
-        dtype=torch.float32)
+    cameras = scene_cameras(scene_dir, seq, list(cams), info).to(dtype=torch.float32)
     imgs, labels = _read_views(scene_dir / seq, cams, frames, masks_dir, tcfg.background)
     Tn, C, H, W, _ = imgs.shape
     boxes = mask_boxes((labels > 0).reshape(Tn * C, H, W), sp["mask_dilate_px"]).reshape(Tn, C, 4)
@@ -385,8 +384,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
                         sp["dilate_m"], sp["body_only_garment_dilate_m"])
     grid = build_occupancy(parts, (sp["res"],) * 3, sp["max_joints"], sp["min_weight"], progress=False).to(dev)
     inv = torch.linalg.inv(S).to(dev)
-    all_cams = load_cameras(scene_dir / cam_seq / "intri.yml", scene_dir / cam_seq / "extri.yml").to(
-        dtype=torch.float32)
+    all_cams = scene_cameras(scene_dir, cam_seq, None, info).to(dtype=torch.float32)
     names = list(cameras) if cameras else all_cams.names
     cams = all_cams.select(names)
     rays = pixel_rays(cams)

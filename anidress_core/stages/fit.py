@@ -39,10 +39,9 @@ import torch
 
 from .. import fit as FIT
 from ..io.garment_poses import load_garment_poses, save_garment_poses
-from ..camera import load_cameras
 from ..io import files
 from ..io.rig import read_rig
-from ..io.scene import garment_texture_path, image_path, load_body, load_sequence_motion, read_scene
+from ..io.scene import garment_texture_path, image_path, load_body, load_sequence_motion, read_scene, scene_cameras
 from ..io.template import read_template
 from ..synth import LABEL_GARMENT
 
@@ -222,7 +221,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         raise files.ArtifactError(f"{scene_dir / 'scene.yaml'}: no cameras/train list")
     names = select_views(train, int(params.get("views", 0)))
     sdir = scene_dir / seq
-    cams = load_cameras(sdir / "intri.yml", sdir / "extri.yml", names=names).to(device=device)
+    cams = scene_cameras(scene_dir, seq, names, info).to(device=device)
     views = FIT.Views.from_cameras(cams)
     # 2. rig
     art = read_rig(rig_npz, device=device, dtype=torch.float64)
