@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "skew",
     "axis_angle_to_matrix",
     "matrix_to_axis_angle",
     "rotation_6d_to_matrix",
@@ -36,7 +37,7 @@ __all__ = [
 _SMALL = 1e-6
 
 
-def _skew(v: Tensor) -> Tensor:
+def skew(v: Tensor) -> Tensor:
     """Cross-product matrix. v: (..., 3) -> (..., 3, 3)."""
     x, y, z = v.unbind(-1)
     o = torch.zeros_like(x)
@@ -57,7 +58,7 @@ def axis_angle_to_matrix(aa: Tensor) -> Tensor:
     theta = theta2_safe.sqrt()
     a = torch.where(small, 1 - theta2 / 6 + theta2 * theta2 / 120, torch.sin(theta) / theta)
     b = torch.where(small, 0.5 - theta2 / 24 + theta2 * theta2 / 720, (1 - torch.cos(theta)) / theta2_safe)
-    K = _skew(aa)
+    K = skew(aa)
     eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(K)
     return eye + a * K + b * (K @ K)
 
