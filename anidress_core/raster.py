@@ -90,6 +90,7 @@ __all__ = [
     "antialias",
     "SilhouetteCrossings",
     "silhouette_crossings",
+    "pair_crossings",
     "mesh_edges",
     "crossing_fraction",
     "occlude",
@@ -1089,9 +1090,13 @@ def silhouette_crossings(uv: Tensor, z: Tensor, faces: Tensor, fragments: Fragme
     return SilhouetteCrossings(inside[keep], outside[keep], c[keep], edge, xin[keep], xout[keep])
 
 
-def _pair_crossings(uv: Tensor, faces: Tensor, fragments: Fragments,
-                    adjacency: Tensor | None = None) -> SilhouetteCrossings:
+def pair_crossings(uv: Tensor, faces: Tensor, fragments: Fragments,
+                   adjacency: Tensor | None = None) -> SilhouetteCrossings:
     """nvdiffrast's pixel-pair search used by :func:`antialias` (no gradients).
+
+    uv (C, V, 2) projected vertices (:func:`project_vertices`), faces (F, 3), fragments
+    (C, H, W) from :func:`rasterize` of the same mesh, adjacency (F, 3) from
+    :func:`face_adjacency` (computed when not given).
 
     For each pair of horizontally or vertically adjacent pixels showing different faces
     (-1 = background or an occluder), the pixel with the smaller depth is the near one
@@ -1220,7 +1225,7 @@ def antialias(
     if color.ndim != 4 or color.shape[:3] != (C, H, W):
         raise ValueError(f"antialias: color must be ({C}, {H}, {W}, Ch), got {tuple(color.shape)}")
     uv, _ = project_vertices(verts, K, world_to_cam)  # (C, V, 2)
-    cr = _pair_crossings(uv, faces, fragments, adjacency)
+    cr = pair_crossings(uv, faces, fragments, adjacency)
     Ch = color.shape[-1]
     flat = color.reshape(-1, Ch)
     if cr.inside.numel() == 0:

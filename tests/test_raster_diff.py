@@ -90,7 +90,7 @@ def test_every_silhouette_pixel_pair_gets_a_crossing():
     assert bool(((t >= 0) & (t <= 1)).all())
     # nvdiffrast's own-face rule (antialias) finds fewer on this coarse-pixel mesh only where faces are tiny;
     # here it must not find more than the edge search
-    acr = raster._pair_crossings(uv, f, fr)
+    acr = raster.pair_crossings(uv, f, fr)
     keep = ~flat[acr.outside]
     assert int(keep.sum()) <= n
 
