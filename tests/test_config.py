@@ -42,6 +42,21 @@ def test_errors_name_the_key(patch, message):
         validate_config({"run_scenes": ["s"], "scenes": {"s": patch}}, SCHEMA)
 
 
+def test_motion_is_required_in_synthetic_scenes_only():
+    seqs = [{"name": "cap", "frames": 5}]
+    # a captured scene: its motion is its smpl/ folder, no procedural motion name needed
+    cfg = validate_config({"run_scenes": ["c"], "scenes": {"c": {"synthetic": False, "sequences": seqs}}}, SCHEMA)
+    assert "motion" not in cfg["scenes"]["c"]["sequences"][0] and cfg["scenes"]["c"]["sequences"][0]["role"] == "train"
+    # a captured scene may still name one, which must then be a known motion
+    with pytest.raises(ConfigError, match="sequences/0/motion"):
+        validate_config({"run_scenes": ["c"], "scenes": {"c": {"synthetic": False, "sequences": [
+            dict(seqs[0], motion="moonwalk")]}}}, SCHEMA)
+    # a synthetic scene (explicit, or by default) needs it, and the error names the sequence
+    for scene in ({"synthetic": True, "sequences": seqs}, {"sequences": seqs}):
+        with pytest.raises(ConfigError, match=r"scenes/s/sequences/0: 'motion' is a required property"):
+            validate_config({"run_scenes": ["s"], "scenes": {"s": scene}}, SCHEMA)
+
+
 def test_unknown_run_scene_and_bad_file(tmp_path):
     with pytest.raises(ConfigError, match="not a key of scenes"):
         validate_config({"run_scenes": ["nope"], "scenes": {"s": {}}}, SCHEMA)
