@@ -44,6 +44,7 @@ __all__ = [
     "make_skirt",
     "make_dress",
     "clean_and_remesh",
+    "grid_faces",
     "transfer_uv",
     "cylindrical_uv",
     "band_vertices",
@@ -389,8 +390,9 @@ def _tube_radii(pts: np.ndarray, cx: float, cz: float, ys: np.ndarray, y_waist: 
     return _upper_smooth(r, (3, 3))
 
 
-def _grid_faces(n_rows: int, n_cols: int, wrap: bool) -> np.ndarray:
-    """Triangles of a (n_rows, n_cols) vertex grid indexed row-major; columns wrap."""
+def grid_faces(n_rows: int, n_cols: int, wrap: bool) -> np.ndarray:
+    """Triangles (F, 3) int of a (n_rows, n_cols) vertex grid indexed row-major: two per cell,
+    F = 2 (n_rows - 1) n_cols when the columns wrap (``wrap``: a tube), else 2 (n_rows - 1) (n_cols - 1)."""
     i, j = np.meshgrid(np.arange(n_rows - 1), np.arange(n_cols if wrap else n_cols - 1), indexing="ij")
     a = i * n_cols + j
     b = i * n_cols + (j + 1) % n_cols
@@ -447,7 +449,7 @@ def skirt_surface(body, length: float = 0.55, flare: float = 0.35, waist_ease: f
     ys = yw - np.linspace(0.0, length, n_rows)
     r = _tube_radii(pts, cx, cz, ys, yw, n_theta, waist_ease, flare, fitted_above_waist=False)
     verts, _ = _tube(ys, r, cx, cz, n_theta)
-    faces = _grid_faces(n_rows, n_theta, wrap=True)
+    faces = grid_faces(n_rows, n_theta, wrap=True)
     return verts, faces, cylindrical_uv(verts, faces, (cx, cz))
 
 
@@ -479,7 +481,7 @@ def dress_surface(body, length: float = 0.80, flare: float = 0.30, ease: float =
     ys = np.linspace(y_top, yw - length, n_rows)
     r = _tube_radii(pts, cx, cz, ys, yw, n_theta, ease, flare, fitted_above_waist=True)
     tube, th = _tube(ys, r, cx, cz, n_theta)
-    faces = [_grid_faces(n_rows, n_theta, wrap=True)]
+    faces = [grid_faces(n_rows, n_theta, wrap=True)]
     top = tube[:n_theta]  # row 0 = top ring
     new_verts = [tube]
     n_used = len(tube)
@@ -530,7 +532,7 @@ def dress_surface(body, length: float = 0.80, flare: float = 0.30, ease: float =
         idx[1:-1] = n_used + np.arange((n_l - 2) * n).reshape(n_l - 2, n)
         n_used += len(strip)
         new_verts.append(strip)
-        g = _grid_faces(n_l, n, wrap=False)[:, ::-1]  # wound like the tube across the shared rows
+        g = grid_faces(n_l, n, wrap=False)[:, ::-1]  # wound like the tube across the shared rows
         faces.append(idx.reshape(-1)[g])
     verts = np.concatenate(new_verts)
     faces = np.concatenate(faces)

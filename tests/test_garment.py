@@ -160,7 +160,7 @@ def test_clean_and_remesh_repairs_a_dirty_mesh():
     th = np.linspace(0, 2 * np.pi, n, endpoint=False)
     ys = np.linspace(0, 0.5, r)
     v = np.stack([0.2 * np.sin(th)[None].repeat(r, 0), ys[:, None].repeat(n, 1), 0.2 * np.cos(th)[None].repeat(r, 0)], -1).reshape(-1, 3)
-    f = G._grid_faces(r, n, wrap=True)
+    f = G.grid_faces(r, n, wrap=True)
     dup = np.arange(0, len(v), 3)
     v2 = np.concatenate([v, v[dup]])
     f2 = f.copy()
