@@ -38,6 +38,7 @@ __all__ = [
     "build_mannequin",
     "load_or_build_mannequin",
     "cache_dir",
+    "cache_path",
 ]
 
 # Bump whenever the geometry, weights, labels or UVs change: it keys the cache.
@@ -760,7 +761,9 @@ def cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "anidress"
 
 
-def _cache_path(height: float, target_vertices: int) -> Path:
+def cache_path(height: float, target_vertices: int) -> Path:
+    """The npz file under :func:`cache_dir` that caches the mannequin of this height (metres) and vertex
+    count (keyed with MANNEQUIN_VERSION too); :func:`load_or_build_mannequin` reads and writes it."""
     key = json.dumps({"v": MANNEQUIN_VERSION, "height": round(float(height), 6),
                       "target_vertices": int(target_vertices)}, sort_keys=True)
     digest = hashlib.sha1(key.encode()).hexdigest()[:16]
@@ -777,7 +780,7 @@ def load_or_build_mannequin(height: float = REFERENCE_HEIGHT, target_vertices: i
     The cache file is keyed by (height, target_vertices, MANNEQUIN_VERSION); an
     unreadable or stale file is rebuilt.
     """
-    path = _cache_path(height, target_vertices)
+    path = cache_path(height, target_vertices)
     if use_cache and path.is_file():
         try:
             with np.load(path, allow_pickle=False) as z:

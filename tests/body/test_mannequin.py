@@ -126,7 +126,7 @@ def test_cache_round_trip(mannequin, mannequin_cache, data, monkeypatch):
     # Another parameter set gets another file; a corrupt file is rebuilt, not trusted.
     calls = []
     monkeypatch.setattr(mq, "build_mannequin", lambda h, n: calls.append((h, n)) or data)
-    path = mq._cache_path(1.61, 5000)
+    path = mq.cache_path(1.61, 5000)
     assert path.parent == mannequin_cache and path != files[0]
     path.write_bytes(b"not an npz")
     mq.load_or_build_mannequin(1.61, 5000)
