@@ -92,7 +92,8 @@ def test_undistort_matches_cv2_undistort_points():
     cams = _rig()
     g = torch.Generator().manual_seed(3)
     uv = torch.rand(3, 40, 2, generator=g, dtype=F64) * torch.tensor([63.0, 47.0], dtype=F64)
-    xy_d = cm._pixels_to_normalized(uv, cams)
+    # distorted normalised coordinates (x, y, 1) = K^-1 (u, v, 1)
+    xy_d = torch.linalg.solve(cams.K[:, None], torch.cat([uv, torch.ones_like(uv[..., :1])], -1)[..., None])[..., :2, 0]
     for iters in (5, 20):
         xy = cm.undistort_normalized(xy_d, cams.dist, iters=iters)
         crit = (cv2.TERM_CRITERIA_COUNT, iters, 0.0)
