@@ -1,0 +1,150 @@
+"""anidress_core.undistort: lookup maps against OpenCV (initUndistortRectifyMap, projectPoints,
+undistortPoints) to < 1e-2 px, and the remapping of images, label masks and normal maps."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from anidress_core.camera import Cameras, project, ring_cameras, unproject
+from anidress_core.undistort import (distorted_camera_names, undistort_image, undistort_labels, undistort_maps,
+                                     undistort_normals, working_cameras)
+
+H, W = 48, 64
+CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)  # undistortPoints to convergence
+
+
+def undistort_points(uv: np.ndarray, K, D, P=None) -> np.ndarray:
+    """cv2.undistortPoints (N, 2) pixels -> (N, 2), iterated to convergence (its default is 5 steps)."""
+    return cv2.undistortPoints(uv.reshape(-1, 1, 2).astype(np.float64), K, D, None, P, criteria=CRIT).reshape(-1, 2)
+DIST = torch.tensor([[-0.25, 0.08, 1e-3, -5e-4, -0.01],  # barrel, as a wide lens
+                     [0.12, -0.03, -8e-4, 6e-4, 0.0],    # pincushion
+                     [0.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+
+
+def rig(dist=DIST) -> Cameras:
+    cams = ring_cameras(3, 3.0, 1.0, (0, 0, 0.9), focal_px=50.0, image_height=H, image_width=W, dtype=torch.float64)
+    K = cams.K.clone()
+    K[:, 0, 2] += torch.tensor([1.3, -2.1, 0.0])  # principal points off the centre
+    K[:, 1, 1] *= torch.tensor([1.02, 0.97, 1.0])
+    return Cameras(cams.names, K, dist.clone(), cams.R, cams.T, H, W)
+
+
+def grid() -> np.ndarray:
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    return np.stack([u, v], -1)  # (H, W, 2) working pixel centres
+
+
+@pytest.mark.parametrize("new_focal", [1.0, 0.8])
+def test_maps_equal_opencv(new_focal):
+    cams = rig()
+    K_new = cams.K.clone()
+    K_new[:, :2, :2] *= new_focal
+    maps = undistort_maps(cams.K, cams.dist, H, W, K_new)
+    assert maps.map_x.shape == (3, H, W) and maps.map_x.dtype == np.float32 and maps.valid.dtype == bool
+    for c in range(3):
+        K, D, Kn = cams.K[c].numpy(), cams.dist[c].numpy(), K_new[c].numpy()
+        # 1. cv2.initUndistortRectifyMap
+        mx, my = cv2.initUndistortRectifyMap(K, D, None, Kn, (W, H), cv2.CV_32FC1)
+        assert np.abs(maps.map_x[c] - mx).max() < 1e-2 and np.abs(maps.map_y[c] - my).max() < 1e-2
+        # 2. cv2.projectPoints of the working pixels' rays (X = (x, y, 1) in the camera frame)
+        q = grid().reshape(-1, 2)
+        xy = (q - Kn[:2, 2]) / np.diag(Kn)[:2]
+        P = np.concatenate([xy, np.ones((len(xy), 1))], 1)
+        proj, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, D)
+        src = np.stack([maps.map_x[c], maps.map_y[c]], -1).reshape(-1, 2)
+        assert np.abs(src - proj.reshape(-1, 2)).max() < 1e-2
+        # 3. cv2.undistortPoints takes the (valid) source positions back to the working pixels
+        ok = maps.valid[c].reshape(-1)
+        back = undistort_points(src[ok], K, D, Kn)
+        assert ok.mean() > 0.5 and np.abs(back - q[ok]).max() < 1e-2
+
+
+def test_maps_agree_with_camera_projection():
+    """A world point seen at working pixel q (working camera) is at map(q) in the source (camera.project)."""
+    cams = rig()
+    work = working_cameras(cams)
+    assert distorted_camera_names(cams) == ["01", "02"] and distorted_camera_names(work) == []
+    assert torch.equal(work.K, cams.K) and torch.equal(work.R, cams.R) and (work.height, work.width) == (H, W)
+    maps = undistort_maps(cams.K, cams.dist, H, W)
+    q = torch.as_tensor(grid()).reshape(-1, 2)[::7]
+    depth = torch.full((3, q.shape[0]), 2.5, dtype=torch.float64)
+    X = unproject(q, depth, work, distorted=False)  # (C, N, 3)
+    uv = project(X, cams).uv  # through the lens model of anidress_core.camera
+    qi = q.long()
+    for c in range(3):
+        m = torch.stack([torch.as_tensor(maps.map_x[c])[qi[:, 1], qi[:, 0]],
+                         torch.as_tensor(maps.map_y[c])[qi[:, 1], qi[:, 0]]], -1).double()
+        assert float((m - uv[c]).abs().max()) < 1e-3
+    with pytest.raises(ValueError, match="K_new must be"):
+        working_cameras(cams, torch.eye(3))
+    with pytest.raises(ValueError, match=r"K must be \(C, 3, 3\) and dist \(C, 5\)"):
+        undistort_maps(cams.K, cams.dist[:, :4], H, W)
+
+
+def test_zero_distortion_is_the_identity():
+    cams = rig(torch.zeros(3, 5, dtype=torch.float64))
+    maps = undistort_maps(cams.K, cams.dist, H, W)
+    assert maps.valid.all()
+    rng = np.random.default_rng(0)
+    img = rng.random((H, W, 3)).astype(np.float32)
+    lab = rng.integers(0, 3, (H, W)).astype(np.uint8)
+    n = rng.normal(size=(H, W, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    assert np.abs(undistort_image(img, maps, 1) - img).max() < 1e-5
+    assert np.array_equal(undistort_labels(lab, maps, 1), lab)
+    assert np.abs(undistort_normals(n, maps, 1) - n).max() < 1e-5
+
+
+def _pattern(uv_norm: np.ndarray) -> np.ndarray:
+    """A smooth colour pattern of normalised camera coordinates (x, y): (..., 3) in [0, 1]."""
+    x, y = uv_norm[..., 0], uv_norm[..., 1]
+    return np.stack([0.5 + 0.4 * np.sin(5 * x), 0.5 + 0.4 * np.cos(4 * y), 0.5 + 0.3 * np.sin(3 * (x + y))], -1)
+
+
+def test_image_labels_normals_of_a_known_scene():
+    """Images of a pattern fixed to the rays: the distorted capture, undistorted, is the pinhole image."""
+    cams = rig()
+    maps = undistort_maps(cams.K, cams.dist, H, W)
+    for c in range(2):
+        K, D = cams.K[c].numpy(), cams.dist[c].numpy()
+        # 1. the capture: each source pixel sees the ray of its undistorted normalised coordinates
+        src = undistort_points(grid(), K, D).reshape(H, W, 2)
+        captured = _pattern(src).astype(np.float32)
+        # 2. the pinhole image of the same pattern
+        pin = _pattern((grid() - K[:2, 2]) / np.diag(K)[:2])
+        out = undistort_image(captured, maps, c)
+        ok = maps.valid[c]
+        assert out.dtype == np.float32 and out.shape == (H, W, 3) and (out[~ok] == 0).all()
+        assert (~ok).any() == (c == 1)  # barrel: the source covers the working image; pincushion: not
+        assert np.abs(out - pin)[ok].max() < 0.02  # bilinear interpolation of a smooth pattern
+        u8 = undistort_image((captured * 255).astype(np.uint8), maps, c)
+        assert u8.dtype == np.uint8 and np.abs(u8.astype(float) / 255 - pin)[ok].max() < 0.03
+        # 3. labels: a disc in ray space; nearest neighbour keeps the label set, invalid -> 0
+        lab = ((src ** 2).sum(-1) < 0.1).astype(np.uint8) * 2 + 1
+        got = undistort_labels(lab, maps, c)
+        want = (((grid() - K[:2, 2]) / np.diag(K)[:2]) ** 2).sum(-1) < 0.1
+        assert set(np.unique(got)) <= {0, 1, 3} and (got[~ok] == 0).all()
+        assert ((got[ok] == 3) != want[ok]).mean() < 0.02  # only along the disc's boundary
+        # 4. normals: unit where valid, zero where not
+        nrm = np.concatenate([src, -np.ones((H, W, 1))], -1)
+        nrm = (nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)).astype(np.float32)
+        nu = undistort_normals(nrm, maps, c)
+        pin_n = np.concatenate([(grid() - K[:2, 2]) / np.diag(K)[:2], -np.ones((H, W, 1))], -1)
+        pin_n /= np.linalg.norm(pin_n, axis=-1, keepdims=True)
+        assert np.allclose(np.linalg.norm(nu[ok], axis=-1), 1, atol=1e-5) and (nu[~ok] == 0).all()
+        assert np.abs(nu - pin_n)[ok].max() < 1e-2
+
+
+def test_bad_inputs_name_the_problem():
+    cams = rig()
+    maps = undistort_maps(cams.K, cams.dist, H, W)
+    with pytest.raises(ValueError, match=r"maps are for \(48, 64\)"):
+        undistort_image(np.zeros((10, 10, 3), np.float32), maps, 0)
+    with pytest.raises(ValueError, match="out of range"):
+        undistort_labels(np.zeros((H, W), np.uint8), maps, 5)
+    with pytest.raises(ValueError, match="integer"):
+        undistort_labels(np.zeros((H, W), np.float32), maps, 0)
+    nan = np.full((H, W, 3), np.nan, np.float32)
+    assert (undistort_normals(nan, maps, 0) == 0).all()
