@@ -7,6 +7,7 @@ problem, and that no results file was written.
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -121,6 +122,34 @@ def test_extrinsics_in_millimetres(scene):
     _fails(scene, p, "looks like millimetres")
 
 
+def _use_cameras(scene: Path, train: list[str], test: list[str]) -> None:
+    p = scene / "scene.yaml"
+    info = yaml.safe_load(p.read_text())
+    info["cameras"] = {"train": train, "test": test}
+    p.write_text(yaml.safe_dump(info))
+
+
+def test_extrinsics_needed_only_for_the_cameras_scene_yaml_uses(scene):
+    seq = scene / "walk"
+    cams = easymocap.read_extri(seq / "extri.yml")
+    easymocap.write_extri(seq / "extri.yml", {c: cams[c] for c in ("01", "02")})  # intri.yml keeps 01 .. 04
+    _use_cameras(scene, ["01"], ["02"])
+    s = validate_scene(scene)
+    assert s["cameras"] == {"train": ["01"], "test": ["02"]} and s["sequences"]["walk"]["cameras"] == 2
+    _use_cameras(scene, ["01", "03"], ["02"])
+    _fails(scene, seq / "extri.yml", "camera '03' listed in intri.yml has no extrinsics")
+    # unquoted names in both camera files (as some exporters write them): the same cameras, no
+    # "no intrinsics" error for 01 read as the number 1
+    easymocap.write_extri(seq / "extri.yml", cams)
+    for name in ("intri.yml", "extri.yml"):
+        p = seq / name
+        text, n = re.subn(r'^  - "(\d+)"$', r"  - \1", p.read_text(), flags=re.M)
+        assert n == 4 and "\n  - 01\n" in text
+        p.write_text(text)
+    s = validate_scene(scene)
+    assert s["sequences"]["walk"]["cameras"] == 3
+
+
 # --------------------------------------------------------------------------- frames and images
 
 
@@ -185,6 +214,26 @@ def test_body_translation_in_millimetres(scene):
         data[0]["Th"] = [[1000.0 * x for x in data[0]["Th"][0]]]
         p.write_text(json.dumps(data))
     _fails(scene, scene / "walk" / "smpl" / "000000.json", "'Th'", "looks like millimetres")
+
+
+def test_body_params_of_the_person_scene_yaml_selects(scene):
+    smpl = scene / "walk" / "smpl"
+    for p in sorted(smpl.glob("*.json")):  # a second person (id 1) in every frame, 2 cm to the side
+        people = json.loads(p.read_text())
+        people.append({**people[0], "id": 1, "Th": [[people[0]["Th"][0][0] + 0.02, *people[0]["Th"][0][1:]]]})
+        p.write_text(json.dumps(people))
+    _fails(scene, smpl / "000000.json", "holds 2 people (ids [0, 1])")
+    p = scene / "scene.yaml"
+    info = yaml.safe_load(p.read_text())
+    info["sequences"][0]["person_id"] = 1
+    p.write_text(yaml.safe_dump(info))
+    assert validate_scene(scene)["sequences"]["walk"]["frames"] == 3
+    people = json.loads((smpl / "000001.json").read_text())
+    (smpl / "000001.json").write_text(json.dumps(people[:1]))  # person 1 missing in the middle frame
+    _fails(scene, smpl / "000001.json", "no person with id 1 in this frame", "'max_missing_frames'")
+    info["sequences"][0]["max_missing_frames"] = 1  # ... which scene.yaml allows to interpolate
+    p.write_text(yaml.safe_dump(info))
+    assert validate_scene(scene)["sequences"]["walk"]["frames"] == 3
 
 
 # --------------------------------------------------------------------------- body model units

@@ -268,26 +268,3 @@ def test_camera_names_asked_as_numbers_say_to_quote():
         em.read_camera(intri, extri, names=[1, "02"])
     with pytest.raises(ValueError, match=r"extri\.yml: cameras \[2\] asked for are not strings"):
         em.read_extri(extri, names=[2])
-
-
-def test_validation_needs_extrinsics_only_for_the_cameras_scene_yaml_uses(tmp_path):
-    from anidress_core.io.files import SceneError
-    from anidress_core.stages.validate import _check_cameras
-
-    seq = tmp_path / "walk"
-    seq.mkdir()
-    cams = em.read_camera(os.path.join(SAMPLE, "intri.yml"), os.path.join(SAMPLE, "extri.yml"))
-    em.write_intri(seq / "intri.yml", cams)  # intri.yml lists 01, 02, 03
-    em.write_extri(seq / "extri.yml", {c: cams[c] for c in ("01", "02")})  # extrinsics of 01, 02 only
-    info = {"cameras": {"train": ["01"], "test": ["02"]}}
-    used, raw, _ = _check_cameras(seq, info, [])
-    assert used == ["01", "02"] and sorted(raw) == ["01", "02"]
-    np.testing.assert_array_equal(raw["02"]["T"], cams["02"]["T"])
-    info = {"cameras": {"train": ["01", "03"], "test": ["02"]}}
-    with pytest.raises(SceneError, match=r"extri\.yml: camera '03' listed in intri\.yml has no extrinsics"):
-        _check_cameras(seq, info, [])
-    # unquoted names in both files (the sample): the same cameras, no "no intrinsics" error
-    for name in ("intri.yml", "extri.yml"):
-        (seq / name).write_bytes(open(os.path.join(SAMPLE, name), "rb").read())
-    used, raw, _ = _check_cameras(seq, info, [])
-    assert used == ["01", "03", "02"]

@@ -146,20 +146,18 @@ def test_scene_yaml_selection_keys():
 
 
 def test_scene_readers_take_the_person_of_scene_yaml(tmp_path):
+    """io.scene's motion reader follows scene.yaml's person_id / max_missing_frames (validate_scene does too:
+    tests/test_validate.py::test_body_params_of_the_person_scene_yaml_selects)."""
     import yaml
 
-    from anidress_core.io.files import SceneError
     from anidress_core.io.scene import load_sequence_motion
-    from anidress_core.stages.validate import _check_smpl
 
     shutil.copytree(DATA / "two_people", tmp_path / "walk" / "smpl")
     info = {"fps": 30, "body_model": {"type": "mannequin", "file": "body.npz"}, "sequences": [{"name": "walk"}]}
     (tmp_path / "scene.yaml").write_text(yaml.safe_dump(info))
-    with pytest.raises(SceneError, match=r"walk/smpl/000000\.json: holds 2 people \(ids \[0, 1\]\)"):
-        _check_smpl(tmp_path / "walk", [0, 1, 2, 3], [])
+    with pytest.raises(ValueError, match=r"walk/smpl/000000\.json: holds 2 people \(ids \[0, 1\]\)"):
+        load_sequence_motion(tmp_path, "walk", 30.0)
     info["sequences"][0].update(person_id=1, max_missing_frames=1)
     (tmp_path / "scene.yaml").write_text(yaml.safe_dump(info))
     motion = load_sequence_motion(tmp_path, "walk", 30.0)
     np.testing.assert_allclose(motion.Th[:, 0].numpy(), [5.0, 5.2, 5.4, 5.6], atol=1e-6)
-    params = _check_smpl(tmp_path / "walk", [0, 1, 2, 3], [])
-    assert params["interpolated"] == [2]
