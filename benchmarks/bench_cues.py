@@ -39,12 +39,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from anidress_core.config import load_config
 from anidress_core.cues import FLOW_METHODS, MASK_METHODS, CueErrors
 from anidress_core.io import files
 from anidress_core.stages import cues as sc
-from anidress_core.io.scene import image_path, read_scene
+from anidress_core.io.scene import image_path, read_scene, scene_cameras
 from benchmarks.benchutil import cpu_model, git_rev
 
 # the code whose uncommitted changes the git revision of a run's table flags
@@ -92,8 +93,8 @@ def prior_iou(scene_dir: Path, seq: str, tpl: Path, frames: list[int]) -> dict:
     """IoU of the shape prior alone (no image) against the ground truth."""
     info = read_scene(scene_dir)
     names = sc.select_cameras(info, "train", scene_dir)
-    cams = sc._cameras(scene_dir / seq, names, info)
-    prior = sc._Prior(scene_dir, seq, info, tpl, cams, frames)
+    cams = scene_cameras(scene_dir, seq, names, info, dtype=torch.float32)
+    prior = sc.ShapePrior(scene_dir, seq, info, tpl, cams, frames)
     acc = CueErrors()
     for f in frames:
         gt = np.stack([files.read_mask(scene_dir / seq / "gt" / "masks" / c / f"{f:06d}.png") for c in names])
@@ -106,7 +107,7 @@ def interleaved_timing(scene_dir: Path, seq: str, names: list[str], frames: list
                        repeats: int = 3, full_frame: bool = False) -> dict[str, float]:
     """Median seconds per pair of each method, the methods interleaved pair by pair (and their
     order rotated) so that load changes on a shared machine hit every method alike. With
-    ``prior`` (stages.cues._Prior) the methods get its flow as initialisation, as in the stage."""
+    ``prior`` (stages.cues.ShapePrior) the methods get its flow as initialisation, as in the stage."""
     from anidress_core.cues import flow as cf
 
     rng = np.random.default_rng(0)
@@ -225,7 +226,8 @@ def main() -> None:
                 ds = int(fcfg["prior_downsample"])
                 prior = None
                 if fcfg["prior"]:
-                    prior = sc._Prior(src, seq, info, tpl, sc._cameras(src / seq, names, info), frames)
+                    prior = sc.ShapePrior(src, seq, info, tpl, scene_cameras(src, seq, names, info, dtype=torch.float32),
+                                          frames)
                 timing = interleaved_timing(src, seq, names, frames, default_masks, flow_methods, fcfg["margin_px"],
                                             prior, ds)
                 prior_ms = 0.0
