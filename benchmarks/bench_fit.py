@@ -1,18 +1,21 @@
 """Benchmark of the garment fit (anidress_core.fit) against the synthetic ground truth.
 
-For each scene, sequence and number of training views, fits the full method and the
-paper's ablations (a) vertex, (b) no_normal_flow, (c) no_flow and our variants ``photo`` (the
-full loss + multi-view photo-consistency L_ph) and ``anchor`` (the full loss + the temporal
-chromaticity anchor L_an) with the same cues, then
-measures every frame against the ground-truth garment (stages.fit.run_fit_eval): vertex
-RMSE (mean, 95th percentile, worst frame), Chamfer distance, normal consistency,
-temporal jitter and acceleration error, frames per second; and the rig's floor on the
-same motion (RMSE of rig.fit_transforms on the ground-truth meshes in template
-topology). A second reference, ``sim``, is no fit at all: the rig driven by its own simulated
-poses of the sequence (``rig.transforms_of('seq-<name>')``, the cloth simulation of the
-template on the sequence's body motion, paper §4.5): what fitting to the images adds over
-the simulator. Writes benchmarks/fit.md and benchmarks/fit.csv; fitted poses go to
-benchmarks/runs/fit/ (not committed).
+For each scene, sequence and number of training views, fits every loss variant named by
+``--methods`` (:data:`anidress_core.fit.variants.VARIANTS`, the one list of them; default: the
+paper's loss ``paper``, the pipeline's ``pipeline`` and the paper's ablations ``paper_vertex``,
+``paper_no_normal_flow``, ``paper_no_flow``) with the same cues and the config's settings of
+the scene (config section ``fit`` with ``scenes/<scene>/fit`` on top), then measures every
+frame against the ground-truth garment (stages.fit.run_fit_eval): vertex RMSE (mean, 95th
+percentile, worst frame), Chamfer distance, normal consistency, temporal jitter and
+acceleration error, frames per second; and the rig's floor on the same motion (RMSE of
+rig.fit_transforms on the ground-truth meshes in template topology). A reference, ``sim``, is
+no fit at all: the rig driven by its own simulated poses of the sequence
+(``rig.transforms_of('seq-<name>')``, the cloth simulation of the template on the sequence's
+body motion, paper §4.5): what fitting to the images adds over the simulator. Writes
+``<out>.md`` and ``<out>.csv`` (default benchmarks/fit.md and benchmarks/fit.csv; ``--out`` a
+folder: fit.md and fit.csv in it); the fitted poses go to ``--runs`` (default
+benchmarks/runs/fit/, not committed). Every text of the table and its notes is generated from
+VARIANTS, the settings as run and the measurements.
 
     .venv/bin/python -m benchmarks.bench_fit --scenes skirt --views 8,4 --cues pipeline
 """
@@ -20,8 +23,10 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import datetime
 import functools
+import json
 import os
 import platform
 import sys
@@ -31,11 +36,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from anidress_core.config import load_config
-from anidress_core.stages import setup_logging
-from anidress_core.fit import FitConfig
-from anidress_core.stages.fit import load_garment_poses, run_fit, run_fit_eval
+from anidress_core.config import load_config, scene_section
+from anidress_core.fit import VARIANTS, FitConfig
+from anidress_core.io.garment_poses import load_garment_poses
 from anidress_core.io.scene import read_scene
+from anidress_core.stages import setup_logging
+from anidress_core.stages.fit import run_fit, run_fit_eval
 from benchmarks.benchutil import git_rev
 
 REPO = Path(__file__).resolve().parents[1]
@@ -43,19 +49,77 @@ REPO = Path(__file__).resolve().parents[1]
 # the code whose uncommitted changes the git revision of a run's table flags
 CODE_PATHS = ("anidress_core/fit", "anidress_core/raster.py", "anidress_core/stages/fit.py")
 
-METHODS = ["full", "collision", "vertex", "no_normal_flow", "no_flow"]
-# the loss variant (anidress_core.fit.variants) each method runs: `full` is the paper's loss, `collision`
-# the pipeline's (L_an on texture references, L_col, L_prior, filtered)
-VARIANT_OF = {"full": "paper", "collision": "pipeline", "vertex": "paper_vertex",
-              "no_normal_flow": "paper_no_normal_flow", "no_flow": "paper_no_flow"}
-LABEL = {"sim": "reference: simulation only (rig driven by the simulated poses, no fit)",
-         "full": "full (rig, L_M + L_N + L_of)", "photo": "ours: full + L_ph (photo-consistency)",
-         "anchor": "ours: full + L_an (chromaticity anchor)",
-         "anchor_smooth": "ours: full + L_an, poses filtered over time (1 pass)",
-         "anchor_texture": "ours: full + L_an with references from the garment texture, filtered (1 pass)",
-         "collision": "ours: the pipeline's loss (L_an on texture references + L_col + L_prior, filtered)",
-         "vertex": "(a) vertex fit, no rig", "no_normal_flow": "(b) L_M only", "no_flow": "(c) L_M + L_N"}
-PAPER_ABLATIONS = ("vertex", "no_normal_flow", "no_flow")
+#: the loss variants fitted by default: the paper's loss, the pipeline's, the paper's ablations (Fig. 9)
+DEFAULT_METHODS = ("paper", "pipeline", "paper_vertex", "paper_no_normal_flow", "paper_no_flow")
+#: the reference that is no fit: the rig driven by its simulated poses of the sequence
+SIM = "sim"
+SIM_DESCRIPTION = ("reference, no fit: the rig driven by its simulated poses of the sequence "
+                   "(rig.transforms_of('seq-<sequence>'), the cloth simulator alone; no fps)")
+#: the criteria, read on these methods: vertex RMSE < RMSE_TARGET x the rig floor; >= FPS_TARGET
+#: frames/s at FPS_VIEWS views
+CRITERIA_METHODS = ("pipeline", "paper")
+#: the baselines `pipeline` is compared with in the notes
+BASELINES = ("paper", SIM)
+RMSE_TARGET, FPS_TARGET, FPS_VIEWS = 1.5, 1.0, 8
+
+
+def description(method: str) -> str:
+    """The text of a method: its VARIANTS description (``sim``: the simulation reference)."""
+    return SIM_DESCRIPTION if method == SIM else VARIANTS[method].description
+
+
+def base_of(method: str) -> str | None:
+    """The variant ``method`` is an ablation of: the longest other VARIANTS name it extends
+    (``paper_no_flow`` -> ``paper``, ``pipeline_no_anchor`` -> ``pipeline``); None for a base."""
+    bases = [n for n in VARIANTS if method != n and method.startswith(n + "_")]
+    return max(bases, key=len) if bases else None
+
+
+def parse_methods(text: str, sim: bool) -> list[str]:
+    """``--methods`` as a list of VARIANTS names (``sim`` first unless ``sim`` is False), checked."""
+    names = [m.strip() for m in text.split(",") if m.strip()]
+    bad = [m for m in names if m != SIM and m not in VARIANTS]
+    if bad:
+        raise SystemExit(f"--methods: unknown {bad}; choose from {[SIM, *VARIANTS]} "
+                         "(anidress_core/fit/variants.py)")
+    names = [m for m in dict.fromkeys(names) if m != SIM]
+    return ([SIM] if sim else []) + names
+
+
+def weights_text(weights: dict) -> str:
+    """``2 L_silhouette + 0.1 L_normal + 3 L_flow``: the nonzero weights of a loss, term by term."""
+    return " + ".join(f"{w:g} L_{k}" for k, w in weights.items() if w) or "no loss term"
+
+
+def settings_text(cfg: FitConfig) -> str:
+    """The loss and the settings that tell variants apart, as FitConfig holds them."""
+    w = dataclasses.asdict(cfg.weights)
+    return (f"{weights_text(w)}; method {cfg.method}; {cfg.smooth_passes} temporal filter pass(es)"
+            + (f"; L_anchor references: {cfg.anchor_reference}" if w["anchor"] else ""))
+
+
+def methods_lines(methods: list[str], scene_params: dict[str, dict]) -> list[str]:
+    """The methods paragraph of the .md header: each method's VARIANTS description and its
+    settings as run (per scene when the scenes' settings differ)."""
+    lines = ["- methods (`--methods`, the loss variants of `anidress_core.fit.variants.VARIANTS`; settings "
+             "as run: config/config.yaml section `fit` with the scene's `scenes/<scene>/fit` on top, the variant "
+             "applied; the loss of each row as used is the csv's `weights` column):"]
+    for m in methods:
+        if m == SIM:
+            lines.append(f"  - `{m}`: {description(m)}")
+            continue
+        per = {s: settings_text(FitConfig.from_config(p, m)) for s, p in scene_params.items()}
+        as_run = (next(iter(per.values())) if len(set(per.values())) == 1 else
+                  "; ".join(f"{s}: {t}" for s, t in per.items()))
+        base = base_of(m)
+        lines.append(f"  - `{m}`: {description(m)}" + (f" (an ablation of `{base}`)" if base else "") +
+                     f". As run: {as_run}")
+    lines.append(f"- criteria, read on {', '.join(f'`{m}`' for m in CRITERIA_METHODS)}: vertex RMSE < "
+                 f"{RMSE_TARGET:g} x the rig floor; >= {FPS_TARGET:g} frames/s at {FPS_VIEWS} views. The notes under "
+                 "them compare `pipeline` with its baselines ("
+                 f"{', '.join(f'`{m}`' for m in BASELINES)}) and each base variant with its ablations; 'better' = "
+                 "lower for the first method named.")
+    return lines
 
 
 def cue_dirs(scene: str, seq: str, source: str) -> dict:
@@ -90,9 +154,19 @@ def write_sim_poses(rig_npz: str, seq: str, frames: int, out: Path) -> None:
     files.save_npz(out, {"transforms": G.float().numpy(), "verts": X.float().numpy(),
                          "faces": np.asarray(art.faces, np.int64), "loss": nan, "iterations": np.zeros(T, np.int64),
                          "wall_s": nan},
-                   meta={"method": "sim", "description": LABEL["sim"], "rig": rig_npz, "sequence": seq, "frames": T,
-                         "fps": float("nan"), "wall_fit_s": float("nan"), "cpu_fit_s": float("nan"),
-                         "torch_threads": torch.get_num_threads(), "source": f"rig.transforms_of({name!r})"})
+                   meta={"method": SIM, "loss": SIM, "description": description(SIM), "rig": rig_npz,
+                         "sequence": seq, "frames": T, "fps": float("nan"), "wall_fit_s": float("nan"),
+                         "cpu_fit_s": float("nan"), "torch_threads": torch.get_num_threads(),
+                         "source": f"rig.transforms_of({name!r})"})
+
+
+def reusable(path: Path, method: str, params: dict) -> bool:
+    """Whether ``path`` holds a fit of variant ``method`` made with exactly ``params``."""
+    if not path.is_file():
+        return False
+    meta = load_garment_poses(path)[1].get("meta", {})
+    key = functools.partial(json.dumps, sort_keys=True, default=str)
+    return meta.get("loss") == method and key(meta.get("params")) == key(params)
 
 
 @functools.lru_cache(maxsize=None)
@@ -116,32 +190,66 @@ def stats(x: np.ndarray, worst="max") -> tuple[float, float, float]:
                                                                                         else x.min())
 
 
+def summary_row(per: list[dict], meta: dict, **key) -> dict:
+    """One row of fit.csv (units in the column names) from the per-frame rows of one method in
+    fit_metrics.csv and the header ``meta`` of its garment_poses.npz; ``key``: scene, sequence,
+    views, method, cues."""
+    col = lambda k: np.array([float(x[k]) for x in per])  # noqa: E731
+    vr, fl = col("vertex_rmse_m"), col("rig_floor_rmse_m")
+    row = {**key, "description": description(key["method"]),
+           "weights": weights_text(meta["weights"]) if "weights" in meta else "",
+           "frames": len(per), "reference": "rig floor (rig.fit_transforms on GT meshes)",
+           "rig_floor_rmse_m": float(fl.mean()),
+           "fps": meta["fps"], "wall_fit_s": meta["wall_fit_s"], "torch_threads": meta["torch_threads"],
+           "cpu_s_per_frame": meta.get("cpu_fit_s", float("nan")) / max(len(per), 1),
+           "iterations_mean": float(col("iterations").mean())}
+    for k, worst in (("vertex_rmse_m", "max"), ("chamfer_m", "max"), ("normal_consistency", "min")):
+        m, p, w = stats(col(k), worst)
+        row[f"{k}_mean"], row[f"{k}_p95" if worst == "max" else f"{k}_p5"], row[f"{k}_worst"] = m, p, w
+    row["worst_frame"] = int(np.nanargmax(vr))
+    row["jitter_m"] = float(np.nanmean(col("jitter_m")))
+    row["gt_jitter_m"] = float(np.nanmean(col("gt_jitter_m")))
+    row["accel_error_m"] = float(np.nanmean(col("accel_error_m")))
+    row["rmse_over_floor"] = row["vertex_rmse_m_mean"] / row["rig_floor_rmse_m"]
+    row["rig_floor_chamfer_m"] = float(col("rig_floor_chamfer_m").mean())
+    row["chamfer_over_floor"] = row["chamfer_m_mean"] / row["rig_floor_chamfer_m"]
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="skirt")
     ap.add_argument("--seq", default="train", help="sequence names, or 'train' (the train-role sequence)")
     ap.add_argument("--views", default="8,4")
-    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--methods", default=",".join(DEFAULT_METHODS),
+                    help=f"loss variants to fit, from {', '.join(VARIANTS)} (anidress_core/fit/variants.py); "
+                         f"the reference `{SIM}` is added unless --no-sim (default: %(default)s)")
     ap.add_argument("--no-sim", action="store_true", help="leave out the simulation-only reference row")
     ap.add_argument("--cues", default="pipeline", choices=["pipeline", "ground_truth"])
     ap.add_argument("--frames", type=int, default=0, help="fit only the first N frames (0: all)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--samples", type=int, default=20000)
-    ap.add_argument("--out", default="benchmarks/fit")
-    ap.add_argument("--reuse", action="store_true", help="reuse fitted poses already in benchmarks/runs/fit")
+    ap.add_argument("--out", help="output path without suffix (<out>.md, <out>.csv), or a folder (fit.md, fit.csv "
+                                  "in it) (default: benchmarks/fit)")
+    ap.add_argument("--runs", help="folder of the fitted poses (default: benchmarks/runs/fit)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="reuse fitted poses already in --runs when made by the same variant with the same settings")
     args = ap.parse_args()
+    methods = parse_methods(args.methods, not args.no_sim)
+    # paths given are relative to the working directory, the defaults to the repository
+    args.out = out_stem(args.out) if args.out else REPO / "benchmarks" / "fit"
+    args.runs = Path(args.runs).absolute() if args.runs else REPO / "benchmarks" / "runs" / "fit"
     os.chdir(REPO)
     torch.set_num_threads(args.threads)
     log = setup_logging(None)
     cfg = load_config("config/config.yaml")
-    params = {k: v for k, v in cfg["fit"].items() if k not in ("ablations", "eval")}
-    params["threads"] = args.threads
-    # lambda_N of the paper's loss (`full` and its ablations) and of the pipeline's (`collision`)
-    lam_n, lam_n_an = FitConfig.from_config(params, "paper").weights.normal, FitConfig.from_config(params).weights.normal
     load0 = os.getloadavg()
-    rows, notes = [], []
+    rows, notes, scene_params = [], [], {}
     command = "  ".join([".venv/bin/python -m benchmarks.bench_fit"] + sys.argv[1:])
     for scene in args.scenes.split(","):
+        params = {k: v for k, v in scene_section(cfg, "fit", scene).items() if k not in ("ablations", "eval")}
+        params["threads"] = args.threads
+        scene_params[scene] = params
         info = read_scene(f"data/{scene}")
         seqs = [s["name"] for s in info["sequences"] if s.get("role") == "train"] if args.seq == "train" else \
             args.seq.split(",")
@@ -149,134 +257,116 @@ def main() -> None:
         for seq in seqs:
             dirs = cue_dirs(scene, seq, args.cues)
             for nv in (int(v) for v in args.views.split(",")):
-                fits, timing = {}, {}
-                if not args.no_sim:  # no fitting: cheap, always recomputed
-                    out = Path(f"benchmarks/runs/fit/{scene}/{seq}/{args.cues}/v{nv}/sim/garment_poses.npz")
-                    write_sim_poses(rig, seq, args.frames, out)
-                    fits["sim"], timing["sim"] = out, load_garment_poses(out)[1]["meta"]
-                for method in args.methods.split(","):
-                    out = Path(f"benchmarks/runs/fit/{scene}/{seq}/{args.cues}/v{nv}/{method}/garment_poses.npz")
-                    p = dict(params, views=nv)
-                    if args.frames:
-                        p["frames"] = args.frames
-                    if not (args.reuse and out.is_file()):
-                        t0 = time.perf_counter()
-                        run_fit(f"data/{scene}", seq, rig, f"results/{scene}/template.npz", dirs["masks"],
-                                dirs["flows"], dirs["normals"], p, out, ablation=VARIANT_OF.get(method, method),
-                                progress=False, cue_source=dirs["label"])
-                        log.info("bench_fit: %s %s v%d %s: %.1f s", scene, seq, nv, method, time.perf_counter() - t0)
-                    fits[method] = out
-                    timing[method] = load_garment_poses(out)[1]["meta"]
-                csv_path = Path(f"benchmarks/runs/fit/{scene}/{seq}/{args.cues}/v{nv}/fit_metrics.csv")
+                run_dir = Path(args.runs) / scene / seq / args.cues / f"v{nv}"
+                fits, metas = {}, {}
+                for method in methods:
+                    out = run_dir / method / "garment_poses.npz"
+                    if method == SIM:  # no fitting: cheap, always recomputed
+                        write_sim_poses(rig, seq, args.frames, out)
+                    else:
+                        p = dict(params, views=nv)
+                        if args.frames:
+                            p["frames"] = args.frames
+                        if not (args.reuse and reusable(out, method, p)):
+                            t0 = time.perf_counter()
+                            run_fit(f"data/{scene}", seq, rig, f"results/{scene}/template.npz", dirs["masks"],
+                                    dirs["flows"], dirs["normals"], p, out, ablation=method, progress=False,
+                                    cue_source=dirs["label"])
+                            log.info("bench_fit: %s %s v%d %s: %.1f s", scene, seq, nv, method,
+                                     time.perf_counter() - t0)
+                    fits[method], metas[method] = out, load_garment_poses(out)[1]["meta"]
+                    if metas[method].get("loss") != method:
+                        raise SystemExit(f"{out}: header meta loss is {metas[method].get('loss')!r}, not {method!r}")
+                csv_path = run_dir / "fit_metrics.csv"
                 summ = run_fit_eval(f"data/{scene}", seq, rig, fits, csv_path, samples=args.samples)
                 with open(csv_path) as fh:
                     per = list(csv.DictReader(fh))
                 for method in fits:
-                    r = [x for x in per if x["method"] == method]
-                    col = lambda k: np.array([float(x[k]) for x in r])  # noqa: E731
-                    meta = timing[method]
-                    vr, fl = col("vertex_rmse_m"), col("rig_floor_rmse_m")
-                    row = {
-                        "scene": scene, "sequence": seq, "views": nv, "method": method, "cues": args.cues,
-                        "frames": len(r), "reference": "rig floor (rig.fit_transforms on GT meshes)",
-                        "rig_floor_rmse_m": float(fl.mean()),
-                        "fps": meta["fps"], "wall_fit_s": meta["wall_fit_s"], "torch_threads": meta["torch_threads"],
-                        "cpu_s_per_frame": meta.get("cpu_fit_s", float("nan")) / max(len(r), 1),
-                        "iterations_mean": float(col("iterations").mean()),
-                    }
-                    for k, worst in (("vertex_rmse_m", "max"), ("chamfer_m", "max"), ("normal_consistency", "min")):
-                        m, p95, w = stats(col(k), worst)
-                        row[f"{k}_mean"], row[f"{k}_p95" if worst == "max" else f"{k}_p5"], row[f"{k}_worst"] = m, p95, w
-                    row["worst_frame"] = int(np.nanargmax(vr))
-                    row["jitter_m"] = float(np.nanmean(col("jitter_m")))
-                    row["gt_jitter_m"] = float(np.nanmean(col("gt_jitter_m")))
-                    row["accel_error_m"] = float(np.nanmean(col("accel_error_m")))
-                    row["rmse_over_floor"] = row["vertex_rmse_m_mean"] / row["rig_floor_rmse_m"]
-                    row["rig_floor_chamfer_m"] = float(col("rig_floor_chamfer_m").mean())
-                    row["chamfer_over_floor"] = row["chamfer_m_mean"] / row["rig_floor_chamfer_m"]
-                    rows.append(row)
+                    rows.append(summary_row([x for x in per if x["method"] == method], metas[method], scene=scene,
+                                            sequence=seq, views=nv, method=method, cues=args.cues))
+                fitted = [m for m in fits if m != SIM]
+                cams = metas[fitted[0]]["cameras"] if fitted else "--"
                 notes.append(f"{scene}/{seq}, {nv} views: template -> ground-truth correspondence distance mean "
                              f"{1e3 * summ['correspondence_mean_m']:.2f} mm, max {1e3 * summ['correspondence_max_m']:.2f}"
                              f" mm; Chamfer sampling bias (the ground truth of frame 0 against itself, two independent "
                              f"sample sets): {1e3 * chamfer_bias(scene, seq, args.samples):.2f} mm; cues: {dirs['label']}"
-                             f"; cameras: {timing['full']['cameras']}")
+                             f"; cameras: {cams}")
+                for m in fitted:  # a loss as used that is not the one configured (e.g. no normal maps)
+                    want = weights_text(dataclasses.asdict(FitConfig.from_config(params, m).weights))
+                    got = weights_text(metas[m]["weights"])
+                    if got != want:
+                        notes.append(f"{scene}/{seq}, {nv} views, `{m}`: ran with {got} (configured: {want})")
     load1 = os.getloadavg()
-    notes.insert(0, f"lambda_N = {lam_n:g} in every row except those with L_an on texture references "
-                 f"(`collision`, the pipeline's loss): {lam_n_an:g} there (config `fit/weights/normal`; "
-                 "studies/fit/fit_normal_weight.md)")
-    write(rows, notes, args, command, load0, load1)
+    write(rows, notes, args, command, load0, load1, methods_lines(methods, scene_params))
+
+
+def _mm(x: float) -> str:
+    return f"{1e3 * x:.2f}"
+
+
+def _num(x: float) -> str:
+    return f"{x:.2f}" if np.isfinite(x) else "--"
+
+
+def compare(a_name: str, a: dict, b_name: str, b: dict) -> str:
+    """Method ``a`` against method ``b`` (rows of fit.csv): vertex RMSE and its ratio to the rig
+    floor, Chamfer and its ratio to the floor's, acceleration error, speed; 'better' = ``a`` lower."""
+    def verdict(k):
+        return "better" if a[k] < b[k] else "NOT better"
+
+    speed = (f"; {_num(a['fps'])} vs {_num(b['fps'])} frames/s" if np.isfinite(a["fps"]) and np.isfinite(b["fps"])
+             else "")
+    return (f"`{a_name}` vs `{b_name}`: vertex RMSE {_mm(a['vertex_rmse_m_mean'])} vs {_mm(b['vertex_rmse_m_mean'])} mm"
+            f" = {a['rmse_over_floor']:.2f} vs {b['rmse_over_floor']:.2f} x the rig floor -> "
+            f"{verdict('vertex_rmse_m_mean')}; Chamfer {_mm(a['chamfer_m_mean'])} vs {_mm(b['chamfer_m_mean'])} mm = "
+            f"{a['chamfer_over_floor']:.2f} vs {b['chamfer_over_floor']:.2f} x the rig floor's -> "
+            f"{verdict('chamfer_m_mean')}; acceleration error {_mm(a['accel_error_m'])} vs {_mm(b['accel_error_m'])} "
+            f"mm -> {verdict('accel_error_m')}{speed}")
 
 
 def verdicts(rows: list[dict]) -> list[str]:
+    """The criteria on CRITERIA_METHODS, then `pipeline` against its BASELINES and
+    every base variant against its ablations, per scene, sequence, views and cues."""
     out = []
-    groups = {}
+    groups: dict[tuple, dict[str, dict]] = {}
     for r in rows:
         groups.setdefault((r["scene"], r["sequence"], r["views"], r["cues"]), {})[r["method"]] = r
     for (scene, seq, nv, cues), g in groups.items():
-        if "full" not in g:
-            continue
-        f = g["full"]
-
-        def beat(a, name, r):
-            ok_r = a["vertex_rmse_m_mean"] < r["vertex_rmse_m_mean"]
-            ok_j = a["accel_error_m"] < r["accel_error_m"]
-            return (f"{name}: RMSE {'better' if ok_r else 'NOT better'} ({1e3 * a['vertex_rmse_m_mean']:.2f} vs "
-                    f"{1e3 * r['vertex_rmse_m_mean']:.2f} mm), jitter {'better' if ok_j else 'NOT better'} "
-                    f"({1e3 * a['accel_error_m']:.2f} vs {1e3 * r['accel_error_m']:.2f} mm)")
-
-        beats = [beat(f, m, g[m]) for m in PAPER_ABLATIONS if m in g]
-        if "anchor" in g:  # our variant against the full method (information, not a criterion)
-            p = g["anchor"]
-            beats.append(f"variant anchor (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} vs full "
-                         f"{1e3 * f['vertex_rmse_m_mean']:.2f} mm ({p['rmse_over_floor']:.2f} x the floor), Chamfer "
-                         f"{1e3 * p['chamfer_m_mean']:.2f} vs {1e3 * f['chamfer_m_mean']:.2f} mm, acceleration error "
-                         f"{1e3 * p['accel_error_m']:.2f} vs {1e3 * f['accel_error_m']:.2f} mm, {p['fps']:.2f} vs "
-                         f"{f['fps']:.2f} frames/s")
-        if "anchor_smooth" in g and "anchor" in g:  # the temporal filter on top of L_an (information)
-            p, q = g["anchor_smooth"], g["anchor"]
-            beats.append(f"variant anchor_smooth (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} vs anchor "
-                         f"{1e3 * q['vertex_rmse_m_mean']:.2f} mm, acceleration error {1e3 * p['accel_error_m']:.2f} vs "
-                         f"{1e3 * q['accel_error_m']:.2f} mm (full {1e3 * f['accel_error_m']:.2f})")
-        # each variant against the one it adds to (information): texture references vs first-seen ones,
-        # L_col on top of texture references
-        for name, ref in (("anchor_texture", "anchor_smooth"), ("collision", "anchor_texture")):
-            if name in g and ref in g:
-                p, q = g[name], g[ref]
-                beats.append(f"variant {name} (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} mm = "
-                             f"{p['rmse_over_floor']:.2f} x the floor ({ref} {1e3 * q['vertex_rmse_m_mean']:.2f} "
-                             f"mm = {q['rmse_over_floor']:.2f} x), Chamfer {1e3 * p['chamfer_m_mean']:.2f} vs "
-                             f"{1e3 * q['chamfer_m_mean']:.2f} mm, acceleration error {1e3 * p['accel_error_m']:.2f} vs "
-                             f"{1e3 * q['accel_error_m']:.2f} mm, {p['fps']:.2f} vs {q['fps']:.2f} frames/s")
-        if "sim" in g:  # the simulator alone (information, not a criterion)
-            beats.append(beat(f, "simulation only (reference, not a criterion)", g["sim"]))
-        if "photo" in g:  # our variant against the full method (information, not a criterion)
-            p = g["photo"]
-            beats.append(f"variant photo (not a criterion): RMSE {1e3 * p['vertex_rmse_m_mean']:.2f} vs full "
-                         f"{1e3 * f['vertex_rmse_m_mean']:.2f} mm, Chamfer {1e3 * p['chamfer_m_mean']:.2f} vs "
-                         f"{1e3 * f['chamfer_m_mean']:.2f} mm, acceleration error {1e3 * p['accel_error_m']:.2f} vs "
-                         f"{1e3 * f['accel_error_m']:.2f} mm")
-        ratio = f["rmse_over_floor"]
-        line = (f"- **{scene}/{seq}, {nv} views ({cues} cues)**: full RMSE {1e3 * f['vertex_rmse_m_mean']:.2f} mm = "
-                f"{ratio:.2f} x the rig floor {1e3 * f['rig_floor_rmse_m']:.2f} mm -> "
-                f"{'MET' if ratio < 1.5 else 'NOT MET'} (< 1.5 x); {f['fps']:.2f} frames/s"
-                f"{' -> MET' if f['fps'] >= 1 else ' -> NOT MET'} (>= 1 at 8 views)" if nv == 8 else
-                f"- **{scene}/{seq}, {nv} views ({cues} cues)**: full RMSE {1e3 * f['vertex_rmse_m_mean']:.2f} mm = "
-                f"{ratio:.2f} x the rig floor {1e3 * f['rig_floor_rmse_m']:.2f} mm -> "
-                f"{'MET' if ratio < 1.5 else 'NOT MET'} (< 1.5 x); {f['fps']:.2f} frames/s")
-        out.append(line)
-        out += [f"  - vs {b}" for b in beats]
+        out.append(f"- **{scene}/{seq}, {nv} views ({cues} cues)**")
+        for m in CRITERIA_METHODS:
+            if m not in g:
+                continue
+            r, ratio = g[m], g[m]["rmse_over_floor"]
+            line = (f"  - `{m}`: vertex RMSE {_mm(r['vertex_rmse_m_mean'])} mm = {ratio:.2f} x the rig floor "
+                    f"{_mm(r['rig_floor_rmse_m'])} mm -> {'MET' if ratio < RMSE_TARGET else 'NOT MET'} "
+                    f"(< {RMSE_TARGET:g} x); {_num(r['fps'])} frames/s")
+            if nv == FPS_VIEWS:
+                line += f" -> {'MET' if r['fps'] >= FPS_TARGET else 'NOT MET'} (>= {FPS_TARGET:g} at {FPS_VIEWS} views)"
+            out.append(line)
+        if "pipeline" in g:
+            out += [f"  - {compare('pipeline', g['pipeline'], b, g[b])}" for b in BASELINES if b in g]
+        for base in dict.fromkeys(base_of(m) for m in g if m != SIM):
+            if base is not None and base in g:
+                out += [f"  - {compare(base, g[base], m, g[m])}" for m in g if m != SIM and base_of(m) == base]
     return out
 
 
-def write(rows, notes, args, command, load0, load1) -> None:
+def out_stem(text: str) -> Path:
+    """``--out`` as an absolute path without suffix: a folder (existing, or written with a
+    trailing slash) means ``<folder>/fit``."""
+    out = Path(text).absolute()
+    return out / "fit" if out.is_dir() or text.endswith(("/", os.sep)) else out
+
+
+def write(rows, notes, args, command, load0, load1, methods_paragraph: list[str]) -> None:
+    """Write ``<args.out>.csv`` (the rows) and ``<args.out>.md`` (header, table, criteria, notes)."""
     out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     cols = list(rows[0].keys()) if rows else []
     with open(out.with_suffix(".csv"), "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols)
         w.writeheader()
         w.writerows(rows)
-    mm = lambda x: f"{1e3 * x:.2f}"  # noqa: E731
-    num = lambda x: f"{x:.2f}" if np.isfinite(x) else "--"  # noqa: E731
     lines = [
         "# Garment fitting benchmark (`anidress_core.fit`) against the synthetic ground truth",
         "",
@@ -300,15 +390,7 @@ def write(rows, notes, args, command, load0, load1) -> None:
         "- fps = frames / wall time of the fitting loop (cue loading and body occluder rasterisation included, "
         "rig and camera loading excluded); CPU s/frame = process CPU time of that loop per frame (all threads; "
         "less sensitive to other jobs on the machine than the wall time).",
-        "- methods: `full` = the paper's loss (the pipeline's config adds L_an and L_col: the `anchor*` and `collision` rows); (a), (b), (c) = the paper's ablations; `photo` "
-        "= our variant, the full loss + multi-view photo-consistency L_ph (weight 1000), not part of the criteria; "
-        "`anchor` = our variant, the full loss + the temporal chromaticity anchor L_an (weight 1e5), not part of the "
-        "criteria; `anchor_smooth` = `anchor`, then one pass of the temporal filter (1, 2, 1) / 4 over the bone "
-        "transforms (`fit.smooth_transforms`), not part of the criteria; `anchor_texture` = `anchor_smooth` with "
-        "L_an's references taken from the garment's texture at the template's UVs (`fit.texture_anchor`) instead of "
-        "from the first frame each vertex is seen, not part of the criteria; `collision` = `anchor_texture` + our "
-        "body-collision term L_col (weight 1e6; the pipeline's configuration on both loose scenes), not part of the criteria; "
-        "`sim` = no fit, the rig driven by its simulated poses of the sequence (the cloth simulator alone; no fps).",
+        *methods_paragraph,
         "",
         "| scene/seq | views | method | frames | vertex RMSE mm mean / p95 / worst (frame) | rig floor mm | RMSE / floor "
         "| Chamfer mm mean / p95 / worst | rig floor Chamfer mm | Chamfer / floor | normal consistency mean / p5 / "
@@ -317,14 +399,14 @@ def write(rows, notes, args, command, load0, load1) -> None:
     ]
     for r in rows:
         lines.append(
-            f"| {r['scene']}/{r['sequence']} | {r['views']} | {LABEL.get(r['method'], r['method'])} | {r['frames']} | "
-            f"{mm(r['vertex_rmse_m_mean'])} / {mm(r['vertex_rmse_m_p95'])} / {mm(r['vertex_rmse_m_worst'])} "
-            f"({r['worst_frame']}) | {mm(r['rig_floor_rmse_m'])} | {r['rmse_over_floor']:.2f} | "
-            f"{mm(r['chamfer_m_mean'])} / {mm(r['chamfer_m_p95'])} / {mm(r['chamfer_m_worst'])} | "
-            f"{mm(r['rig_floor_chamfer_m'])} | {r['chamfer_over_floor']:.2f} | "
+            f"| {r['scene']}/{r['sequence']} | {r['views']} | `{r['method']}` | {r['frames']} | "
+            f"{_mm(r['vertex_rmse_m_mean'])} / {_mm(r['vertex_rmse_m_p95'])} / {_mm(r['vertex_rmse_m_worst'])} "
+            f"({r['worst_frame']}) | {_mm(r['rig_floor_rmse_m'])} | {r['rmse_over_floor']:.2f} | "
+            f"{_mm(r['chamfer_m_mean'])} / {_mm(r['chamfer_m_p95'])} / {_mm(r['chamfer_m_worst'])} | "
+            f"{_mm(r['rig_floor_chamfer_m'])} | {r['chamfer_over_floor']:.2f} | "
             f"{r['normal_consistency_mean']:.4f} / {r['normal_consistency_p5']:.4f} / {r['normal_consistency_worst']:.4f}"
-            f" | {mm(r['jitter_m'])} ({mm(r['gt_jitter_m'])}) | {mm(r['accel_error_m'])} | {num(r['fps'])} | "
-            f"{num(r['cpu_s_per_frame'])} | {r['iterations_mean']:.1f} |")
+            f" | {_mm(r['jitter_m'])} ({_mm(r['gt_jitter_m'])}) | {_mm(r['accel_error_m'])} | {_num(r['fps'])} | "
+            f"{_num(r['cpu_s_per_frame'])} | {r['iterations_mean']:.1f} |")
     lines += ["", "## Criteria", ""] + verdicts(rows) + ["", "## Notes", ""] + [f"- {n}" for n in notes]
     (out.with_suffix(".md")).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

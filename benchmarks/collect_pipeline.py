@@ -115,10 +115,11 @@ def main() -> None:
             continue
         with open(p) as fh:
             rows = list(csv.DictReader(fh))
-        loss = "?"
+        loss, main = "?", None  # main: the loss variant of rule fit, its rows' method in fit_metrics.csv
         poses = ROOT / "results" / scene / seq / "garment_poses.npz"
         if poses.is_file():  # the loss the pipeline's fit minimised (its header)
             meta = files.load_npz(poses)[1].get("meta", {})
+            main = meta.get("loss")
             c = meta.get("config", {})
             an = "L_anchor"
             if meta.get("anchor_reference"):
@@ -133,7 +134,7 @@ def main() -> None:
             vr, fl = col("vertex_rmse_m") * 1e3, col("rig_floor_rmse_m") * 1e3
             wall = col("wall_s")
             fps = len(rs) / float(np.nansum(wall)) if np.nansum(wall) > 0 else float("nan")
-            fit_lines.append(f"| {seq} | {method} | {loss if method == 'full' else ''} | {len(rs)} | {vr.mean():.2f} | {np.percentile(vr, 95):.2f} | "
+            fit_lines.append(f"| {seq} | {method} | {loss if method == main else ''} | {len(rs)} | {vr.mean():.2f} | {np.percentile(vr, 95):.2f} | "
                              f"{vr.max():.2f} | {fl.mean():.2f} | {vr.mean() / fl.mean():.2f} | "
                              f"{1e3 * np.nanmean(col('chamfer_m')):.2f} | {np.nanmean(col('normal_consistency')):.3f} | "
                              f"{fps:.2f} |")
