@@ -92,7 +92,7 @@ def _cmd_masks(args: argparse.Namespace) -> None:
     if args.method:
         cfg["method"] = args.method
     run_masks(args.scene_dir, args.seq, args.out, cfg, template_npz=args.template, cameras=args.cameras,
-              threads=args.threads, progress=not args.quiet)
+              threads=args.threads, progress=not args.quiet, undistorted_dir=args.undistorted)
     print(args.out)
 
 
@@ -105,14 +105,15 @@ def _cmd_flows(args: argparse.Namespace) -> None:
     if args.no_prior:
         cfg["prior"] = False
     run_flows(args.scene_dir, args.seq, args.masks, args.out, cfg, template_npz=args.template, cameras=args.cameras,
-              threads=args.threads, progress=not args.quiet)
+              threads=args.threads, progress=not args.quiet, undistorted_dir=args.undistorted)
     print(args.out)
 
 
 def _cmd_normals(args: argparse.Namespace) -> None:
     from .stages.cues import run_normals
 
-    run_normals(args.scene_dir, args.seq, args.normals, args.out, cameras=args.cameras)
+    run_normals(args.scene_dir, args.seq, args.normals, args.out, cameras=args.cameras,
+                undistorted_dir=args.undistorted)
     print(args.out)
 
 
@@ -139,10 +140,12 @@ def _cmd_fit(args: argparse.Namespace) -> None:
         params["threads"] = args.threads
     if args.anchor_reference:
         params["anchor_reference"] = args.anchor_reference
-    normals = None if args.no_normals else (args.normals or (str(scene / args.seq / "normals")
-                                                             if (scene / args.seq / "normals").is_dir() else None))
+    src = Path(args.undistorted) if args.undistorted else scene / args.seq  # shipped normals: undistorted too
+    normals = None if args.no_normals else (args.normals or (str(src / "normals")
+                                                             if (src / "normals").is_dir() else None))
     run_fit(scene, args.seq, args.rig, args.template, args.masks, args.flows, normals, params, args.out,
-            ablation=args.ablation, progress=not args.quiet, cue_source="command line")
+            ablation=args.ablation, progress=not args.quiet, cue_source="command line",
+            undistorted_dir=args.undistorted)
     print(args.out)
 
 
@@ -178,7 +181,7 @@ def _cmd_train(args: argparse.Namespace) -> None:
     lpips = load_lpips(**cfg["metrics"]["lpips"]) if params["train"]["lpips_weight"] > 0 else None
     run_train(args.scene_dir, args.seq, args.variant, args.masks, args.out, params, template_npz=args.template,
               rig_npz=args.rig, garment_poses_npz=args.poses, lpips=lpips, device=args.device or cfg["field"]["device"],
-              progress=not args.quiet)
+              progress=not args.quiet, undistorted_dir=args.undistorted)
     print(args.out)
 
 
@@ -202,14 +205,16 @@ def _cmd_render(args: argparse.Namespace) -> None:
         name = args.library_name or Path(args.library_motion).stem
         run_render(args.field, args.scene_dir, args.out, params, cameras=cams, template_npz=args.template,
                    rig_npz=args.rig, library_motion_npz=args.library_motion, library_name=name, frame_stride=stride,
-                   device=args.device or cfg["field"]["device"], progress=not args.quiet)
+                   device=args.device or cfg["field"]["device"], progress=not args.quiet,
+                   undistorted_dir=args.undistorted)
     else:
         if not args.seq:
             raise ValueError("render: give --seq SEQ (a captured sequence) or --library-motion NPZ")
         run_render(args.field, args.scene_dir, args.out, params, seq=args.seq, cameras=cams,
                    template_npz=args.template, rig_npz=args.rig, garment_poses_npz=args.poses, frame_stride=stride,
                    device=args.device or cfg["field"]["device"], progress=not args.quiet,
-                   use_occupancy=not args.no_occupancy, cull_joints=not args.no_joint_culling)
+                   use_occupancy=not args.no_occupancy, cull_joints=not args.no_joint_culling,
+                   undistorted_dir=args.undistorted)
     print(args.out)
 
 
@@ -226,9 +231,18 @@ def _cmd_evaluate(args: argparse.Namespace) -> None:
         renders.append(tuple(parts))
     m = cfg["metrics"]
     summary = args.summary or str(Path(args.out).with_name("metrics_summary.json"))
+    undistorted = dict(item.split("=", 1) for item in args.undistorted or [])
     run_evaluate(args.scene_dir, renders, args.out, summary, m, lpips=load_lpips(**m["lpips"]),
-                 dists=load_dists(**m["dists"]), progress=not args.quiet)
+                 dists=load_dists(**m["dists"]), progress=not args.quiet, undistorted=undistorted)
     print(args.out)
+
+
+def _cmd_undistort(args: argparse.Namespace) -> None:
+    from .stages.undistort import run_undistort
+
+    rec = run_undistort(args.scene_dir, args.seq, args.out, threads=args.threads, progress=not args.quiet)
+    print(f"{args.out}: cameras {', '.join(rec['distorted']) or 'none'} undistorted "
+          f"({rec['frames']} frames, {rec['files']} files)")
 
 
 def _cmd_validate(args: argparse.Namespace) -> None:
@@ -290,6 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--method", choices=["prior", "colour", "grabcut"], help="override cues/masks/method")
     s.add_argument("--cameras", default="train", choices=["train", "all"])
     s.add_argument("--threads", type=int, default=2)
+    s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
+                                         "cameras have lens distortion)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_masks)
 
@@ -306,6 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override cues/flows/method")
     s.add_argument("--cameras", default="train", choices=["train", "all"])
     s.add_argument("--threads", type=int, default=2)
+    s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
+                                         "cameras have lens distortion)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_flows)
 
@@ -315,6 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--normals", help="normal maps folder (default: none, the stage is skipped)")
     s.add_argument("-o", "--out", required=True, help="output record (results/<scene>/<seq>/normals.json)")
     s.add_argument("--cameras", default="train", choices=["train", "all"])
+    s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
+                                         "cameras have lens distortion)")
     s.set_defaults(func=_cmd_normals)
 
     s = sub.add_parser("cues-eval", help="compare masks / flows / normals with the synthetic ground truth")
@@ -347,6 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="settings: fit, then scenes/<scene directory name>/fit (default: %(default)s)")
     s.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's)")
     s.add_argument("-o", "--out", required=True, help="output garment_poses.npz")
+    s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
+                                         "cameras have lens distortion)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_fit)
 
@@ -372,6 +394,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", help="cpu | cuda (default: field/device)")
     s.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's)")
     s.add_argument("-o", "--out", required=True, help="output field.pt (field.pt.ckpt beside it while training)")
+    s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
+                                         "cameras have lens distortion)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_train)
 
@@ -392,6 +416,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", help="cpu | cuda")
     s.add_argument("--threads", type=int, default=0)
     s.add_argument("-o", "--out", required=True, help="output folder (rgb/, alpha/, depth/, render.json)")
+    s.add_argument("--undistorted", help="--seq's (or the training sequence's) folder by `anidress undistort` (needed when its "
+                                         "cameras have lens distortion)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_render)
 
@@ -401,6 +427,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", default="config/config.yaml", help="metrics settings (LPIPS / DISTS weights)")
     s.add_argument("-o", "--out", required=True, help="output metrics.csv")
     s.add_argument("--summary", help="output summary JSON (default: metrics_summary.json beside --out)")
+    s.add_argument("--undistorted", action="append", metavar="SEQ=DIR",
+                   help="a sequence undistorted by `anidress undistort` (one per sequence with lens distortion)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_evaluate)
     s = sub.add_parser("rig", help="garment rigging model from a scene's simulations (rig.npz)")
@@ -423,6 +451,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--out", required=True,
                    help="OUT.npz: weights (B,V), transforms (T,B,4,4) with x = sum_b W[b,i] (M[t,b] [rest_i; 1])")
     s.set_defaults(func=_cmd_rig_decompose)
+    s = sub.add_parser("undistort", help="undistort a sequence with lens distortion to pinhole working cameras")
+    s.add_argument("scene_dir", help="data/<scene>")
+    s.add_argument("seq", help="sequence name")
+    s.add_argument("-o", "--out", required=True, help="output folder (results/<scene>/<seq>/undistorted)")
+    s.add_argument("--threads", type=int, default=2)
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_undistort)
+
     s = sub.add_parser("validate", help="check a scene folder (cameras, frames, images, body, garment) before a run")
     s.add_argument("scene_dir", help="data/<scene>")
     s.add_argument("-o", "--out", help="write the summary JSON here (the workflow: results/<scene>/scene_check.json)")

@@ -29,13 +29,10 @@ import torch
 from torch import Tensor
 
 from .camera import Cameras, distort_normalized
+from .io.scene import DIST_EPS
 
 __all__ = ["UndistortMaps", "undistort_maps", "working_cameras", "undistort_image", "undistort_labels",
            "undistort_normals", "distorted_camera_names", "DIST_EPS"]
-
-DIST_EPS = 1e-9
-"""A distortion coefficient of magnitude at most this counts as zero (a pinhole camera)."""
-
 
 class UndistortMaps(NamedTuple):
     """Per-camera lookup maps from the working (pinhole) image into the source (distorted) image."""

@@ -118,9 +118,12 @@ class Views(NamedTuple):
     @staticmethod
     def from_cameras(cams) -> "Views":
         """From :class:`anidress_core.camera.Cameras`; distortion is not modelled, so it must be 0."""
-        if bool((cams.dist.abs() > 1e-9).any()):
-            raise ValueError(f"fit: cameras {cams.names} have lens distortion, which the rasteriser does not "
-                             "model; undistort the images and cues first")
+        nonzero = (cams.dist.abs() > 1e-9).sum(-1).tolist()  # per camera, of k1 k2 p1 p2 k3
+        bad = [f"{n} ({k} non-zero coefficient{'s' if k > 1 else ''})" for n, k in zip(cams.names, nonzero) if k]
+        if bad:
+            raise ValueError(f"fit: cameras {', '.join(bad)} have lens distortion, which the rasteriser does not "
+                             "model: read the sequence undistorted by rule undistort (undistorted_dir, "
+                             "anidress_core.io.scene.sequence_source)")
         # Rotations read from float32 files are orthonormal to ~1e-7 only; the normal term
         # uses R^T = R^-1 (per-face grouping in world space), so they are projected onto SO(3).
         E = cams.world_to_cam.double().clone()

@@ -217,7 +217,8 @@ def read_intri(path: PathLike, names: Iterable[str] | None = None) -> dict[str, 
                 raise _missing(path, cam, f"dist_{cam}", f"D_{cam}")
             if dist.size > 5 and np.any(dist[5:] != 0):
                 raise ValueError(
-                    f"{path}: camera '{cam}': distortion has {dist.size} non-zero coefficients; "
+                    f"{path}: camera '{cam}': distortion has {dist.size} coefficients, "
+                    f"{int(np.count_nonzero(dist[5:]))} of them non-zero beyond k1 k2 p1 p2 k3; "
                     "only k1 k2 p1 p2 k3 are supported"
                 )
             dist = np.concatenate([dist, np.zeros(1)])[:5] if dist.size == 4 else dist[:5]

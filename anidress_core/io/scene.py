@@ -15,12 +15,18 @@ import yaml
 from ..body.model import BodyModel, smpl_model
 from ..body.motions import Motion
 from ..camera import Cameras, load_cameras
-from . import files
+from . import easymocap, files
 from .images import image_size_from_header
 from .motion import read_easymocap_smpl_dir, read_smpl_model_file, smpl_selection
 
 __all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path",
-           "scene_image_size", "scene_cameras"]
+           "scene_image_size", "scene_cameras", "DIST_EPS", "UNDISTORT_RECORD", "distorted_cameras",
+           "sequence_source"]
+
+DIST_EPS = 1e-9
+"""A distortion coefficient of magnitude at most this counts as zero (a pinhole camera)."""
+UNDISTORT_RECORD = "undistort.json"
+"""The record rule undistort writes last into its folder (its presence marks a complete folder)."""
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 """Extensions of a sequence's ``images/<cam>/<frame:06d>.<ext>`` files, in the order they are looked for."""
@@ -120,16 +126,18 @@ def scene_image_size(scene_dir: str | os.PathLike, seq: str, info: dict | None =
 
 
 def scene_cameras(scene_dir: str | os.PathLike, seq: str, names: list[str] | None = None,
-                  info: dict | None = None, dtype: torch.dtype = torch.float64) -> Cameras:
+                  info: dict | None = None, dtype: torch.dtype = torch.float64,
+                  seq_dir: str | os.PathLike | None = None) -> Cameras:
     """The cameras of sequence ``seq`` (``<scene_dir>/<seq>/intri.yml``, ``extri.yml``) with the
     scene's image size (:func:`scene_image_size`), so that ``intri.yml`` without ``H_``/``W_``
     loads. Every stage that reads a scene's cameras goes through this function.
 
-    names: the cameras to keep, in that order (default: all, in file order). Returns
-    :class:`anidress_core.camera.Cameras` in ``dtype``.
+    names: the cameras to keep, in that order (default: all, in file order); seq_dir: the
+    folder the stage reads the sequence from (:func:`sequence_source`; default
+    ``<scene_dir>/<seq>``). Returns :class:`anidress_core.camera.Cameras` in ``dtype``.
     """
     scene_dir = Path(scene_dir)
-    seq_dir = scene_dir / seq
+    seq_dir = scene_dir / seq if seq_dir is None else Path(seq_dir)
     intri = seq_dir / "intri.yml"
     h, w = scene_image_size(scene_dir, seq, info)
     try:
@@ -137,3 +145,41 @@ def scene_cameras(scene_dir: str | os.PathLike, seq: str, names: list[str] | Non
     except (ValueError, KeyError) as e:
         msg = str(e)
         raise ValueError(msg if str(intri) in msg else f"{intri}: {msg}") from e
+
+
+def distorted_cameras(scene_dir: str | os.PathLike, seq: str, info: dict | None = None) -> list[str]:
+    """The cameras of sequence ``seq`` with lens distortion (a ``dist_<cam>`` coefficient over
+    :data:`DIST_EPS`), among those scene.yaml uses (cameras/train + test; all of intri.yml if none)."""
+    scene_dir = Path(scene_dir)
+    info = read_scene(scene_dir) if info is None else info
+    cams = info.get("cameras") or {}
+    used = list(cams.get("train") or []) + list(cams.get("test") or [])
+    intri = easymocap.read_intri(scene_dir / seq / "intri.yml", used or None)
+    return [c for c, v in intri.items() if np.any(np.abs(np.asarray(v["dist"], np.float64)) > DIST_EPS)]
+
+
+def sequence_source(scene_dir: str | os.PathLike, seq: str, undistorted_dir: str | os.PathLike | None = None,
+                    info: dict | None = None) -> Path:
+    """The folder a stage reads sequence ``seq``'s images, shipped masks / normals and cameras from.
+
+    The one decision of which images and cameras a stage reads: the scene's own
+    ``<scene_dir>/<seq>`` when its cameras are pinholes, else ``undistorted_dir``: the
+    sequence undistorted to pinhole working cameras by rule ``undistort``
+    (:func:`anidress_core.stages.undistort.run_undistort`, in the pipeline
+    ``results/<scene>/<seq>/undistorted``), same layout (``images/``, ``masks/``, ``normals/``,
+    ``gt/masks``, ``intri.yml``, ``extri.yml``). The body motion (``smpl/``) is always the scene's.
+    """
+    scene_dir = Path(scene_dir)
+    bad = distorted_cameras(scene_dir, seq, info)
+    if not bad:
+        return scene_dir / seq
+    intri = scene_dir / seq / "intri.yml"
+    if undistorted_dir is None:
+        raise ValueError(f"{intri}: cameras {', '.join(bad)} have lens distortion: the stages read the sequence "
+                         "undistorted to pinhole working cameras by rule undistort (anidress undistort); "
+                         "pass its folder (undistorted_dir)")
+    d = Path(undistorted_dir)
+    if not (d / UNDISTORT_RECORD).is_file():
+        raise FileNotFoundError(f"{d / UNDISTORT_RECORD}: not found: {d} is not a complete undistorted sequence "
+                                f"of {scene_dir / seq} (run rule undistort / anidress undistort)")
+    return d

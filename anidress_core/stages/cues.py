@@ -14,7 +14,9 @@ cameras, ``all``: every camera), directory outputs::
 
 Masks and normals shipped with a sequence (``data/<scene>/<seq>/masks``, ``normals``)
 are used as they are; ``data/<scene>/<seq>/gt`` is ground truth for evaluation only
-and is never read by the estimators. A directory output is written into a hidden
+and is never read by the estimators. A sequence whose cameras have lens distortion is read
+from its copy undistorted to pinhole working cameras (``undistorted_dir``, rule undistort;
+:func:`anidress_core.io.scene.sequence_source` decides). A directory output is written into a hidden
 temporary sibling and renamed into place at the end: a failure leaves nothing
 half-written.
 """
@@ -42,7 +44,8 @@ from ..cues import flow as cue_flow
 from ..cues import masks as cue_masks
 from ..geometry import lbs
 from ..io import files
-from ..io.scene import IMAGE_EXTS, image_path, load_body, load_sequence_motion, read_scene, scene_cameras
+from ..io.scene import (IMAGE_EXTS, image_path, load_body, load_sequence_motion, read_scene, scene_cameras,
+                        sequence_source)
 from ..io.template import read_template
 from ..synth import LABEL_GARMENT
 
@@ -225,7 +228,7 @@ def _plates(seq_dir: Path, cams: Sequence[str], frames: list[int], background: s
 
 def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike, cfg: dict,
               template_npz: str | os.PathLike | None = None, cameras: str | Sequence[str] = "train",
-              threads: int = 2, progress: bool = True) -> dict:
+              threads: int = 2, progress: bool = True, undistorted_dir: str | os.PathLike | None = None) -> dict:
     """Estimate body/garment masks of one sequence into ``out_dir/<cam>/<frame>.png``.
 
     cfg: the ``cues/masks`` config section (:class:`MaskParams` fields plus
@@ -235,8 +238,8 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
     """
     t_start = time.perf_counter()
     scene_dir = Path(scene_dir)
-    seq_dir = scene_dir / seq
     info = read_scene(scene_dir)
+    seq_dir = sequence_source(scene_dir, seq, undistorted_dir, info)
     params = mask_params(cfg)
     names = select_cameras(info, cameras, scene_dir)
     cams = _cameras(seq_dir, names, info)
@@ -357,7 +360,7 @@ def _cv2_threads(n: int):
 
 def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLike, out_dir: str | os.PathLike,
               cfg: dict, template_npz: str | os.PathLike | None = None, cameras: str | Sequence[str] = "train",
-              threads: int = 2, progress: bool = True) -> dict:
+              threads: int = 2, progress: bool = True, undistorted_dir: str | os.PathLike | None = None) -> dict:
     """Forward optical flow of one sequence into ``out_dir/<cam>/<frame>.exr`` (no file for the first frame).
 
     cfg: the ``cues/flows`` config section (``method``, ``margin_px``, ``prior``, ``refine``,
@@ -371,8 +374,8 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
     """
     t_start = time.perf_counter()
     scene_dir, masks_dir = Path(scene_dir), Path(masks_dir)
-    seq_dir = scene_dir / seq
     info = read_scene(scene_dir)
+    seq_dir = sequence_source(scene_dir, seq, undistorted_dir, info)
     names = select_cameras(info, cameras, scene_dir)
     frames = sequence_frames(seq_dir, names)
     method, margin, use_prior = cfg["method"], int(cfg["margin_px"]), bool(cfg.get("prior", False))
@@ -426,7 +429,7 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
 
 def run_normals(scene_dir: str | os.PathLike, seq: str, normals_dir: str | os.PathLike | None,
                 out_json: str | os.PathLike, cameras: str | Sequence[str] = "train",
-                reason: str | None = None) -> dict:
+                reason: str | None = None, undistorted_dir: str | os.PathLike | None = None) -> dict:
     """Record the normal cue of a sequence in ``out_json`` (normals are never estimated here).
 
     With a folder: every selected camera and frame must have a readable (H, W, 3) EXR
@@ -435,8 +438,8 @@ def run_normals(scene_dir: str | os.PathLike, seq: str, normals_dir: str | os.Pa
     stage is skipped, the fitting's normal weight is 0, and the record says why.
     """
     scene_dir = Path(scene_dir)
-    seq_dir = scene_dir / seq
     info = read_scene(scene_dir)
+    seq_dir = sequence_source(scene_dir, seq, undistorted_dir, info)
     names = select_cameras(info, cameras, scene_dir)
     rec = {"scene": scene_dir.name, "sequence": seq, "cameras": names, "code_version": __version__}
     if normals_dir is None:

@@ -11,7 +11,9 @@ Writes ``metrics.csv``, one row per (kind, sequence, camera, frame) with columns
 dists_available, box_source``, and ``metrics_summary.json``: per (kind, sequence) the
 mean of every metric, the image count, and why LPIPS / DISTS are unavailable when
 they are (their columns are then NaN and ``*_available`` is 0 -- never a stand-in).
-Renders of library motions have no ground truth and are not evaluated.
+Renders of library motions have no ground truth and are not evaluated. A sequence whose
+cameras have lens distortion is compared in its pinhole working cameras: images and
+``gt/masks`` of its undistorted copy (``undistorted``, rule undistort), as the field saw them.
 """
 from __future__ import annotations
 
@@ -23,14 +25,14 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
 from .. import __version__
 from ..io import files
-from ..io.scene import load_body, load_sequence_motion, read_scene, scene_cameras
+from ..io.scene import load_body, load_sequence_motion, read_scene, scene_cameras, sequence_source
 from ..metrics import image as M
 
 __all__ = ["run_evaluate", "COLUMNS", "read_metrics_csv"]
@@ -66,8 +68,12 @@ def _nan_if_none(x) -> float:
 
 def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str, str | os.PathLike]],
                  out_csv: str | os.PathLike, out_summary: str | os.PathLike, params: dict,
-                 lpips=None, dists=None, progress: bool = True) -> dict:
+                 lpips=None, dists=None, progress: bool = True,
+                 undistorted: Mapping[str, str | os.PathLike] | None = None) -> dict:
     """Evaluate render folders ``renders``: (kind, sequence, folder) each.
+
+    undistorted: {sequence: folder of rule undistort} for sequences whose cameras have lens
+    distortion (:func:`anidress_core.io.scene.sequence_source`).
 
     params: the ``metrics`` config section (``box_pad_m``). lpips / dists: loaded
     models or :class:`anidress_core.metrics.image.Unavailable` (or None: not requested).
@@ -84,7 +90,8 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
         folder = Path(folder)
         rj = files.read_json(folder / "render.json")
         frames, cams_names = rj["frames"], rj["cameras"]
-        cams = scene_cameras(scene_dir, seq, cams_names, info)
+        src = sequence_source(scene_dir, seq, (undistorted or {}).get(seq), info)
+        cams = scene_cameras(scene_dir, seq, cams_names, info, seq_dir=src)
         bg = torch.tensor(rj.get("background", [0.0, 0.0, 0.0]), dtype=torch.float32)
         pts, box_source = _subject_points(scene_dir, seq, info, frames)
         todo = [(f, ci) for f in frames for ci in range(len(cams_names))]
@@ -97,8 +104,8 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
             pred = torch.from_numpy(files.read_image(folder / "rgb" / cam / f"{f:06d}.png"))
             alpha_u16 = _read_u16(folder / "alpha" / cam / f"{f:06d}.png")
             alpha = torch.from_numpy(alpha_u16.astype(np.float32) / 65535.0)
-            img = torch.from_numpy(files.read_image(scene_dir / seq / "images" / cam / f"{f:06d}.png"))
-            mask = torch.from_numpy(files.read_mask(scene_dir / seq / "gt" / "masks" / cam / f"{f:06d}.png") > 0)
+            img = torch.from_numpy(files.read_image(src / "images" / cam / f"{f:06d}.png"))
+            mask = torch.from_numpy(files.read_mask(src / "gt" / "masks" / cam / f"{f:06d}.png") > 0)
             if img.shape != pred.shape:
                 raise files.ArtifactError(f"{folder / 'rgb' / cam / f'{f:06d}.png'}: size {tuple(pred.shape)} differs "
                                           f"from the ground truth {tuple(img.shape)}")

@@ -47,7 +47,7 @@ from ..io.field import FIELD_FORMAT as FORMAT
 from ..io.field import (FieldCheckpoint, read_field_checkpoint, read_training_state, training_state_path,
                         write_field_checkpoint, write_training_state)
 from ..io.rig import read_rig
-from ..io.scene import load_body, load_sequence_motion, read_scene, scene_cameras
+from ..io.scene import load_body, load_sequence_motion, read_scene, scene_cameras, sequence_source
 from ..io.template import read_template
 
 __all__ = ["run_train", "run_render", "load_field", "field_config_from_params", "train_config_from_params",
@@ -158,7 +158,7 @@ def _sampler_params(p: dict) -> dict:
 def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: str | os.PathLike, out_pt: str | os.PathLike,
               params: dict, template_npz: str | os.PathLike | None = None, rig_npz: str | os.PathLike | None = None,
               garment_poses_npz: str | os.PathLike | None = None, lpips=None, device: str | None = None,
-              progress: bool = True, max_steps: int | None = None) -> dict:
+              progress: bool = True, max_steps: int | None = None, undistorted_dir: str | os.PathLike | None = None) -> dict:
     """Train the field of ``variant`` on the training cameras of sequence ``seq``.
 
     masks_dir: ``<dir>/<cam>/<frame:06d>.png`` labels (0 background, else subject) of the
@@ -166,6 +166,8 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     garment_poses_npz (the fitted poses of ``seq``). lpips: a loaded LPIPS (the loss
     gets 0.2 LPIPS on patches) or an ``Unavailable`` / None (MSE only, logged).
     ``max_steps``: stop after this many steps *leaving the checkpoint* (to test resuming).
+    ``undistorted_dir``: the sequence undistorted by rule undistort, read instead of the scene's
+    images and cameras when they have lens distortion (:func:`anidress_core.io.scene.sequence_source`).
     Returns the saved dict (without the state_dict).
     """
     t_start = time.perf_counter()
@@ -206,8 +208,9 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
              grid.num_frames, 100 * grid.occupied_fraction(), S.shape[1], 24, S.shape[1] - 24,
              time.perf_counter() - t0)
     # 2. the images: training cameras, masked; rays in the dilated mask boxes
-    cameras = scene_cameras(scene_dir, seq, list(cams), info).to(dtype=torch.float32)
-    imgs, labels = _read_views(scene_dir / seq, cams, frames, masks_dir, tcfg.background)
+    src = sequence_source(scene_dir, seq, undistorted_dir, info)
+    cameras = scene_cameras(scene_dir, seq, list(cams), info, seq_dir=src).to(dtype=torch.float32)
+    imgs, labels = _read_views(src, cams, frames, masks_dir, tcfg.background)
     Tn, C, H, W, _ = imgs.shape
     boxes = mask_boxes((labels > 0).reshape(Tn * C, H, W), sp["mask_dilate_px"]).reshape(Tn, C, 4)
     box_frac = float(((boxes[..., 1] - boxes[..., 0]) * (boxes[..., 3] - boxes[..., 2])).sum()) / (Tn * C * H * W)
@@ -334,13 +337,14 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
                seq: str | None = None, cameras: Sequence[str] | None = None, template_npz=None, rig_npz=None,
                garment_poses_npz=None, library_motion_npz=None, library_name: str | None = None,
                frame_stride: int = 1, device: str | None = None, progress: bool = True,
-               use_occupancy: bool = True, cull_joints: bool = True) -> dict:
+               use_occupancy: bool = True, cull_joints: bool = True, undistorted_dir: str | os.PathLike | None = None) -> dict:
     """Render a sequence with a trained field into ``out_dir`` (layout in the module doc).
 
     Body motion: the EasyMocap ``smpl/`` of ``seq`` (captured) or ``library_motion_npz``
     (a motion of the library; then garment poses are ``rig.transforms_of(library_name)``).
     Garment poses (variant ``full``): ``garment_poses_npz`` for a captured sequence.
-    Cameras: ``cameras`` of ``seq`` (or of the training sequence for a library motion).
+    Cameras: ``cameras`` of ``seq`` (or of the training sequence for a library motion); the pinhole
+    working cameras of ``undistorted_dir`` when they have lens distortion (as the training).
     """
 
     t_start = time.perf_counter()
@@ -384,7 +388,8 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
                         sp["dilate_m"], sp["body_only_garment_dilate_m"])
     grid = build_occupancy(parts, (sp["res"],) * 3, sp["max_joints"], sp["min_weight"], progress=False).to(dev)
     inv = torch.linalg.inv(S).to(dev)
-    all_cams = scene_cameras(scene_dir, cam_seq, None, info).to(dtype=torch.float32)
+    all_cams = scene_cameras(scene_dir, cam_seq, None, info, seq_dir=sequence_source(
+        scene_dir, cam_seq, undistorted_dir, info)).to(dtype=torch.float32)
     names = list(cameras) if cameras else all_cams.names
     cams = all_cams.select(names)
     rays = pixel_rays(cams)

@@ -12,6 +12,9 @@
 * with the chromaticity anchor on (``weights/anchor`` > 0) the training images
   ``<seq>/images/<cam>/<frame:06d>.{png,jpg}``, and with ``anchor_reference: texture`` the
   scene's garment texture;
+* the cameras and images of ``<seq>``, or of its copy undistorted to pinhole working cameras
+  (``undistorted_dir``, rule undistort) when the cameras have lens distortion
+  (:func:`anidress_core.io.scene.sequence_source` decides);
 * the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
 * ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start.
 
@@ -41,7 +44,8 @@ from .. import fit as FIT
 from ..io.garment_poses import load_garment_poses, save_garment_poses
 from ..io import files
 from ..io.rig import read_rig
-from ..io.scene import garment_texture_path, image_path, load_body, load_sequence_motion, read_scene, scene_cameras
+from ..io.scene import (garment_texture_path, image_path, load_body, load_sequence_motion, read_scene, scene_cameras,
+                        sequence_source)
 from ..io.template import read_template
 from ..synth import LABEL_GARMENT
 
@@ -197,7 +201,8 @@ class CueReader:
 def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, template_npz: str | os.PathLike,
             masks_dir: str | os.PathLike, flows_dir: str | os.PathLike | None,
             normals_dir: str | os.PathLike | None, params: Mapping, out_npz: str | os.PathLike,
-            ablation: str | None = None, progress: bool = True, cue_source: str = "") -> dict:
+            ablation: str | None = None, progress: bool = True, cue_source: str = "",
+            undistorted_dir: str | os.PathLike | None = None) -> dict:
     """Fit the garment poses of sequence ``seq`` and write ``out_npz`` (see the module docstring).
 
     params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
@@ -221,7 +226,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         raise files.ArtifactError(f"{scene_dir / 'scene.yaml'}: no cameras/train list")
     names = select_views(train, int(params.get("views", 0)))
     sdir = scene_dir / seq
-    cams = scene_cameras(scene_dir, seq, names, info).to(device=device)
+    src = sequence_source(scene_dir, seq, undistorted_dir, info)  # images and cameras (pinhole)
+    cams = scene_cameras(scene_dir, seq, names, info, seq_dir=src).to(device=device)
     views = FIT.Views.from_cameras(cams)
     # 2. rig
     art = read_rig(rig_npz, device=device, dtype=torch.float64)
@@ -267,7 +273,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     w = cfg.weights
     reader = CueReader(cams, masks_dir, None if w.normal == 0 else normals_dir,
                         None if w.flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device,
-                        num_frames=T, seq_dir=sdir if w.anchor > 0 else None)
+                        num_frames=T, seq_dir=src if w.anchor > 0 else None)
     for cam in names:  # fail early, naming the file
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():

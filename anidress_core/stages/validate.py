@@ -66,7 +66,7 @@ from ..io.files import SceneError
 from ..io.images import check_exr_magic, image_size_from_header
 from ..io.mesh import read_mesh
 from ..io.motion import read_easymocap_smpl_dir, smpl_selection
-from ..io.scene import IMAGE_EXTS, garment_texture_path, load_body, read_scene
+from ..io.scene import DIST_EPS, IMAGE_EXTS, garment_texture_path, load_body, read_scene
 
 __all__ = [
     "SceneError",
@@ -528,7 +528,9 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends") -> dict:
     Returns dict(scene, scene_dir, cameras {train, test}, image_size [H, W], sequences
     {name: {frames, first_frame, last_frame, cameras, images, images_decoded, masks,
     normals, camera_distance_m}}, garment (bool), garment_template (dict | None),
-    body (dict), checks [str], warnings [str], images, wall_s, code_version).
+    body (dict), checks [str], warnings [str], notes [str] (what the pipeline will do about
+    the scene, e.g. undistort its images), images, wall_s, code_version); per sequence also
+    ``distorted_cameras`` (the cameras with lens distortion, undistorted by rule undistort).
     """
     if images not in ("ends", "all"):
         raise ValueError(f"validate_scene: images must be 'ends' or 'all', got {images!r}")
@@ -536,6 +538,7 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends") -> dict:
     scene_dir = Path(scene_dir)
     checks: list[str] = []
     warnings: list[str] = []
+    notes: list[str] = []
     info = _check_scene_yaml(scene_dir, checks)
     body, body_sum = _check_body(scene_dir, info, checks)
     g = _check_garment(scene_dir, info, body, checks, warnings)
@@ -548,6 +551,11 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends") -> dict:
         if not sdir.is_dir():
             _fail(sdir, f"sequence folder of '{name}' (scene.yaml sequences) not found")
         used, raw, size = _check_cameras(sdir, info, checks)
+        distorted = [c for c in used if np.any(np.abs(np.asarray(raw[c]["dist"], np.float64)) > DIST_EPS)]
+        if distorted:
+            notes.append(f"{sdir / 'intri.yml'}: cameras {', '.join(distorted)} have lens distortion: images, masks "
+                         "and normals will be undistorted to pinhole working cameras by rule undistort "
+                         f"(results/<scene>/{name}/undistorted), which every later stage reads")
         frames, size, decoded = _check_images(sdir, used, size, images, checks)
         if "frames" in s and s["frames"] != len(frames):
             _fail(scene_dir / "scene.yaml", f"sequence '{name}' has frames: {s['frames']} but {sdir / 'images'} "
@@ -561,16 +569,19 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends") -> dict:
         size_all = size_all or size
         seqs[name] = {"frames": len(frames), "first_frame": frames[0], "last_frame": frames[-1],
                       "cameras": len(used), "images": len(frames) * len(used), "images_decoded": decoded,
-                      "masks": masks, "normals": normals, **view}
+                      "masks": masks, "normals": normals, "distorted_cameras": distorted, **view}
         log.info("validate %s/%s: %d cameras x %d frames, masks %s, normals %s", scene_dir.name, name, len(used),
                  len(frames), "yes" if masks else "no", "yes" if normals else "no")
     for w in warnings:
         log.warning("%s", w)
+    for n in notes:
+        log.info("%s", n)
     return {
         "scene": str(info.get("name") or scene_dir.name), "scene_dir": str(scene_dir),
         "cameras": {"train": train, "test": list(info["cameras"].get("test") or [])},
         "image_size": list(size_all), "sequences": seqs, "garment": g is not None, "garment_template": g,
-        "body": body_sum, "checks": list(dict.fromkeys(checks)), "warnings": warnings, "images": images,
+        "body": body_sum, "checks": list(dict.fromkeys(checks)), "warnings": warnings, "notes": notes,
+        "images": images,
         "wall_s": round(time.perf_counter() - t0, 3), "code_version": __version__,
     }
 
@@ -605,4 +616,5 @@ def format_summary(s: dict) -> str:
     else:
         lines.append("  garment: none (tight clothes: no simulate/rig/fit)")
     lines += [f"  warning: {w}" for w in s["warnings"]]
+    lines += [f"  note: {n}" for n in s.get("notes", [])]
     return "\n".join(lines)

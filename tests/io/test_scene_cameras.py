@@ -26,9 +26,9 @@ def _strip_image_size(seq_dir) -> None:
     assert "H_" not in (seq_dir / "intri.yml").read_text()
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    """A synthetic 4-camera (3 train), 3-frame skirt scene whose intri.yml has no H_/W_, its template and a rig."""
+def build_tiny_skirt(root):
+    """(data, results) of a synthetic 4-camera (3 train), 3-frame skirt scene at H x W whose intri.yml has no
+    H_/W_, with results/template.npz and a 4-bone results/rig.npz (shared with tests/test_undistort_stage.py)."""
     from anidress_core import rig as R
     from anidress_core.config import default_schema_path, validate_config
     from anidress_core.io.mesh import read_mesh
@@ -38,7 +38,6 @@ def scene(tmp_path_factory):
     from anidress_core.stages.synth import run_synth
     from anidress_core.stages.template import run_template
 
-    root = tmp_path_factory.mktemp("nosize")
     sc = {"kind": "skirt", "image_size": [H, W], "cameras": {"count": 4, "train": 3}, "body": {"vertices": 1500},
           "sequences": [{"name": "walk", "motion": "walk", "frames": 3}],
           "garment": {"vertices": 300, "cloth": {"settle_frames": 3}},
@@ -64,6 +63,11 @@ def scene(tmp_path_factory):
         "offsets": np.asarray([0, Y.shape[0]], np.int64), "rmse_per_sequence": np.asarray([model.rmse]),
         "rmse": np.float64(model.rmse)})
     return data, res
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return build_tiny_skirt(tmp_path_factory.mktemp("nosize"))
 
 
 def test_scene_cameras_take_the_size_from_scene_yaml_or_the_images(scene, tmp_path):

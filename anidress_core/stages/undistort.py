@@ -1,0 +1,169 @@
+"""Stage `undistort`: a captured sequence with lens distortion, undistorted once to pinhole working cameras.
+
+The rasteriser, the cue estimators, the fit, the field and the metrics model pinhole cameras
+(:mod:`anidress_core.undistort`). When ``intri.yml`` has non-zero ``dist_<cam>``, this stage
+writes the sequence as the pinhole *working* cameras see it, and every later stage reads it
+instead of the scene's folder (:func:`anidress_core.io.scene.sequence_source` decides)::
+
+    <out>/images/<cam>/<frame:06d>.png   bilinear; black where the source image does not reach
+    <out>/masks/<cam>/<frame:06d>.png    shipped label masks, nearest neighbour (0 outside)
+    <out>/normals/<cam>/<frame:06d>.exr  shipped normal maps, bilinear, renormalised (0 outside)
+    <out>/gt/masks/<cam>/<frame:06d>.png ground-truth masks, when the sequence has them
+    <out>/backgrounds/<cam>.png          recorded background plates (as the images), when present
+    <out>/intri.yml, extri.yml           the working cameras: K (the source's), dist 0, H_/W_
+    <out>/original_intri.yml             the source intri.yml as it was
+    <out>/undistort.json                 the record (cameras, which were distorted, the valid
+                                         fraction per camera, frames, what was undistorted)
+
+Cameras: scene.yaml's cameras/train + test (all of intri.yml if it lists none); pinhole
+cameras among them are copied unchanged (as PNG). The folder is written into a hidden
+temporary sibling and renamed into place at the end: a failure leaves nothing half-written.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..camera import save_cameras
+from ..io import files
+from ..io.scene import IMAGE_EXTS, UNDISTORT_RECORD, distorted_cameras, read_scene, scene_cameras
+from ..undistort import undistort_image, undistort_labels, undistort_maps, undistort_normals, working_cameras
+
+log = logging.getLogger("anidress.undistort")
+
+__all__ = ["run_undistort"]
+
+
+def _frames(d: Path, exts: tuple[str, ...]) -> dict[int, Path]:
+    if not d.is_dir():
+        raise FileNotFoundError(f"{d}: folder not found")
+    return {int(p.stem): p for p in sorted(d.iterdir()) if p.suffix.lower() in exts and p.stem.isdigit()}
+
+
+def _read_raw(path: Path) -> np.ndarray:
+    """An image as stored (uint8 / uint16, BGR order kept: it is written back the same way)."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise files.ArtifactError(f"{path}: unreadable or corrupt image")
+    return img
+
+
+def _write_raw(path: Path, img: np.ndarray) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
+        raise OSError(f"{path}: OpenCV could not write the image")
+
+
+def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike, threads: int = 2,
+                  progress: bool = True) -> dict:
+    """Undistort sequence ``seq`` of the scene into ``out_dir`` (layout in the module docstring).
+
+    Works for a sequence without distortion too (everything copied, the record says so).
+    Returns the record written to ``<out_dir>/undistort.json``.
+    """
+    t0 = time.perf_counter()
+    scene_dir, out_dir = Path(scene_dir), Path(out_dir)
+    seq_dir = scene_dir / seq
+    info = read_scene(scene_dir)
+    cams_cfg = info.get("cameras") or {}
+    names = list(cams_cfg.get("train") or []) + list(cams_cfg.get("test") or []) or None
+    cams = scene_cameras(scene_dir, seq, names, info)
+    names = cams.names
+    bad = distorted_cameras(scene_dir, seq, info)
+    H, W = cams.height, cams.width
+    # 1. the maps of every camera (identity for the pinhole ones, which are copied instead)
+    maps = undistort_maps(cams.K, cams.dist, H, W)
+    work = working_cameras(cams)
+    # 2. what to undistort: images of every camera; shipped masks / normals and gt masks where present
+    jobs = []  # (kind, cam index, source, target)
+    kinds = {"images": (IMAGE_EXTS, ".png"), "masks": ((".png",), ".png"), "normals": ((".exr",), ".exr"),
+             "gt/masks": ((".png",), ".png")}
+    have = {}
+    for kind, (exts, ext) in kinds.items():
+        root = seq_dir / kind
+        have[kind] = root.is_dir() and kind != "images"
+        if kind != "images" and not root.is_dir():
+            continue
+        for ci, cam in enumerate(names):
+            if kind != "images" and not (root / cam).is_dir():
+                continue  # shipped cues may cover the training cameras only
+            fr = _frames(root / cam, exts)
+            if kind == "images" and not fr:
+                raise FileNotFoundError(f"{root / cam}: no <frame>.png/.jpg images")
+            jobs += [(kind, ci, p, Path(kind) / cam / f"{f:06d}{ext}") for f, p in fr.items()]
+    n_frames = len({j[3].name for j in jobs if j[0] == "images"})
+    plates = [(ci, p) for ci, cam in enumerate(names) for p in sorted((seq_dir / "backgrounds").glob(f"{cam}.*"))
+              if p.suffix.lower() in IMAGE_EXTS]
+    jobs += [("images", ci, p, Path("backgrounds") / f"{names[ci]}.png") for ci, p in plates]
+    have["backgrounds"] = bool(plates)
+    log.info("undistort %s/%s: %d cameras (%s distorted) x %d frames at %dx%d, masks %s, normals %s, gt masks %s",
+             scene_dir.name, seq, len(names), ", ".join(bad) or "none", n_frames, W, H,
+             "yes" if have["masks"] else "no", "yes" if have["normals"] else "no", "yes" if have["gt/masks"] else "no")
+    distorted = {names.index(c) for c in bad if c in names}
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+
+    def one(job) -> None:
+        kind, ci, src, rel = job
+        dst = tmp / rel
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if kind == "normals":
+            n = files.read_exr(src)
+            if n.ndim != 3 or n.shape[:2] != (H, W) or n.shape[-1] < 3:
+                raise files.ArtifactError(f"{src}: normal map must be ({H}, {W}, 3), got {n.shape}")
+            files.write_exr(dst, undistort_normals(n, maps, ci) if ci in distorted else n[..., :3])
+            return
+        if kind in ("masks", "gt/masks"):
+            m = files.read_mask(src)
+            if m.shape != (H, W):
+                raise files.ArtifactError(f"{src}: mask is {m.shape[1]}x{m.shape[0]}, the images are {W}x{H}")
+            files.write_mask(dst, undistort_labels(m, maps, ci) if ci in distorted else m)
+            return
+        if ci not in distorted and src.suffix.lower() == ".png":
+            shutil.copyfile(src, dst)
+            return
+        img = _read_raw(src)
+        if img.shape[:2] != (H, W):
+            raise files.ArtifactError(f"{src}: image is {img.shape[1]}x{img.shape[0]}, expected {W}x{H}")
+        _write_raw(dst, undistort_image(img, maps, ci) if ci in distorted else img)
+
+    try:
+        # 3. remap every file (OpenCV releases the GIL: threads share the work)
+        with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+            it = pool.map(one, jobs)
+            if progress:
+                from tqdm import tqdm
+                it = tqdm(it, total=len(jobs), desc=f"undistort {seq}", unit="file")
+            for _ in it:
+                pass
+        # 4. the working cameras, the original intrinsics, the record (last: it marks a complete folder)
+        save_cameras(work, tmp / "intri.yml", tmp / "extri.yml")
+        shutil.copyfile(seq_dir / "intri.yml", tmp / "original_intri.yml")
+        rec = {"scene": scene_dir.name, "sequence": seq, "source": str(seq_dir), "cameras": names,
+               "distorted": bad, "image_size": [H, W], "frames": n_frames,
+               "working_camera": "pinhole, the source K, zero distortion, the same image size",
+               "valid_fraction": {c: round(float(maps.valid[i].mean()), 6) for i, c in enumerate(names)},
+               "undistorted": ["images"] + [k for k in ("masks", "normals", "gt/masks", "backgrounds") if have[k]],
+               "files": len(jobs), "wall_s": round(time.perf_counter() - t0, 3), "code_version": __version__}
+        files.write_json(tmp / UNDISTORT_RECORD, rec)
+        os.chmod(tmp, 0o777 & ~files._UMASK)
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(tmp, out_dir)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    log.info("undistort %s/%s: %d files -> %s in %.1f s", scene_dir.name, seq, len(jobs), out_dir, rec["wall_s"])
+    return rec
