@@ -2,6 +2,7 @@
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"
 include: "workflow/rules/validate.smk"
+include: "workflow/rules/undistort.smk"  # before the stages: their input functions use undistorted_dir()
 include: "workflow/rules/sim.smk"
 include: "workflow/rules/rig.smk"
 include: "workflow/rules/cues.smk"

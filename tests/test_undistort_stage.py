@@ -42,12 +42,10 @@ def _distort_folder(d, K, D, kind):
             files.write_exr(p, n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6))
 
 
-@pytest.fixture(scope="module")
-def capture(tmp_path_factory):
-    """(data, results, pinhole copy of walk/) of the distorted capture."""
+def build_distorted_capture(root):
+    """(data, results, pinhole copy of walk/) of the distorted capture (shared with tests/test_undistort_workflow.py)."""
     import shutil
 
-    root = tmp_path_factory.mktemp("distorted")
     data, res = build_tiny_skirt(root)
     seq = data / "walk"
     shutil.copytree(seq / "gt" / "masks", seq / "masks")  # shipped masks (the pipeline then estimates none)
@@ -61,6 +59,11 @@ def capture(tmp_path_factory):
         raw[cam]["dist"] = D
     easymocap.write_intri(seq / "intri.yml", raw)  # no H_/W_, as EasyMocap writes it
     return data, res, pinhole
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    return build_distorted_capture(tmp_path_factory.mktemp("distorted"))
 
 
 def test_validate_reports_the_undistortion_and_stages_refuse_the_raw_sequence(capture, tmp_path):

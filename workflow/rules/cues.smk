@@ -26,7 +26,7 @@ def _shipped(scene, seq, what):
 def masks_dir(scene, seq):
     """The masks the fitting uses: shipped data/<scene>/<seq>/masks if present, else the estimated ones."""
     if _shipped(scene, seq, "masks"):
-        return f"data/{scene}/{seq}/masks"
+        return sequence_data_dir(scene, seq, "masks")  # undistort.smk: data/ or its undistorted copy
     return f"results/{scene}/{seq}/masks"
 
 
@@ -44,7 +44,7 @@ def normals_dir(scene, seq):
     """
     if config["cues"]["normals"] == "off" or not _shipped(scene, seq, "normals"):
         return None
-    return f"data/{scene}/{seq}/normals"
+    return sequence_data_dir(scene, seq, "normals")  # undistort.smk: data/ or its undistorted copy
 
 
 def normals_record(scene, seq):
@@ -62,7 +62,7 @@ def cues_outputs(scene):
     """Every cue target of a scene (for rule all): masks (where estimated), flows and normals.json per sequence."""
     out = []
     for seq in _cue_sequences(scene):
-        if masks_dir(scene, seq).startswith("results/"):
+        if masks_dir(scene, seq) == f"results/{scene}/{seq}/masks":  # estimated (not shipped, maybe undistorted)
             out.append(masks_dir(scene, seq))
         out += [flows_dir(scene, seq), normals_record(scene, seq)]
     return out
@@ -80,6 +80,7 @@ rule masks:
         scene="data/{scene}",
         check=ancient("results/{scene}/scene_check.json"),
         template=_cue_template,
+        undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
         directory("results/{scene}/{seq}/masks"),
     log:
@@ -103,8 +104,9 @@ rule flows:
     input:
         scene="data/{scene}",
         check=ancient("results/{scene}/scene_check.json"),
-        masks=lambda wc: masks_dir(wc.scene, wc.seq),
+        masks=lambda wc: rule_input(masks_dir(wc.scene, wc.seq)),
         template=_cue_template,
+        undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
         directory("results/{scene}/{seq}/flows"),
     log:
@@ -112,6 +114,7 @@ rule flows:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/flows.tsv"
     params:
+        masks=lambda wc: masks_dir(wc.scene, wc.seq),
         flows=config["cues"]["flows"],
         cameras=config["cues"]["cameras"],
     threads: 2
@@ -128,6 +131,7 @@ rule normals:
     input:
         scene="data/{scene}",
         check=ancient("results/{scene}/scene_check.json"),
+        undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
         "results/{scene}/{seq}/normals.json",
     log:

@@ -13,11 +13,18 @@ def field_eval_renders(scene, seq, variant):
     return out
 
 
+def field_eval_undistorted(scene, seq, variant):
+    """{sequence: undistorted folder} of the evaluated sequences whose cameras have lens distortion."""
+    seqs = {r[1] for r in field_eval_renders(scene, seq, variant)}
+    return {s: undistorted_dir(scene, s) for s in sorted(seqs) if undistorted_dir(scene, s)}
+
+
 rule evaluate_field:
     input:
         scene="data/{scene}",
         check=ancient("results/{scene}/scene_check.json"),
         renders=lambda wc: [r[2] for r in field_eval_renders(wc.scene, wc.seq, wc.variant)],
+        undistorted=lambda wc: list(field_eval_undistorted(wc.scene, wc.seq, wc.variant).values()),
     output:
         csv="results/{scene}/{seq,[^/]+}/{variant}/metrics.csv",
         summary="results/{scene}/{seq,[^/]+}/{variant}/metrics_summary.json",
@@ -28,6 +35,7 @@ rule evaluate_field:
     params:
         metrics=config["metrics"],
         renders=lambda wc: field_eval_renders(wc.scene, wc.seq, wc.variant),
+        undistorted=lambda wc: field_eval_undistorted(wc.scene, wc.seq, wc.variant),
     threads: 1
     resources:
         mem_mb=3000,

@@ -34,8 +34,9 @@ def field_train_inputs(wildcards):
     scene, seq, variant = wildcards.scene, wildcards.seq, wildcards.variant
     inp = {"scene": f"data/{scene}", "check": ancient(f"results/{scene}/scene_check.json")}
     m = field_masks(scene, seq)
-    if m.startswith("results/"):
+    if m.startswith("results/") and rule_input(m):
         inp["masks"] = m
+    inp["undistorted"] = undistorted_input(scene, seq)  # undistort.smk: images and cameras
     if has_garment(scene):
         inp["template"] = f"results/{scene}/template.npz"
         if variant == "full":
@@ -49,6 +50,7 @@ def field_render_inputs(wildcards):
     scene, variant = wildcards.scene, wildcards.variant
     inp = {"field": f"results/{scene}/{wildcards.seq}/{variant}/field.pt", "scene": f"data/{scene}"}
     pose_seq = getattr(wildcards, "pose_seq", wildcards.seq)
+    inp["undistorted"] = undistorted_input(scene, pose_seq)  # the cameras rendered (library: the training seq's)
     motion = getattr(wildcards, "motion", None)
     if motion is not None:
         inp["motion"] = f"results/{scene}/motions/{motion}.npz"

@@ -43,8 +43,9 @@ def fit_inputs(wildcards):
            "scene": f"data/{scene}", "check": ancient(f"results/{scene}/scene_check.json")}
     if config["fit"]["cues"] != "ground_truth":
         d = fit_cue_dirs(scene, seq)
-        if d["masks"].startswith("results/"):
+        if d["masks"].startswith("results/") and rule_input(d["masks"]):
             inp["masks"] = d["masks"]
+        inp["undistorted"] = undistorted_input(scene, seq)  # undistort.smk: images, cameras, shipped cues
         inp["flows"] = d["flows"]
         inp["normals"] = normals_record(scene, seq)
     return inp

@@ -11,7 +11,8 @@ try:
     torch.set_num_threads(snakemake.threads)
     m = snakemake.params.metrics
     run_evaluate(snakemake.input.scene, snakemake.params.renders, snakemake.output.csv, snakemake.output.summary, m,
-                 lpips=load_lpips(**m["lpips"]), dists=load_dists(**m["dists"]), progress=False)
+                 lpips=load_lpips(**m["lpips"]), dists=load_dists(**m["dists"]), progress=False,
+                 undistorted=snakemake.params.undistorted)
 except Exception:
     log.exception("evaluate failed")
     raise

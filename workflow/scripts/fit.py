@@ -9,7 +9,7 @@ try:
     run_fit(snakemake.input.scene, snakemake.wildcards.seq, snakemake.input.rig, snakemake.input.template,
             cues["masks"], cues["flows"], cues["normals"], params, snakemake.output[0],
             ablation=None if snakemake.params.ablation == "full" else snakemake.params.ablation,
-            cue_source=cues["source"])
+            cue_source=cues["source"], undistorted_dir=snakemake.input.get("undistorted") or None)
 except Exception:
     log.exception("fit failed")
     raise

@@ -5,9 +5,9 @@ from anidress_core.stages.cues import run_flows
 log = setup_logging(snakemake.log[0])
 try:
     template = snakemake.input.get("template") or None
-    run_flows(snakemake.input.scene, snakemake.wildcards.seq, snakemake.input.masks, snakemake.output[0],
+    run_flows(snakemake.input.scene, snakemake.wildcards.seq, snakemake.params.masks, snakemake.output[0],
               snakemake.params.flows, template_npz=template, cameras=snakemake.params.cameras,
-              threads=snakemake.threads, progress=False)
+              threads=snakemake.threads, progress=False, undistorted_dir=snakemake.input.get("undistorted") or None)
 except Exception:
     log.exception("flows failed")
     raise

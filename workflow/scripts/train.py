@@ -13,7 +13,7 @@ try:
     lpips = load_lpips(**p.lpips) if p.field["train"]["lpips_weight"] > 0 else None
     run_train(inp.scene, wc.seq, wc.variant, p.masks, snakemake.output[0], p.field,
               template_npz=inp.get("template"), rig_npz=inp.get("rig"), garment_poses_npz=inp.get("poses"),
-              lpips=lpips, device=p.field["device"], progress=False)
+              lpips=lpips, device=p.field["device"], progress=False, undistorted_dir=inp.get("undistorted") or None)
 except Exception:
     log.exception("train_field failed")
     raise
