@@ -1,62 +1,10 @@
 """End to end: the Snakemake workflow on a tiny scene, then a no-op second run."""
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
-import pytest
 import yaml
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.workflow.tiny import TINY, planned_jobs, snakemake as _snakemake
 
-TINY = {
-    "run_scenes": ["tiny", "tinyskirt"],
-    "scenes": {
-        "tiny": {
-            "synthetic": True,
-            "kind": "tight",
-            "image_size": [48, 48],
-            "cameras": {"count": 12, "train": 8},
-            "sequences": [
-                {"name": "walk", "motion": "walk", "frames": 3, "role": "train"},
-                {"name": "jump", "motion": "jump", "frames": 3, "role": "novel_pose"},
-            ],
-            "render": {"texture_size": 128, "noise_std": 0.003},
-        },
-        "tinyskirt": {
-            "synthetic": True,
-            "kind": "skirt",
-            "image_size": [48, 48],
-            "sequences": [{"name": "walk", "motion": "walk", "frames": 4, "role": "train"}],
-            "garment": {"vertices": 600, "cloth": {"settle_frames": 5}},
-            "render": {"texture_size": 128},
-        },
-    },
-    "template": {"vertices": 600},
-    "simulate": {"library": ["sway"], "library_frames": 5, "cloth": {"settle_frames": 5}},
-    "rig": {"bones": 6, "iters": 10},
-    "fit": {"max_iters": 5, "max_iters_first": 10},
-    "field": {
-        "train": {"steps": 20, "rays_per_step": 256, "images_per_step": 4, "checkpoint_every": 10},
-        "render": {"frame_stride": 2, "library": ["sway"], "library_frame_stride": 2},
-    },
-}
-
-
-def _snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
-           "--configfile", str(workdir / "tiny.yaml"), "--cores", "2", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    wd = tmp_path_factory.mktemp("wf")
-    (wd / "tiny.yaml").write_text(yaml.safe_dump(TINY))
-    res = _snakemake(wd)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    return wd
+# the fixture tiny_run (conftest.py): TINY built once per session, shared with test_rerun_sets and test_killed_runs
 
 
 def test_tiny_scene_layout(tiny_run):
@@ -122,7 +70,7 @@ def test_every_stage_ran_to_the_report(tiny_run):
     assert poses["transforms"].shape[:2] == (4, 6) and np.isfinite(poses["transforms"]).all()
     with open(res / "tinyskirt" / "walk" / "fit_metrics.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert {r["method"] for r in rows} == {"full"} and all(np.isfinite(float(r["vertex_rmse_m"])) for r in rows)
+    assert {r["method"] for r in rows} == {"pipeline"} and all(np.isfinite(float(r["vertex_rmse_m"])) for r in rows)
     # the tight scene trains one field (body joints only); the garment scene both variants
     for scene, variants in (("tiny", ["full"]), ("tinyskirt", ["full", "body_only"])):
         for v in variants:
@@ -140,19 +88,8 @@ def test_second_run_has_nothing_to_do(tiny_run):
 
 
 def _planned_jobs(tiny_run, cfg) -> dict:
-    """Job counts of a dry run with a modified config: {rule: count}."""
-    (tiny_run / "tiny.yaml").write_text(yaml.safe_dump(cfg))
-    try:
-        res = _snakemake(tiny_run, "-n", "--quiet", "rules")
-    finally:
-        (tiny_run / "tiny.yaml").write_text(yaml.safe_dump(TINY))
-    assert res.returncode == 0, res.stderr[-2000:]
-    jobs = {}
-    for line in (res.stdout + res.stderr).splitlines():
-        parts = line.split()
-        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
-            jobs[parts[0]] = int(parts[1])
-    return jobs
+    """Job counts of a dry run with a modified config (Snakemake's default rerun triggers): {rule: count}."""
+    return planned_jobs(tiny_run, cfg)
 
 
 def test_param_change_reruns_exactly_that_stage(tiny_run):

@@ -46,6 +46,18 @@ def scene_cfg(wildcards):
     return config["scenes"][wildcards.scene]
 
 
+# Rule params hold exactly the settings that shape the rule's outputs (DESIGN.md §1: a stage's
+# setting reruns that stage and what depends on it, nothing upstream); tests/workflow/test_rerun_sets.py
+# checks it section by section.
+SCENE_STAGE_SECTIONS = ("fit",)
+"""Parts of a scene section that override a stage's section (scenes/<scene>/fit): not the scene's data."""
+
+
+def synth_params(wildcards):
+    """The scene section rule synth renders from: everything but the stage overrides (scenes/<scene>/fit)."""
+    return {k: v for k, v in scene_cfg(wildcards).items() if k not in SCENE_STAGE_SECTIONS}
+
+
 def has_garment(scene):
     """Scenes with a loose garment run template/simulate; tight ones skip them (DESIGN.md §6)."""
     return config["scenes"][scene]["kind"] != "tight"
@@ -65,8 +77,10 @@ def motion_params(wildcards):
     sim = config["simulate"]
     if wildcards.motion.startswith("seq-"):
         return {}
-    if wildcards.motion.startswith("amass-"):
-        return {"library_fps": sim["library_fps"], "amass": sim["amass"]}
+    if wildcards.motion.startswith("amass-"):  # only the file(s) of this motion (its stem)
+        stem = wildcards.motion[len("amass-"):]
+        return {"library_fps": sim["library_fps"],
+                "amass": [p for p in sim["amass"] if os.path.splitext(os.path.basename(p))[0] == stem]}
     return {"library_frames": sim["library_frames"], "library_fps": sim["library_fps"],
             "amass": []}
 

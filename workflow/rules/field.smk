@@ -63,19 +63,39 @@ def field_render_inputs(wildcards):
     return inp
 
 
-def field_train_params():
-    """The settings that shape a trained field (render-only settings excluded)."""
+def _field_sampler(variant, training):
+    """field/sampler as a variant uses it: the body_only garment margin only for body_only, the
+    training-ray mask margin only when training."""
+    s = dict(config["field"]["sampler"])
+    if variant != "body_only":
+        s.pop("body_only_garment_dilate_m")
+    if not training:
+        s.pop("mask_dilate_px")
+    return s
+
+
+def field_train_params(variant):
+    """The settings that shape a trained field: model, priors, sampler, train (not checkpoint_every: a
+    resumed training ends with the same field), the background of the training targets, device."""
     f = config["field"]
-    return {"model": f["model"], "priors": f["priors"], "sampler": f["sampler"], "train": f["train"],
+    train = {k: v for k, v in f["train"].items() if k != "checkpoint_every"}
+    return {"model": f["model"], "priors": f["priors"], "sampler": _field_sampler(variant, True), "train": train,
             "render": {"background": f["render"]["background"]}, "device": f["device"]}
 
 
-def field_render_params(kind):
-    """Settings that shape the renders of one kind (the library list and stride only for library renders)."""
+def field_lpips_params():
+    """metrics/lpips: the weights of the LPIPS loss term, only where the term is on (field/train/lpips_weight > 0)."""
+    return config["metrics"]["lpips"] if config["field"]["train"]["lpips_weight"] > 0 else None
+
+
+def field_render_params(kind, variant):
+    """Settings that shape the renders of one kind: the sampler, field/render (frame_stride for the
+    sequences, library_frame_stride for the library motions; not the library list: one job per
+    motion), device."""
     f = config["field"]
-    lib = ("library", "library_frame_stride")
-    render = {k: v for k, v in f["render"].items() if kind == "library" or k not in lib}
-    return {"sampler": f["sampler"], "render": render, "device": f["device"]}
+    drop = ("library", "frame_stride") if kind == "library" else ("library", "library_frame_stride")
+    render = {k: v for k, v in f["render"].items() if k not in drop}
+    return {"sampler": _field_sampler(variant, False), "render": render, "device": f["device"]}
 
 
 def field_outputs(scene):
@@ -100,8 +120,8 @@ rule train_field:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/{variant}/train.tsv"
     params:
-        field=field_train_params(),
-        lpips=config["metrics"]["lpips"],
+        field=lambda wc: field_train_params(wc.variant),
+        lpips=field_lpips_params(),
         masks=lambda wc: field_masks(wc.scene, wc.seq),
     threads: 1
     resources:
@@ -122,7 +142,7 @@ rule render_novel_view:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/{variant}/render_novel_view.tsv"
     params:
-        field=field_render_params("novel_view"),
+        field=lambda wc: field_render_params("novel_view", wc.variant),
         kind="novel_view",
     threads: 1
     resources:
@@ -143,7 +163,7 @@ rule render_novel_pose:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/{variant}/render_novel_pose_{pose_seq}.tsv"
     params:
-        field=field_render_params("novel_pose"),
+        field=lambda wc: field_render_params("novel_pose", wc.variant),
         kind="novel_pose",
     threads: 1
     resources:
@@ -164,7 +184,7 @@ rule render_library:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/{variant}/render_library_{motion}.tsv"
     params:
-        field=field_render_params("library"),
+        field=lambda wc: field_render_params("library", wc.variant),
         kind="library",
     threads: 1
     resources:

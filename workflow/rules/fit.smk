@@ -104,7 +104,7 @@ rule fit_ablation:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/fit_ablations/{ablation}.tsv"
     params:
-        fit=lambda wc: fit_params(wc.scene),
+        fit=lambda wc: {k: v for k, v in fit_params(wc.scene).items() if k != "loss"},  # the ablation is the loss
         cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
         ablation=lambda wc: wc.ablation,
     threads: 2

@@ -16,6 +16,12 @@ def report_reference(key):
     return lambda wildcards: [path] if os.path.isfile(path) else []
 
 
+def report_scenes():
+    """What the page takes from the config: the scenes run, their kind and sequences (names, roles, frames)."""
+    return {"run_scenes": config["run_scenes"],
+            "scenes": {s: {k: config["scenes"][s][k] for k in ("kind", "sequences")} for s in config["run_scenes"]}}
+
+
 rule report:
     input:
         outputs=get_final_outputs(),
@@ -26,7 +32,7 @@ rule report:
     log:
         "logs/report.log",
     params:
-        scenes={"run_scenes": config["run_scenes"], "scenes": config["scenes"]},
+        scenes=report_scenes(),
     threads: 1
     resources:
         mem_mb=2000,

@@ -9,7 +9,7 @@ rule synth:
     benchmark:
         "benchmarks/runs/{scene}/synth.tsv"
     params:
-        scene=scene_cfg,
+        scene=synth_params,
     threads: 2
     resources:
         mem_mb=4000,

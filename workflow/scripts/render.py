@@ -12,8 +12,8 @@ try:
     p, inp, wc = snakemake.params, snakemake.input, snakemake.wildcards
     info = read_scene(inp.scene)
     common = dict(template_npz=inp.get("template"), rig_npz=inp.get("rig"),
-                  frame_stride=p.field["render"]["frame_stride"], device=p.field["device"], progress=False,
-                  undistorted_dir=inp.get("undistorted") or None)
+                  frame_stride=p.field["render"]["library_frame_stride" if p.kind == "library" else "frame_stride"],
+                  device=p.field["device"], progress=False, undistorted_dir=inp.get("undistorted") or None)
     if p.kind == "novel_view":
         run_render(inp.field, inp.scene, snakemake.output[0], p.field, seq=wc.seq, cameras=info["cameras"]["test"],
                    garment_poses_npz=inp.get("poses"), **common)
@@ -22,7 +22,6 @@ try:
         run_render(inp.field, inp.scene, snakemake.output[0], p.field, seq=wc.pose_seq, cameras=cams,
                    garment_poses_npz=inp.get("poses"), **common)
     else:
-        common["frame_stride"] = p.field["render"]["library_frame_stride"]
         run_render(inp.field, inp.scene, snakemake.output[0], p.field, cameras=info["cameras"]["test"],
                    library_motion_npz=inp.motion, library_name=wc.motion, **common)
 except Exception:

@@ -11,7 +11,9 @@ try:
     torch.set_num_threads(snakemake.threads)
     p, inp, wc = snakemake.params, snakemake.input, snakemake.wildcards
     lpips = load_lpips(**p.lpips) if p.field["train"]["lpips_weight"] > 0 else None
-    run_train(inp.scene, wc.seq, wc.variant, p.masks, snakemake.output[0], p.field,
+    # field/train/checkpoint_every is not a param (a rerun trigger): a resumed training ends with the same field
+    field = dict(p.field, train=dict(p.field["train"], checkpoint_every=snakemake.config["field"]["train"]["checkpoint_every"]))
+    run_train(inp.scene, wc.seq, wc.variant, p.masks, snakemake.output[0], field,
               template_npz=inp.get("template"), rig_npz=inp.get("rig"), garment_poses_npz=inp.get("poses"),
               lpips=lpips, device=p.field["device"], progress=False, undistorted_dir=inp.get("undistorted") or None)
 except Exception:
