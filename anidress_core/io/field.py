@@ -14,7 +14,8 @@ A ``torch.save`` dict, written atomically:
 
 While training, ``field.pt.ckpt`` (:func:`training_state_path`) holds the last
 training state (``model``, ``optimizer``, ``scheduler`` state dicts, ``step``,
-``history``, ``config_hash``; see :func:`anidress_core.field.train.train_field`).
+``history``, ``config_hash``, ``resume_key``: the settings and data it continues, see
+:func:`anidress_core.stages.field.run_train` and :func:`anidress_core.field.train.train_field`).
 """
 from __future__ import annotations
 

@@ -10,8 +10,10 @@ variant = ``full`` | ``body_only``):
   ``history`` (loss, batch PSNR, samples per ray per logged step), ``wall_s``,
   ``steps``, ``lpips`` ("used" or why not), ``sampling`` (occupied fraction, samples
   per ray kept / considered), ``config_hash``, ``code_version``.
-  While training, ``field.pt.ckpt`` holds the last checkpoint (same config hash ->
-  resumed; removed when training ends).
+  While training, ``field.pt.ckpt`` holds the last checkpoint, resumed by a rerun with the
+  same settings and data (``resume_key``: config hash without ``checkpoint_every`` + digest
+  of the training tensors; else ignored and overwritten); removed when training ends. A
+  resumed training ends with the same field as an uninterrupted one (tests/workflow/test_killed_runs.py).
 * ``renders/<kind>/`` with kind ``novel_view`` (test cameras, training frames),
   ``novel_pose/<seq>`` (all cameras of a held-out sequence, its own garment poses) or
   ``library/<motion>`` (a simulated library motion: body motion + the rig's garment
@@ -23,6 +25,7 @@ variant = ``full`` | ``body_only``):
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import os
@@ -174,7 +177,9 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     scene_dir, out_pt, masks_dir = Path(scene_dir), Path(out_pt), Path(masks_dir)
     dev = _device(device)
     info = read_scene(scene_dir)
-    cfg_hash = files.config_hash({"params": params, "variant": variant, "seq": seq})
+    # the interval between checkpoints does not shape the field (a resumed training is exact)
+    shaping = dict(params, train={k: v for k, v in params.get("train", {}).items() if k != "checkpoint_every"})
+    cfg_hash = files.config_hash({"params": shaping, "variant": variant, "seq": seq})
     sp = _sampler_params(params)
     tcfg = train_config_from_params(params)
     fcfg = field_config_from_params(params)
@@ -220,14 +225,18 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     # 3. model, resume, train
     model = AnimatableField(box, prior, fcfg, seed=tcfg.seed).to(dev)
     ckpt_path = training_state_path(out_pt)
+    # a checkpoint resumes only the same training: same settings and the same data (images, masks,
+    # poses, occupancy, initial model), so a rerun after an upstream change never continues a stale one
+    resume_key = files.config_hash({"config": cfg_hash, "lpips": bool(lpips),
+                                    "data": _tensor_digest(data, grid, model.state_dict())})
     state = None
     if ckpt_path.is_file():
         st = read_training_state(ckpt_path, device=dev)
-        if st.get("config_hash") == cfg_hash:
+        if st.get("resume_key") == resume_key:
             state = st
             log.info("resuming from %s at step %d", ckpt_path, int(st["step"]))
         else:
-            log.info("ignoring %s: made with another configuration", ckpt_path)
+            log.info("ignoring %s: made with other settings or data", ckpt_path)
     if lpips:
         lp = lpips.to(dev)
         lpips_note = "used"
@@ -237,7 +246,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
         log.info("LPIPS term off (loss = MSE only): %s", lpips_note)
 
     def save_ckpt(s: dict) -> None:
-        s["config_hash"] = cfg_hash
+        s["config_hash"], s["resume_key"] = cfg_hash, resume_key
         write_training_state(ckpt_path, s)
 
     res = _train_maybe_partial(model, data, tcfg, state, save_ckpt, lp, progress, max_steps)
@@ -264,6 +273,35 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     log.info("trained %s in %.1f s (%.1f CPU s, %d steps): last batch PSNR %.2f dB, %.1f of %.1f samples per ray kept",
              variant, res.wall_s, res.cpu_s, res.steps, last.get("psnr_db", float("nan")), kept, seen)
     return out
+
+
+def _tensor_digest(*objs) -> str:
+    """sha256 of every tensor in ``objs`` (tensors, named tuples / dataclasses / dicts of them, nested;
+    other values by their repr), in order: dtype, shape and bytes."""
+    h = hashlib.sha256()
+
+    def feed(o):
+        if isinstance(o, torch.Tensor):
+            t = o.detach().cpu().contiguous()
+            h.update(f"{t.dtype}{tuple(t.shape)}".encode())
+            h.update(t.numpy().tobytes())
+        elif isinstance(o, dict):
+            for k in sorted(o, key=str):
+                h.update(str(k).encode())
+                feed(o[k])
+        elif isinstance(o, (list, tuple)):
+            for v in o:
+                feed(v)
+        elif dataclasses.is_dataclass(o) and not isinstance(o, type):
+            for f in dataclasses.fields(o):
+                h.update(f.name.encode())
+                feed(getattr(o, f.name))
+        else:
+            h.update(repr(o).encode())
+
+    for o in objs:
+        feed(o)
+    return h.hexdigest()
 
 
 def _train_maybe_partial(model, data, cfg, state, save_ckpt, lp, progress, max_steps):

@@ -79,6 +79,7 @@ def run_simulate(template_npz: str | os.PathLike, motion_npz: str | os.PathLike,
     body = load_body(scene_dir)
     posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
     params = sim.ClothParams(**cloth_cfg)
+    log.info("simulating %s: %d frames, %d vertices", motion.name, motion.poses.shape[0], tpl.verts.shape[0])
     res = sim.simulate(tpl.verts, tpl.faces, tpl.band, tpl.body_weights, body.v_template, body.faces, body.weights,
                        posed.transforms, motion.fps, params, progress=progress)
     st = res.stats

@@ -98,3 +98,36 @@ def test_errors_name_the_problem(scene_dir, tmp_path):
     torch.save({"format": "something else"}, bad)
     with pytest.raises(files.ArtifactError, match="bad.pt"):
         load_field(bad)
+
+
+def test_a_checkpoint_resumes_only_the_same_training(scene_dir, tmp_path, caplog):
+    """checkpoint_every does not count (the field is the same), other data does (a rerun after an upstream
+    change must not continue the stale training)."""
+    import shutil
+
+    masks = scene_dir / "walk" / "gt" / "masks"
+    out, ckpt = tmp_path / "a" / "field.pt", tmp_path / "a" / "field.pt.ckpt"
+    run_train(scene_dir, "walk", "full", masks, out, PARAMS, progress=False, max_steps=8)
+    other_every = dict(PARAMS, train=dict(PARAMS["train"], checkpoint_every=5))
+    with caplog.at_level("INFO", logger="anidress.field"):
+        run_train(scene_dir, "walk", "full", masks, out, other_every, progress=False)
+    assert "at step 8" in caplog.text and not ckpt.exists()
+    ref = tmp_path / "ref" / "field.pt"
+    run_train(scene_dir, "walk", "full", masks, ref, PARAMS, progress=False)
+    a, b = load_field(out).model.state_dict(), load_field(ref).model.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # other masks (one emptied): the checkpoint is ignored, the field is that of the new data
+    out.unlink()
+    run_train(scene_dir, "walk", "full", masks, out, PARAMS, progress=False, max_steps=8)
+    masks2 = tmp_path / "masks2"
+    shutil.copytree(masks, masks2)
+    first = sorted(masks2.rglob("*.png"))[0]
+    files.write_mask(first, np.zeros_like(files.read_mask(first)))
+    caplog.clear()
+    with caplog.at_level("INFO", logger="anidress.field"):
+        run_train(scene_dir, "walk", "full", masks2, out, PARAMS, progress=False)
+    assert "ignoring" in caplog.text and "resuming" not in caplog.text
+    fresh = tmp_path / "fresh" / "field.pt"
+    run_train(scene_dir, "walk", "full", masks2, fresh, PARAMS, progress=False)
+    a, b = load_field(out).model.state_dict(), load_field(fresh).model.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
