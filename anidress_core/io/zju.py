@@ -9,10 +9,21 @@ Layout (Peng et al., "Neural Body", CVPR 2021; read by zju3dv/neuralbody
         ims:  [T x {"ims": [C image paths relative to <capture>]}]
     <capture>/mask/<path>.png       person masks, 0 background, non-zero person
     <capture>/mask_cihp/<path>.png  CIHP human-parsing labels 0..19 (0 background)
+    <capture>/params/<i>.npy        body parameters of frame number i (np.save of a dict:
+    <capture>/new_params/<i>.npy    poses (1, 72), Rh (1, 3), Th (1, 3) metres, shapes (1, 10),
+                                    EasyMocap's convention; new_params: the later refit)
+
+``<path>`` is an image path of ``ims`` without its extension. The frame number ``i`` of
+an image is its file name (``Camera_B1/000123.jpg``: 123), or for CoreView_313 / 315's
+long names (``Camera (1)/CoreView_313_Camera_(1)_0001_2019-08-23_16-08-50.592.jpg``) the
+fifth ``_``-separated field (1): :func:`zju_frame_number`, neuralbody's rule.
 
 :func:`read_annots` returns our :class:`anidress_core.camera.Cameras` (metres) and the
 image lists; :func:`zju_mask_labels` maps the two mask kinds to the pipeline's labels
-(0 background, 1 body, 2 garment: ``anidress_core.synth.LABEL_*``).
+(0 background, 1 body, 2 garment: ``anidress_core.synth.LABEL_*``);
+:func:`read_zju_params` reads the body parameters of given frame numbers;
+:func:`zju_mask_paths` names the mask files of an image; :func:`safe_camera_names` turns
+the camera folders (``Camera (1)``) into names EasyMocap's files can hold.
 
 ``annots.npy`` is a pickle: it is the one file of this module read with pickle enabled,
 and even then only through the restricted unpickler of :mod:`anidress_core.io.motion`
@@ -22,6 +33,7 @@ file here is read without pickle.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -30,9 +42,13 @@ import torch
 
 from ..camera import Cameras
 from ..synth import LABEL_BACKGROUND, LABEL_BODY, LABEL_GARMENT
-from .motion import _load_npy_object
+from .motion import _load_npy_object, _person_params
 
-__all__ = ["read_annots", "zju_mask_labels", "CIHP_LABELS", "CIHP_GARMENT_LABELS"]
+__all__ = ["read_annots", "zju_mask_labels", "CIHP_LABELS", "CIHP_GARMENT_LABELS", "zju_frame_number",
+           "read_zju_params", "zju_mask_paths", "safe_camera_names", "MASK_KINDS"]
+
+MASK_KINDS = ("mask", "mask_cihp")
+"""The two mask folders of a ZJU-MoCap capture (see the module doc)."""
 
 CIHP_LABELS = ("background", "hat", "hair", "glove", "sunglasses", "upper_clothes", "dress", "coat", "socks",
                "pants", "torso_skin", "scarf", "skirt", "face", "left_arm", "right_arm", "left_leg", "right_leg",
@@ -174,3 +190,75 @@ def zju_mask_labels(mask: np.ndarray | None = None, cihp: np.ndarray | None = No
                              f"got {int(c.min())}..{int(c.max())}")
         labels[np.isin(c, np.asarray(list(garment_labels))) & person] = LABEL_GARMENT
     return labels
+
+
+def zju_frame_number(image: str) -> int:
+    """The frame number ``i`` of a ZJU-MoCap image path (its ``params/<i>.npy``), neuralbody's rule.
+
+    ``Camera_B1/000123.jpg`` -> 123 (the file name); CoreView_313 / 315's
+    ``Camera (1)/CoreView_313_Camera_(1)_0001_2019-08-23_16-08-50.592.jpg`` -> 1 (the fifth
+    ``_``-separated field of the name). Any other name raises ValueError naming it.
+    """
+    name = os.path.basename(str(image).replace("\\", "/"))
+    stem = os.path.splitext(name)[0]
+    if stem.isdigit():
+        return int(stem)
+    parts = name.split("_")
+    if len(parts) > 4 and parts[4].isdigit():
+        return int(parts[4])
+    raise ValueError(f"{image!r}: no frame number in the image name (expected <number>.jpg, or CoreView_313's "
+                     "<...>_Camera_(<c>)_<number>_<time>.jpg)")
+
+
+def read_zju_params(directory: str | os.PathLike, numbers: Sequence[int]) -> dict[str, np.ndarray]:
+    """Body parameters of frame numbers ``numbers`` from ``<directory>/<i>.npy`` (``params/`` or ``new_params/``).
+
+    Returns dict(poses (T, 72), Rh (T, 3), Th (T, 3) metres, shapes (T, S)) float64, in the
+    order of ``numbers``. Each file is a pickled dict (read through the restricted unpickler)
+    with ``poses``, ``Rh``, ``Th`` and optionally ``shapes`` (default 10 zeros); ``poses`` of
+    any EasyMocap layout (72, 69, 63, ...: :mod:`anidress_core.io.motion`). A missing file, a
+    missing key or a wrong size raises ValueError naming the file and the field.
+    """
+    d = Path(directory)
+    if not d.is_dir():
+        raise FileNotFoundError(f"{d}: body parameter folder not found")
+    recs = []
+    for i in numbers:
+        f = d / f"{int(i)}.npy"
+        if not f.is_file():
+            raise ValueError(f"{f}: missing: no body parameters for frame number {int(i)}")
+        obj = _load_npy_object(f)
+        if not isinstance(obj, dict):
+            raise ValueError(f"{f}: expected a pickled dict with poses, Rh, Th, shapes; got {type(obj).__name__}")
+        recs.append(_person_params(f, obj))
+    if not recs:
+        raise ValueError(f"{d}: no frame numbers to read")
+    sizes = {r["shapes"].size for r in recs}
+    if len(sizes) != 1:
+        raise ValueError(f"{d}: 'shapes' sizes differ between frames: {sorted(sizes)}")
+    return {k: np.stack([r[k] for r in recs]) for k in ("poses", "Rh", "Th", "shapes")}
+
+
+def zju_mask_paths(capture: str | os.PathLike, image: str) -> dict[str, Path]:
+    """``{kind: <capture>/<kind>/<image without extension>.png}`` for ``kind`` in :data:`MASK_KINDS`
+    (the files may not exist)."""
+    stem = os.path.splitext(str(image).replace("\\", "/"))[0]
+    return {kind: Path(capture) / kind / f"{stem}.png" for kind in MASK_KINDS}
+
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9_-]+")
+
+
+def safe_camera_names(names: Sequence[str]) -> list[str]:
+    """Camera names an EasyMocap ``intri.yml`` holds without quoting trouble (letters, digits, ``_``, ``-``).
+
+    Each run of other characters becomes one ``_``, leading and trailing ``_`` go
+    (``Camera (1)`` -> ``Camera_1``, ``Camera_B1`` unchanged, ``01`` unchanged: written
+    quoted). When that leaves an empty name, ``none``, or two equal names, every camera is
+    named by its 1-based index instead (``01``, ``02``, ...), so the names stay distinct.
+    """
+    out = [_UNSAFE.sub("_", str(n)).strip("_") for n in names]
+    if any(not n or n == "none" for n in out) or len(set(out)) != len(out):
+        width = max(2, len(str(len(out))))
+        out = [f"{c + 1:0{width}d}" for c in range(len(out))]
+    return out
