@@ -257,6 +257,20 @@ def _cmd_import_zju(args: argparse.Namespace) -> None:
           f"(masks from {', '.join(rec['masks']) or 'none'}); next: anidress validate {rec['scene_dir']}")
 
 
+def _cmd_import_easymocap(args: argparse.Namespace) -> None:
+    from .stages.import_capture import run_import_easymocap
+
+    labels = tuple(int(x) for x in args.garment_labels.split(",") if x.strip())
+    rec = run_import_easymocap(args.src, args.dst, sequence=args.sequence, frames=args.frames, smpl=args.smpl,
+                               person_id=args.person_id, max_gap=args.max_gap, cameras=args.cameras, masks=args.masks,
+                               mask_format=args.mask_format, garment=args.garment, garment_kind=args.garment_kind,
+                               garment_texture=args.garment_texture, garment_labels=labels,
+                               body_model=args.body_model, train=args.train, test=args.test, role=args.role,
+                               fps=args.fps, link=args.link, height=args.height)
+    print(f"{rec['scene_dir']}/{rec['sequence']}: {len(rec['cameras'])} cameras x {len(rec['frames'])} frames "
+          f"(masks {'from ' + rec['masks'] if rec['masks'] else 'none'}); next: anidress validate {rec['scene_dir']}")
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     from .stages.validate import format_summary, run_validate
 
@@ -497,6 +511,37 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--link", default="symlink", choices=["symlink", "hardlink", "copy"],
                    help="how images reach the scene (default: %(default)s)")
     s.set_defaults(func=_cmd_import_zju)
+
+    s = sub.add_parser("import-easymocap", help="convert an EasyMocap capture (intri/extri.yml, images/, "
+                                                "output-smpl-3d/smpl/) to a scene")
+    s.add_argument("src", help="the capture folder (intri.yml, extri.yml, images/<cam>/, smpl/ or "
+                               "output-smpl-3d/smpl/ or output/smpl/)")
+    s.add_argument("dst", help="scene folder to write (data/<scene>); an existing captured scene gets one more sequence")
+    s.add_argument("--sequence", help="sequence name (default: the capture folder's name)")
+    s.add_argument("--frames", help="image frames by index: START:STOP[:STEP] or a comma list (default: all)")
+    s.add_argument("--role", default="train", choices=["train", "novel_pose"], help="the sequence's role")
+    s.add_argument("--smpl", help="body parameter folder (default: the first of smpl/, output-smpl-3d/smpl/, "
+                                  "output/smpl/)")
+    s.add_argument("--person-id", type=int, help="the EasyMocap person id to take when files hold several people")
+    s.add_argument("--max-gap", type=int, default=0, help="interpolate up to this many frames without the person")
+    s.add_argument("--cameras", help="a subset of intri.yml's cameras (names or 0-based indices, comma-separated)")
+    s.add_argument("--masks", help="mask folder <cam>/<frame:06d>.png (relative to SRC or absolute)")
+    s.add_argument("--mask-format", default="person", choices=["person", "cihp", "labels"],
+                   help="person: non-zero is the person; cihp: CIHP part labels; labels: 0/1/2 (default: %(default)s)")
+    s.add_argument("--garment", help="garment template mesh (.obj); none: a tight-clothed scene")
+    s.add_argument("--garment-kind", choices=["skirt", "dress"], help="the garment's kind (with --garment)")
+    s.add_argument("--garment-texture", help="the garment template's texture image (optional)")
+    s.add_argument("--garment-labels", default="6,12", help="CIHP labels that are the garment (default: %(default)s)")
+    s.add_argument("--body-model", help="SMPL model file you own (.npz/.pkl) or a mannequin npz "
+                                        "(default: the bundled mannequin)")
+    s.add_argument("--height", type=float, default=1.7, help="the bundled mannequin's height in m (default: %(default)s)")
+    s.add_argument("--train", help="training cameras: names or 0-based indices, comma-separated")
+    s.add_argument("--test", help="test cameras (default: the cameras not training)")
+    s.add_argument("--fps", type=float, default=30.0, help="the capture's frame rate (not in EasyMocap's files; "
+                                                           "default %(default)s, an assumption: give the real one)")
+    s.add_argument("--link", default="symlink", choices=["symlink", "hardlink", "copy"],
+                   help="how images reach the scene (default: %(default)s)")
+    s.set_defaults(func=_cmd_import_easymocap)
 
     s = sub.add_parser("validate", help="check a scene folder (cameras, frames, images, body, garment) before a run")
     s.add_argument("scene_dir", help="data/<scene>")

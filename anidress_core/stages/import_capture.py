@@ -1,4 +1,9 @@
-"""Stage ``import-zju``: a ZJU-MoCap capture turned into a scene folder the pipeline reads (DESIGN.md §3).
+"""Stages ``import-zju`` and ``import-easymocap``: a capture turned into a scene folder the pipeline reads (DESIGN.md §3).
+
+``anidress import-easymocap SRC DST`` does the same for an EasyMocap capture folder
+(``intri.yml``, ``extri.yml``, ``images/<cam>/``, ``output-smpl-3d/smpl/`` or ``smpl/``), which
+the pipeline cannot read as it is: it has no scene.yaml and its body files are not in
+``<seq>/smpl`` (:func:`run_import_easymocap`).
 
 ``anidress import-zju SRC DST`` reads ``SRC/annots.npy`` (cameras K, D, R, T in
 millimetres, per-frame image lists), ``SRC/params/<i>.npy`` or ``SRC/new_params/<i>.npy``
@@ -29,10 +34,10 @@ Lens distortion is kept (``dist_<cam>``): the pipeline undistorts once (rule und
 Importing a second sequence into an existing DST (``--sequence novel --frames 300:``)
 adds it to scene.yaml; the cameras must be the same.
 
-Everything is checked before anything is written: a missing annots key, a camera
-count that differs between fields or frames, a missing image or parameter file, a mask
-of another size: one ValueError naming the file and the field. DST's sequence folder and
-scene.yaml are replaced only once complete.
+Every input is checked before DST changes: a missing annots key, a camera count that
+differs between fields or frames, a missing image or parameter file, a mask of another
+size: one ValueError naming the file and the field. The sequence is written beside DST's
+and moved in complete; scene.yaml is written last.
 """
 from __future__ import annotations
 
@@ -51,11 +56,12 @@ from .. import __version__
 from ..garment import KINDS
 from ..io import easymocap, files
 from ..io.images import image_size_from_header
-from ..io.motion import write_easymocap_smpl_dir
+from ..io.motion import read_easymocap_smpl_dir, write_easymocap_smpl_dir
 from ..io.zju import (CIHP_GARMENT_LABELS, MASK_KINDS, read_annots, read_zju_params, safe_camera_names,
                       zju_frame_number, zju_mask_labels, zju_mask_paths)
 
-__all__ = ["parse_frames", "split_cameras", "LINK_MODES", "PARAMS_DIRS", "ZJU_FPS", "run_import_zju"]
+__all__ = ["parse_frames", "split_cameras", "LINK_MODES", "PARAMS_DIRS", "ZJU_FPS", "run_import_zju", "SMPL_DIRS",
+           "MASK_FORMATS", "EASYMOCAP_FPS", "run_import_easymocap"]
 
 log = logging.getLogger("anidress.import")
 
@@ -225,6 +231,65 @@ def _place(src: Path, dst: Path, link: str) -> None:
         shutil.copyfile(src, dst)
 
 
+def _check_addition(dst: Path, existing: dict | None, names: list[str], size: tuple[int, int],
+                    garment, body_model) -> None:
+    """A sequence added to an existing scene must have its cameras and image size."""
+    if existing is None:
+        return
+    if garment is not None or body_model is not None:
+        raise ValueError(f"{dst / 'scene.yaml'}: the scene exists; its body model and garment stay "
+                         "(no --garment / --body-model when adding a sequence)")
+    old = existing.get("cameras") or {}
+    if set(old.get("train") or []) | set(old.get("test") or []) != set(names):
+        raise ValueError(f"{dst / 'scene.yaml'}: cameras {old} differ from the capture's {names}")
+    if list(existing.get("image_size") or size) != list(size):
+        raise ValueError(f"{dst / 'scene.yaml'}: image_size {existing.get('image_size')} differs from the "
+                         f"capture's {list(size)}")
+
+
+def _write_sequence(dst: Path, seq: str, role: str, existing: dict | None, cam_dict: dict, images: list[list[Path]],
+                    labels, body: dict, record: dict, link: str, scene: dict) -> int:
+    """Write ``dst/<seq>`` (cameras, images T x C placed as ``<cam>/<k:06d>``, masks from ``labels(k, c)``
+    when given, smpl/, import.json) beside ``dst`` and move it in; then the scene-level files of a new
+    scene (garment, body model) and scene.yaml last. Returns the number of masks written."""
+    names = list(cam_dict)
+    dst.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{seq}.partial-", dir=dst))
+    n_masks = 0
+    try:
+        easymocap.write_camera(tmp / "intri.yml", tmp / "extri.yml", cam_dict)
+        for k, row in enumerate(images):
+            for c, (n, p) in enumerate(zip(names, row)):
+                _place(p, tmp / "images" / n / f"{k:06d}{p.suffix.lower()}", link)
+                if labels is not None:
+                    files.write_mask(tmp / "masks" / n / f"{k:06d}.png", labels(k, c))
+                    n_masks += 1
+        write_easymocap_smpl_dir(tmp / "smpl", body["poses"], body["Rh"], body["Th"], body["shapes"])
+        files.write_json(tmp / "import.json", record)
+        if existing is None:
+            tr, te = scene["split"]
+            size = scene["size"]
+            info = {"name": dst.name, "synthetic": False,
+                    "kind": scene["garment_kind"] if scene["garment"] is not None else "tight",
+                    "fps": float(scene["fps"]), "units": "metres", "image_size": [int(size[0]), int(size[1])],
+                    "cameras": {"train": tr, "test": te}, "sequences": []}
+            info.update(_write_garment(dst, scene["garment"], scene["garment_kind"], scene["garment_texture"]))
+            info["body_model"] = _write_body_model(dst, scene["body_model"], scene["height"])
+            info["source"] = scene["source"]
+        else:
+            info = existing
+        info["sequences"] = [s for s in info.get("sequences") or [] if s.get("name") != seq]
+        info["sequences"].append({"name": seq, "role": role, "frames": len(images)})
+        if (dst / seq).exists():
+            shutil.rmtree(dst / seq)
+        os.replace(tmp, dst / seq)
+        files.write_text(dst / "scene.yaml", yaml.safe_dump(info, sort_keys=False))
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return n_masks
+
+
 # =========================================================================== ZJU-MoCap
 def _zju_params_dir(src: Path, params: str | os.PathLike | None) -> Path:
     if params is not None:
@@ -345,68 +410,182 @@ def run_import_zju(src: str | os.PathLike, dst: str | os.PathLike, sequence: str
     body = read_zju_params(pdir, numbers)
     kinds = _zju_mask_kinds(src, masks)
     existing = _existing_scene(dst)
-    tr, te = split_cameras(names, sources, train, test)
-    if existing is not None:
-        if garment is not None or body_model is not None:
-            raise ValueError(f"{dst / 'scene.yaml'}: the scene exists; its body model and garment stay "
-                             "(no --garment / --body-model when adding a sequence)")
-        old = existing.get("cameras") or {}
-        if set(old.get("train", [])) | set(old.get("test", []) or []) != set(names):
-            raise ValueError(f"{dst / 'scene.yaml'}: cameras {old} differ from the capture's {names}")
-        tr, te = list(old.get("train", [])), list(old.get("test", []) or [])
-        if list(existing.get("image_size") or size) != list(size):
-            raise ValueError(f"{dst / 'scene.yaml'}: image_size {existing.get('image_size')} differs from the "
-                             f"capture's {list(size)}")
+    _check_addition(dst, existing, names, size, garment, body_model)
     has_garment = (existing or {}).get("garment_template") or garment is not None
     labels_garment = tuple(garment_labels) if has_garment else ()
-    # 2. the sequence folder, written beside and moved in when complete
-    dst.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{seq}.partial-", dir=dst))
-    try:
-        cam_dict = {n: {"K": cams.K[c].numpy(), "dist": cams.dist[c].numpy(), "R": cams.R[c].numpy(),
-                        "T": cams.T[c].numpy(), "H": size[0], "W": size[1]} for c, n in enumerate(names)}
-        easymocap.write_camera(tmp / "intri.yml", tmp / "extri.yml", cam_dict)
-        n_masks = 0
-        for k, t in enumerate(picked):
-            for c, (n, rel) in enumerate(zip(names, ims[t])):
-                s = src / rel
-                _place(s, tmp / "images" / n / f"{k:06d}{s.suffix.lower()}", link)
-                if kinds:
-                    files.write_mask(tmp / "masks" / n / f"{k:06d}.png",
-                                     _read_labels(src, rel, kinds, size, labels_garment))
-                    n_masks += 1
-        write_easymocap_smpl_dir(tmp / "smpl", body["poses"], body["Rh"], body["Th"], body["shapes"])
-        record = {
-            "format": "zju-mocap", "source": str(src.resolve()), "annots": str(annots.resolve()),
-            "params": str(pdir.resolve()), "masks": list(kinds), "garment_labels": list(labels_garment),
-            "link": link, "cameras": dict(zip(names, sources)),
-            "frames": [{"frame": k, "ims_index": t, "params": f"{i}.npy", "images": ims[t]}
-                       for k, (t, i) in enumerate(zip(picked, numbers))],
-            "code_version": __version__,
-        }
-        files.write_json(tmp / "import.json", record)
-        # 3. scene-level files (a new scene), then the sequence, then scene.yaml last
-        if existing is None:
-            info = {"name": dst.name, "synthetic": False, "kind": garment_kind if garment is not None else "tight",
-                    "fps": float(fps), "units": "metres", "image_size": [int(size[0]), int(size[1])],
-                    "cameras": {"train": tr, "test": te}, "sequences": []}
-            info.update(_write_garment(dst, garment, garment_kind, garment_texture))
-            info["body_model"] = _write_body_model(dst, body_model, height)
-            info["source"] = {"format": "zju-mocap", "path": str(src.resolve())}
-        else:
-            info = existing
-        info["sequences"] = [s for s in info.get("sequences") or [] if s.get("name") != seq]
-        info["sequences"].append({"name": seq, "role": role, "frames": len(picked)})
-        if (dst / seq).exists():
-            shutil.rmtree(dst / seq)
-        os.replace(tmp, dst / seq)
-        files.write_text(dst / "scene.yaml", yaml.safe_dump(info, sort_keys=False))
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+    cam_dict = {n: {"K": cams.K[c].numpy(), "dist": cams.dist[c].numpy(), "R": cams.R[c].numpy(),
+                    "T": cams.T[c].numpy(), "H": size[0], "W": size[1]} for c, n in enumerate(names)}
+    record = {
+        "format": "zju-mocap", "source": str(src.resolve()), "annots": str(annots.resolve()),
+        "params": str(pdir.resolve()), "masks": list(kinds), "garment_labels": list(labels_garment),
+        "link": link, "cameras": dict(zip(names, sources)),
+        "frames": [{"frame": k, "ims_index": t, "params": f"{i}.npy", "images": ims[t]}
+                   for k, (t, i) in enumerate(zip(picked, numbers))],
+        "code_version": __version__,
+    }
+    images = [[src / rel for rel in ims[t]] for t in picked]
+    labels = (lambda k, c: _read_labels(src, ims[picked[k]][c], kinds, size, labels_garment)) if kinds else None
+    n_masks = _write_sequence(dst, seq, role, existing, cam_dict, images, labels, body, record, link, dict(
+        fps=fps, size=size, split=split_cameras(names, sources, train, test), garment=garment,
+        garment_kind=garment_kind, garment_texture=garment_texture, body_model=body_model, height=height,
+        source={"format": "zju-mocap", "path": str(src.resolve())}))
     record.update(scene_dir=str(dst), sequence=seq, wall_s=round(time.perf_counter() - t0, 3),
                   masks_written=n_masks)
     log.info("import-zju %s -> %s/%s: %d cameras x %d frames (%s images), masks from %s, body parameters from %s "
              "(%.1f s)", src, dst, seq, len(names), len(picked), link, ", ".join(kinds) or "none", pdir.name,
              record["wall_s"])
+    return record
+
+
+# =========================================================================== EasyMocap
+SMPL_DIRS = ("smpl", "output-smpl-3d/smpl", "output/smpl")
+"""Where an EasyMocap capture keeps its body files, in the order they are looked for: ``smpl/``, the
+output of EasyMocap >= 0.2's ``apps/demo/mocap.py`` (``output-smpl-3d/smpl``), 0.1's ``output/smpl``."""
+MASK_FORMATS = ("person", "cihp", "labels")
+"""What a capture's mask files hold: ``person`` (0 background, non-zero person: body), ``cihp`` (CIHP
+part labels, garment from ``garment_labels``), ``labels`` (the pipeline's 0 / 1 / 2)."""
+EASYMOCAP_FPS = 30.0
+"""Frame rate written to scene.yaml when none is given (EasyMocap's files store none: an
+assumption; pass the capture's real rate)."""
+
+
+def _frame_files(folder: Path) -> dict[int, Path]:
+    out = {}
+    for p in folder.iterdir() if folder.is_dir() else []:
+        if p.suffix.lower() in (".png", ".jpg", ".jpeg") and p.stem.isdigit():
+            out[int(p.stem)] = p
+    return out
+
+
+def _easymocap_labels(path: Path, size: tuple[int, int], fmt: str, garment_labels: Sequence[int]) -> np.ndarray:
+    if not path.is_file():
+        raise ValueError(f"{path}: missing: the mask of this image frame")
+    m = files.read_mask(path)
+    if m.shape != size:
+        raise ValueError(f"{path}: mask is {m.shape[1]}x{m.shape[0]} (WxH), the images are {size[1]}x{size[0]}")
+    if fmt == "labels":
+        if m.max() > 2:
+            raise ValueError(f"{path}: labels must be 0 background, 1 body, 2 garment; found {int(m.max())}")
+        return np.where(m == 2, 2 if garment_labels else 1, m).astype(np.uint8)
+    try:
+        return zju_mask_labels(m if fmt == "person" else None, m if fmt == "cihp" else None, garment_labels)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from e
+
+
+def run_import_easymocap(src: str | os.PathLike, dst: str | os.PathLike, sequence: str | None = None,
+                         frames: str | Sequence[int] | None = None, smpl: str | os.PathLike | None = None,
+                         person_id: int | None = None, max_gap: int = 0, cameras: str | Sequence[str] | None = None,
+                         masks: str | os.PathLike | None = None, mask_format: str = "person",
+                         garment: str | os.PathLike | None = None, garment_kind: str | None = None,
+                         garment_texture: str | os.PathLike | None = None,
+                         garment_labels: Sequence[int] = CIHP_GARMENT_LABELS,
+                         body_model: str | os.PathLike | None = None, train: str | Sequence[str] | None = None,
+                         test: str | Sequence[str] | None = None, role: str = "train", fps: float = EASYMOCAP_FPS,
+                         link: str = "symlink", height: float = 1.7) -> dict:
+    """Convert the EasyMocap capture ``src`` into (or add a sequence to) the scene ``dst``.
+
+    ``src`` as EasyMocap lays out a capture: ``intri.yml``, ``extri.yml`` (any of the
+    layouts :mod:`anidress_core.io.easymocap` reads: no H_/W_, ``D_`` for ``dist_``, unquoted
+    names), ``images/<cam>/<frame:06d>.jpg`` and the body files in one of :data:`SMPL_DIRS`
+    (or ``smpl``: a folder) of any layout :mod:`anidress_core.io.motion` reads (poses 72 / 69
+    / 63, ``{"annots": [...]}``, several people: ``person_id``; short gaps: ``max_gap``).
+    cameras: a subset of intri.yml's (names or 0-based indices; default all); masks: a folder
+    (relative to ``src`` or absolute) of ``<cam>/<frame:06d>.png`` in ``mask_format``
+    (:data:`MASK_FORMATS`). The other arguments and the written scene are those of
+    :func:`run_import_zju`. Image frames are matched to body files by number; frames (an
+    index range over the image frames, :func:`parse_frames`) are renumbered from 0.
+    Returns the import record (also ``dst/<seq>/import.json``).
+    """
+    t0 = time.perf_counter()
+    src, dst = Path(src), Path(dst)
+    if link not in LINK_MODES:
+        raise ValueError(f"link must be one of {list(LINK_MODES)}, got {link!r}")
+    if mask_format not in MASK_FORMATS:
+        raise ValueError(f"mask_format must be one of {list(MASK_FORMATS)}, got {mask_format!r}")
+    if not (isinstance(fps, (int, float)) and fps > 0):
+        raise ValueError(f"fps must be a positive number, got {fps!r}")
+    seq = sequence or safe_camera_names([src.resolve().name])[0]
+    # 1. cameras
+    all_names = easymocap.read_names(src / "intri.yml")
+    sources = _pick_cameras(cameras, all_names, all_names, "cameras") if cameras is not None else all_names
+    raw = easymocap.read_camera(src / "intri.yml", src / "extri.yml", sources)
+    names = safe_camera_names(sources)
+    # 2. image frames: the same numbers in every camera folder
+    per = {}
+    for cam in sources:
+        d = src / "images" / cam
+        if not d.is_dir():
+            raise ValueError(f"{d}: image folder of camera '{cam}' (listed in {src / 'intri.yml'}) not found")
+        per[cam] = _frame_files(d)
+        if not per[cam]:
+            raise ValueError(f"{d}: no <frame:06d>.jpg / .png images")
+    ref = sources[0]
+    for cam in sources[1:]:
+        if set(per[cam]) != set(per[ref]):
+            diff = sorted(set(per[cam]) ^ set(per[ref]))
+            raise ValueError(f"{src / 'images' / cam}: camera '{cam}' has {len(per[cam])} frames, camera '{ref}' "
+                             f"{len(per[ref])} (frames {diff[:5]} are in only one of them)")
+    numbers = sorted(per[ref])
+    picked = [numbers[i] for i in parse_frames(frames, len(numbers))]
+    size = image_size_from_header(per[ref][picked[0]])
+    for f in picked:
+        for cam in sources:
+            hw = image_size_from_header(per[cam][f])
+            if hw != size:
+                raise ValueError(f"{per[cam][f]}: image is {hw[1]}x{hw[0]} (WxH), {per[ref][picked[0]]} is "
+                                 f"{size[1]}x{size[0]}")
+    for cam in sources:
+        for k, v in (("H", size[0]), ("W", size[1])):
+            if k in raw[cam] and raw[cam][k] != v:
+                raise ValueError(f"{src / 'intri.yml'}: camera '{cam}': '{k}_{cam}' is {raw[cam][k]} but the "
+                                 f"images are {size[1]}x{size[0]} (WxH)")
+    # 3. body parameters of the picked frames
+    if smpl is not None:
+        sdir = Path(smpl) if Path(smpl).is_absolute() or Path(smpl).is_dir() else src / smpl
+        if not sdir.is_dir():
+            raise FileNotFoundError(f"{sdir}: body parameter folder not found (--smpl)")
+    else:
+        sdir = next((src / d for d in SMPL_DIRS if (src / d).is_dir()), None)
+        if sdir is None:
+            raise FileNotFoundError(f"{src}: no body parameter folder ({', '.join(d + '/' for d in SMPL_DIRS)})")
+    params = read_easymocap_smpl_dir(sdir, person_id=person_id, max_gap=max_gap)
+    index = {f: i for i, f in enumerate(params["frames"])}
+    missing = [f for f in picked if f not in index]
+    if missing:
+        raise ValueError(f"{sdir / f'{missing[0]:06d}.json'}: missing: no body parameters for image frame "
+                         f"{missing[0]}" + (f" ({len(missing)} frames lack them)" if len(missing) > 1 else ""))
+    sel = [index[f] for f in picked]
+    body = {k: params[k][sel] for k in ("poses", "Rh", "Th", "shapes")}
+    # 4. masks
+    mdir = None
+    if masks is not None:
+        mdir = Path(masks) if Path(masks).is_absolute() or Path(masks).is_dir() else src / masks
+        if not mdir.is_dir():
+            raise FileNotFoundError(f"{mdir}: mask folder not found (--masks)")
+    existing = _existing_scene(dst)
+    _check_addition(dst, existing, names, size, garment, body_model)
+    has_garment = (existing or {}).get("garment_template") or garment is not None
+    labels_garment = tuple(garment_labels) if has_garment else ()
+    cam_dict = {n: {"K": raw[s]["K"], "dist": raw[s]["dist"], "R": raw[s]["R"], "T": raw[s]["T"], "H": size[0],
+                    "W": size[1]} for n, s in zip(names, sources)}
+    record = {
+        "format": "easymocap", "source": str(src.resolve()), "smpl": str(sdir.resolve()),
+        "person_id": person_id, "interpolated": [f for f in params["interpolated"] if f in set(picked)],
+        "masks": str(mdir.resolve()) if mdir else None, "mask_format": mask_format if mdir else None,
+        "garment_labels": list(labels_garment), "link": link, "cameras": dict(zip(names, sources)),
+        "frames": [{"frame": k, "source_frame": f} for k, f in enumerate(picked)], "code_version": __version__,
+    }
+    images = [[per[cam][f] for cam in sources] for f in picked]
+    labels = None
+    if mdir is not None:
+        def labels(k: int, c: int) -> np.ndarray:
+            return _easymocap_labels(mdir / sources[c] / f"{picked[k]:06d}.png", size, mask_format, labels_garment)
+    n_masks = _write_sequence(dst, seq, role, existing, cam_dict, images, labels, body, record, link, dict(
+        fps=fps, size=size, split=split_cameras(names, sources, train, test), garment=garment,
+        garment_kind=garment_kind, garment_texture=garment_texture, body_model=body_model, height=height,
+        source={"format": "easymocap", "path": str(src.resolve())}))
+    record.update(scene_dir=str(dst), sequence=seq, wall_s=round(time.perf_counter() - t0, 3), masks_written=n_masks)
+    log.info("import-easymocap %s -> %s/%s: %d cameras x %d frames (%s images), body parameters from %s, masks %s "
+             "(%.1f s)", src, dst, seq, len(names), len(picked), link, sdir, mdir or "none", record["wall_s"])
     return record
