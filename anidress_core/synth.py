@@ -234,35 +234,61 @@ def _merge(layers: Sequence[MeshLayer]) -> tuple[Tensor, Tensor, Tensor, Tensor]
 
 
 def _shade(verts: Tensor, faces: Tensor, face_uv: Tensor, face_layer: Tensor, layers: Sequence[MeshLayer],
-           cams: Cameras, lights: Lights):
-    """Rasterise + shade merged meshes -> (rgb, hit, layer_of_pixel, n_cam, fragments)."""
+           cams: Cameras, lights: Lights, colour: bool = True):
+    """Rasterise + shade merged meshes -> (rgb, hit, layer_of_pixel, n_cam, fragments).
+
+    Shapes (C, H, W[, 3]). Every per-pixel quantity is computed on the covered pixels only
+    (the subject fills a small part of each image) and scattered into zero images.
+    colour=False: no texture lookup or shading (``rgb`` is None), for a pass that only needs
+    the labels, normals and fragments.
+    """
     H, W = cams.height, cams.width
     w2c = cams.world_to_cam.to(verts.dtype)
     K = cams.K.to(verts.dtype)
+    C = K.shape[0]
     frags = raster.rasterize(verts, faces, K, w2c, H, W)
     hit = frags.face_id >= 0
     layer_of_pixel = face_layer[frags.face_id.clamp_min(0)]  # (C, H, W)
-    # albedo: sample each layer's texture, keep it where that layer won the z-test
-    uv = raster.interpolate(face_uv, faces, frags)  # (C, H, W, 2)
-    albedo = torch.zeros(*hit.shape, 3, dtype=verts.dtype)
-    for i, layer in enumerate(layers):  # a handful of layers, not a per-pixel loop
-        sel = hit & (layer_of_pixel == i)
-        if sel.any():
-            albedo = torch.where(sel[..., None], raster.sample_texture(layer.texture.to(verts.dtype), uv), albedo)
+    pix = hit.reshape(-1).nonzero().squeeze(1)  # (N,) flat indices of the covered pixels
+    f = frags.face_id.reshape(-1)[pix]  # (N,)
+    b = frags.bary.reshape(-1, 3)[pix].to(verts.dtype)  # (N, 3)
+    cam = pix // (H * W)
+    rem = pix % (H * W)
+
+    def lerp(a: Tensor) -> Tensor:  # a: (N, 3, D) corner values -> (N, D), as raster.interpolate
+        return b[:, 0:1] * a[:, 0] + b[:, 1:2] * a[:, 1] + b[:, 2:3] * a[:, 2]
+
+    def dense(v: Tensor) -> Tensor:  # (N, D) -> (C, H, W, D), 0 where nothing was hit
+        return v.new_zeros(C * H * W, v.shape[-1]).index_put((pix,), v).view(C, H, W, -1)
+
     # smooth world normals, flipped to face the camera (cloth is seen from both sides)
     vn = vertex_normals(verts, faces)
-    n_world = raster.interpolate(vn, faces, frags)
+    n_world = lerp(vn[faces[f]])  # (N, 3)
     n_world = n_world / n_world.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    R = w2c[:, :3, :3]
-    n_cam = torch.einsum("cij,chwj->chwi", R, n_world)
-    # a camera-space normal faces the camera when it points against the viewing ray
-    rays = raster_view_dirs(K, H, W)  # (C, H, W, 3) unit, camera space
+    R = w2c[cam, :3, :3]  # (N, 3, 3)
+    n_cam = torch.einsum("nij,nj->ni", R, n_world)
+    # a camera-space normal faces the camera when it points against the viewing ray (the
+    # pixel centre's direction, unnormalised: only the sign of the dot product matters)
+    Kn = K[cam]
+    rays = torch.stack([((rem % W).to(K.dtype) - Kn[:, 0, 2]) / Kn[:, 0, 0],
+                        ((rem // W).to(K.dtype) - Kn[:, 1, 2]) / Kn[:, 1, 1], torch.ones_like(Kn[:, 0, 0])], -1)
     flip = (n_cam * rays).sum(-1, keepdim=True) > 0
     n_cam = torch.where(flip, -n_cam, n_cam)
-    n_world = torch.einsum("cji,chwj->chwi", R, n_cam)  # back to world with the flip applied
-    rgb = raster.shade_lambert(albedo, n_world, lights.directions.to(verts.dtype), lights.colors.to(verts.dtype),
-                               lights.ambient.to(verts.dtype))
-    return rgb.clamp(0, 1), hit, layer_of_pixel, n_cam, frags
+    rgb = None
+    if colour:
+        # albedo: each layer's texture where that layer won the z-test
+        uv = lerp(face_uv[f])  # (N, 2)
+        lop = layer_of_pixel.reshape(-1)[pix]
+        albedo = torch.zeros(pix.shape[0], 3, dtype=verts.dtype)
+        for i, layer in enumerate(layers):  # a handful of layers, not a per-pixel loop
+            sel = lop == i
+            if sel.any():
+                albedo[sel] = raster.sample_texture(layer.texture.to(verts.dtype), uv[sel])
+        n_w = torch.einsum("nji,nj->ni", R, n_cam)  # back to world with the flip applied
+        lit = raster.shade_lambert(albedo[None, None], n_w[None, None], lights.directions.to(verts.dtype),
+                                   lights.colors.to(verts.dtype), lights.ambient.to(verts.dtype))[0, 0]
+        rgb = dense(lit.clamp(0, 1))
+    return rgb, hit, layer_of_pixel, dense(n_cam), frags
 
 
 def render_views(layers: Sequence[MeshLayer], cams: Cameras, lights: Lights,
@@ -276,14 +302,16 @@ def render_views(layers: Sequence[MeshLayer], cams: Cameras, lights: Lights,
     of the pixel centres.
     """
     verts, faces, face_uv, face_layer = _merge(layers)
-    rgb, hit, layer_of_pixel, n_cam, frags = _shade(verts, faces, face_uv, face_layer, layers, cams, lights)
+    ss = supersample > 1
+    rgb, hit, layer_of_pixel, n_cam, frags = _shade(verts, faces, face_uv, face_layer, layers, cams, lights,
+                                                    colour=not ss)  # supersampled: colour from the fine pass
     if background is None:
-        background = torch.zeros_like(rgb)
-    background = background.to(rgb.dtype)
-    if supersample > 1:
+        background = torch.zeros(*hit.shape, 3, dtype=verts.dtype)
+    background = background.to(verts.dtype)
+    if ss:
         hi_rgb, hi_hit = _shade(verts, faces, face_uv, face_layer, layers, cams.scaled(supersample), lights)[:2]
         pool = lambda x: F.avg_pool2d(x.permute(0, 3, 1, 2), supersample).permute(0, 2, 3, 1)  # noqa: E731
-        cover = pool(hi_hit[..., None].to(rgb.dtype))
+        cover = pool(hi_hit[..., None].to(verts.dtype))
         rgb = pool(hi_rgb * hi_hit[..., None]) + (1 - cover) * background
     else:
         rgb = torch.where(hit[..., None], rgb, background)

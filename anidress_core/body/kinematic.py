@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import NamedTuple, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -90,7 +91,8 @@ def forward_kinematics(
             f"{tuple(rotmats.shape)}, got {tuple(joints_rest.shape)}"
         )
     par = check_parents(parents, J)
-    batch = torch.broadcast_shapes(rotmats.shape[:-3], joints_rest.shape[:-2])
+    # (torch.broadcast_shapes imports sympy on first use: 0.3-2 s per process; numpy's is instant)
+    batch = np.broadcast_shapes(tuple(rotmats.shape[:-3]), tuple(joints_rest.shape[:-2]))
     rotmats = rotmats.expand(*batch, J, 3, 3)
     joints_rest = joints_rest.to(rotmats.dtype).expand(*batch, J, 3)
 
