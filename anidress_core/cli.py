@@ -245,6 +245,14 @@ def _cmd_undistort(args: argparse.Namespace) -> None:
           f"({rec['frames']} frames, {rec['files']} files)")
 
 
+def _print_config_entry(rec: dict) -> None:
+    import yaml
+
+    name = Path(rec["scene_dir"]).name
+    print(f"the pipeline's config entry for it (scenes/{name}; data/{name} is where the workflow reads it):")
+    print(yaml.safe_dump({"scenes": {name: rec["config_entry"]}}, sort_keys=False).rstrip())
+
+
 def _cmd_import_zju(args: argparse.Namespace) -> None:
     from .stages.import_capture import run_import_zju
 
@@ -255,6 +263,7 @@ def _cmd_import_zju(args: argparse.Namespace) -> None:
                          test=args.test, role=args.role, fps=args.fps, link=args.link, height=args.height)
     print(f"{rec['scene_dir']}/{rec['sequence']}: {len(rec['cameras'])} cameras x {len(rec['frames'])} frames "
           f"(masks from {', '.join(rec['masks']) or 'none'}); next: anidress validate {rec['scene_dir']}")
+    _print_config_entry(rec)
 
 
 def _cmd_import_easymocap(args: argparse.Namespace) -> None:
@@ -269,6 +278,7 @@ def _cmd_import_easymocap(args: argparse.Namespace) -> None:
                                fps=args.fps, link=args.link, height=args.height)
     print(f"{rec['scene_dir']}/{rec['sequence']}: {len(rec['cameras'])} cameras x {len(rec['frames'])} frames "
           f"(masks {'from ' + rec['masks'] if rec['masks'] else 'none'}); next: anidress validate {rec['scene_dir']}")
+    _print_config_entry(rec)
 
 
 def _cmd_validate(args: argparse.Namespace) -> None:

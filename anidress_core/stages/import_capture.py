@@ -61,7 +61,7 @@ from ..io.zju import (CIHP_GARMENT_LABELS, MASK_KINDS, read_annots, read_zju_par
                       zju_frame_number, zju_mask_labels, zju_mask_paths)
 
 __all__ = ["parse_frames", "split_cameras", "LINK_MODES", "PARAMS_DIRS", "ZJU_FPS", "run_import_zju", "SMPL_DIRS",
-           "MASK_FORMATS", "EASYMOCAP_FPS", "run_import_easymocap"]
+           "MASK_FORMATS", "EASYMOCAP_FPS", "run_import_easymocap", "scene_config_entry"]
 
 log = logging.getLogger("anidress.import")
 
@@ -161,6 +161,23 @@ def split_cameras(names: list[str], sources: list[str] | None = None, train: str
     if not tr:
         raise ValueError("no training camera left")
     return tr, te
+
+
+def scene_config_entry(info: dict) -> dict:
+    """The ``scenes/<scene>`` entry of the pipeline config (workflow/schemas/config.schema.yaml) for a
+    captured scene whose parsed scene.yaml is ``info``: synthetic false, kind, fps, image_size and
+    the sequences (name, frames, role; no motion: a captured sequence's motion is its smpl/).
+
+    A garment without a texture (a capture has none unless one was given) gets the scene override
+    ``fit: {anchor_reference: images}``: the default ``texture`` references need the texture and
+    the fit would stop on it."""
+    entry = {"synthetic": False, "kind": info.get("kind", "tight"), "fps": info["fps"],
+             "image_size": list(info["image_size"]),
+             "sequences": [{"name": s["name"], "frames": int(s["frames"]), "role": s.get("role", "train")}
+                           for s in info["sequences"]]}
+    if info.get("garment_template") and not info.get("garment_texture"):
+        entry["fit"] = {"anchor_reference": "images"}
+    return entry
 
 
 # =========================================================================== scene-level files
@@ -430,7 +447,7 @@ def run_import_zju(src: str | os.PathLike, dst: str | os.PathLike, sequence: str
         garment_kind=garment_kind, garment_texture=garment_texture, body_model=body_model, height=height,
         source={"format": "zju-mocap", "path": str(src.resolve())}))
     record.update(scene_dir=str(dst), sequence=seq, wall_s=round(time.perf_counter() - t0, 3),
-                  masks_written=n_masks)
+                  masks_written=n_masks, config_entry=scene_config_entry(yaml.safe_load((dst / "scene.yaml").read_text())))
     log.info("import-zju %s -> %s/%s: %d cameras x %d frames (%s images), masks from %s, body parameters from %s "
              "(%.1f s)", src, dst, seq, len(names), len(picked), link, ", ".join(kinds) or "none", pdir.name,
              record["wall_s"])
@@ -585,7 +602,8 @@ def run_import_easymocap(src: str | os.PathLike, dst: str | os.PathLike, sequenc
         fps=fps, size=size, split=split_cameras(names, sources, train, test), garment=garment,
         garment_kind=garment_kind, garment_texture=garment_texture, body_model=body_model, height=height,
         source={"format": "easymocap", "path": str(src.resolve())}))
-    record.update(scene_dir=str(dst), sequence=seq, wall_s=round(time.perf_counter() - t0, 3), masks_written=n_masks)
+    record.update(scene_dir=str(dst), sequence=seq, wall_s=round(time.perf_counter() - t0, 3), masks_written=n_masks,
+                  config_entry=scene_config_entry(yaml.safe_load((dst / "scene.yaml").read_text())))
     log.info("import-easymocap %s -> %s/%s: %d cameras x %d frames (%s images), body parameters from %s, masks %s "
              "(%.1f s)", src, dst, seq, len(names), len(picked), link, sdir, mdir or "none", record["wall_s"])
     return record
