@@ -260,7 +260,8 @@ def _cmd_import_zju(args: argparse.Namespace) -> None:
     rec = run_import_zju(args.src, args.dst, sequence=args.sequence, frames=args.frames, garment=args.garment,
                          garment_kind=args.garment_kind, garment_texture=args.garment_texture, garment_labels=labels,
                          body_model=args.body_model, params=args.params, masks=args.masks, train=args.train,
-                         test=args.test, role=args.role, fps=args.fps, link=args.link, height=args.height)
+                         test=args.test, role=args.role, fps=args.fps, link=args.link, height=args.height,
+                         threads=args.threads)
     print(f"{rec['scene_dir']}/{rec['sequence']}: {len(rec['cameras'])} cameras x {len(rec['frames'])} frames "
           f"(masks from {', '.join(rec['masks']) or 'none'}); next: anidress validate {rec['scene_dir']}")
     _print_config_entry(rec)
@@ -275,7 +276,7 @@ def _cmd_import_easymocap(args: argparse.Namespace) -> None:
                                mask_format=args.mask_format, garment=args.garment, garment_kind=args.garment_kind,
                                garment_texture=args.garment_texture, garment_labels=labels,
                                body_model=args.body_model, train=args.train, test=args.test, role=args.role,
-                               fps=args.fps, link=args.link, height=args.height)
+                               fps=args.fps, link=args.link, height=args.height, threads=args.threads)
     print(f"{rec['scene_dir']}/{rec['sequence']}: {len(rec['cameras'])} cameras x {len(rec['frames'])} frames "
           f"(masks {'from ' + rec['masks'] if rec['masks'] else 'none'}); next: anidress validate {rec['scene_dir']}")
     _print_config_entry(rec)
@@ -498,7 +499,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("import-zju", help="convert a ZJU-MoCap capture (annots.npy, params/, mask_cihp/) to a scene")
     s.add_argument("src", help="the capture folder (annots.npy, camera image folders, params/ or new_params/, "
                                "mask/ and/or mask_cihp/)")
-    s.add_argument("dst", help="scene folder to write (data/<scene>); an existing captured scene gets one more sequence")
+    s.add_argument("dst", help="scene folder to write (data/<scene>); an existing captured scene gets one more "
+                               "sequence")
     s.add_argument("--sequence", help="sequence name (default: the capture folder's name)")
     s.add_argument("--frames", help="ims entries: START:STOP[:STEP] or a comma list (default: all)")
     s.add_argument("--role", default="train", choices=["train", "novel_pose"], help="the sequence's role")
@@ -509,24 +511,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="CIHP labels of mask_cihp/ that are the garment (default: %(default)s, dress and skirt)")
     s.add_argument("--body-model", help="SMPL model file you own (.npz/.pkl) or a mannequin npz "
                                         "(default: the bundled mannequin)")
-    s.add_argument("--height", type=float, default=1.7, help="the bundled mannequin's height in m (default: %(default)s)")
+    s.add_argument("--height", type=float, default=1.7,
+                   help="the bundled mannequin's height in m (default: %(default)s)")
     s.add_argument("--params", help="body parameter folder: params, new_params or a path (default: params/, "
                                     "else new_params/)")
     s.add_argument("--masks", default="auto", choices=["auto", "mask", "mask_cihp", "both", "none"],
                    help="which ZJU mask folders make the masks (default: every one present)")
     s.add_argument("--train", help="training cameras: names, source folder names or 0-based indices, comma-separated")
     s.add_argument("--test", help="test cameras (default: the cameras not training)")
-    s.add_argument("--fps", type=float, default=50.0, help="the capture's frame rate (not in annots.npy; default %(default)s, an "
-                                                         "assumption: give the real one)")
+    s.add_argument("--fps", type=float, default=50.0,
+                   help="the capture's frame rate (not in annots.npy; default %(default)s, an assumption: give the "
+                        "real one)")
     s.add_argument("--link", default="symlink", choices=["symlink", "hardlink", "copy"],
                    help="how images reach the scene (default: %(default)s)")
+    s.add_argument("--threads", type=int, default=2, help="files placed / masks converted at a time")
     s.set_defaults(func=_cmd_import_zju)
 
     s = sub.add_parser("import-easymocap", help="convert an EasyMocap capture (intri/extri.yml, images/, "
                                                 "output-smpl-3d/smpl/) to a scene")
     s.add_argument("src", help="the capture folder (intri.yml, extri.yml, images/<cam>/, smpl/ or "
                                "output-smpl-3d/smpl/ or output/smpl/)")
-    s.add_argument("dst", help="scene folder to write (data/<scene>); an existing captured scene gets one more sequence")
+    s.add_argument("dst", help="scene folder to write (data/<scene>); an existing captured scene gets one more "
+                               "sequence")
     s.add_argument("--sequence", help="sequence name (default: the capture folder's name)")
     s.add_argument("--frames", help="image frames by index: START:STOP[:STEP] or a comma list (default: all)")
     s.add_argument("--role", default="train", choices=["train", "novel_pose"], help="the sequence's role")
@@ -544,13 +550,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--garment-labels", default="6,12", help="CIHP labels that are the garment (default: %(default)s)")
     s.add_argument("--body-model", help="SMPL model file you own (.npz/.pkl) or a mannequin npz "
                                         "(default: the bundled mannequin)")
-    s.add_argument("--height", type=float, default=1.7, help="the bundled mannequin's height in m (default: %(default)s)")
+    s.add_argument("--height", type=float, default=1.7,
+                   help="the bundled mannequin's height in m (default: %(default)s)")
     s.add_argument("--train", help="training cameras: names or 0-based indices, comma-separated")
     s.add_argument("--test", help="test cameras (default: the cameras not training)")
     s.add_argument("--fps", type=float, default=30.0, help="the capture's frame rate (not in EasyMocap's files; "
                                                            "default %(default)s, an assumption: give the real one)")
     s.add_argument("--link", default="symlink", choices=["symlink", "hardlink", "copy"],
                    help="how images reach the scene (default: %(default)s)")
+    s.add_argument("--threads", type=int, default=2, help="files placed / masks converted at a time")
     s.set_defaults(func=_cmd_import_easymocap)
 
     s = sub.add_parser("validate", help="check a scene folder (cameras, frames, images, body, garment) before a run")

@@ -34,7 +34,7 @@ torch.set_num_threads(1)
 def write_easymocap_capture(data: Path, out: Path, masks: bool = True) -> Path:
     seq = data / "walk"
     raw = easymocap.read_camera(seq / "intri.yml", seq / "extri.yml")
-    easymocap.write_intri(out / "intri.yml", {c: {"K": v["K"], "dist": v["dist"]} for c, v in raw.items()}, decimals=None)
+    easymocap.write_intri(out / "intri.yml", {c: {"K": v["K"], "dist": v["dist"]} for c, v in raw.items()})
     easymocap.write_extri(out / "extri.yml", raw)
     for name in ("intri.yml", "extri.yml"):  # hand-edited: unquoted names, as issue 24 item 8 found them
         p = out / name
@@ -126,8 +126,8 @@ MALFORMED = {
                     r"images/02: camera '02' has 2 frames, camera '01' 3 \(frames \[1\]"),
     "missing body file": (lambda d: (d / "output-smpl-3d" / "smpl" / "000002.json").unlink(), {},
                           r"smpl/000002\.json: missing: no body parameters for image frame 2"),
-    "missing extrinsics": (lambda d: (d / "extri.yml").write_text((d / "extri.yml").read_text().replace("T_02", "X_02")),
-                           {}, r"extri\.yml: camera '02': missing key 'T_02'"),
+    "missing extrinsics": (lambda d: (d / "extri.yml").write_text(
+        (d / "extri.yml").read_text().replace("T_02", "X_02")), {}, r"extri\.yml: camera '02': missing key 'T_02'"),
     "image size": (lambda d: cv2.imwrite(str(d / "images" / "04" / "000001.jpg"), np.zeros((10, 12, 3), np.uint8)), {},
                    r"images/04/000001\.jpg: image is 12x10 \(WxH\)"),
     "mask labels": (lambda d: cv2.imwrite(str(d / "mask" / "01" / "000000.png"), np.full((H, W), 7, np.uint8)),
