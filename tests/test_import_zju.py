@@ -171,7 +171,7 @@ def test_distortion_and_unsafe_names_project_like_opencv(tiny, tmp_path):
     raw["cams"]["D"][2] = np.array([[0.2], [0.0], [0.0], [5e-4], [0.0]])
     np.save(cap2 / "annots.npy", raw, allow_pickle=True)
     dst = tmp_path / "d"
-    _import(cap2, dst, data, garment=None, garment_kind=None, sequence="walk", masks="mask")
+    _import(cap2, dst, data, garment=None, garment_kind=None, body_model=None, sequence="walk", masks="mask")
     cams = scene_cameras(dst, "walk")
     pts = np.random.default_rng(1).normal([0.0, 0.0, 1.0], 0.3, (100, 3))
     uv = project(torch.as_tensor(pts), cams).uv.numpy()
@@ -181,6 +181,7 @@ def test_distortion_and_unsafe_names_project_like_opencv(tiny, tmp_path):
         assert np.abs(uv[c] - ref[:, 0]).max() < 1e-3
     info = yaml.safe_load((dst / "scene.yaml").read_text())
     assert info["kind"] == "tight" and "garment_template" not in info
+    assert info["body_model"] == {"type": "mannequin", "file": "body_model.npz", "height_m": 1.7}  # the bundled one
     s = validate_scene(dst)
     assert s["sequences"]["walk"]["distorted_cameras"] == ["Camera_1", "Camera_3"]
     # no garment template: every person pixel is body (mask/ alone has no part labels anyway)
