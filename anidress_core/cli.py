@@ -245,9 +245,13 @@ def _cmd_undistort(args: argparse.Namespace) -> None:
           f"({rec['frames']} frames, {rec['files']} files)")
 
 
-def _print_config_entry(rec: dict) -> None:
+def _report_import(rec: dict) -> None:
+    """The imported scene's check (validate_scene) and the config entry to run it with."""
     import yaml
 
+    from .stages.validate import format_summary, validate_scene
+
+    print(format_summary(validate_scene(rec["scene_dir"])))
     name = Path(rec["scene_dir"]).name
     print(f"the pipeline's config entry for it (scenes/{name}; data/{name} is where the workflow reads it):")
     print(yaml.safe_dump({"scenes": {name: rec["config_entry"]}}, sort_keys=False).rstrip())
@@ -263,8 +267,8 @@ def _cmd_import_zju(args: argparse.Namespace) -> None:
                          test=args.test, role=args.role, fps=args.fps, link=args.link, height=args.height,
                          threads=args.threads)
     print(f"{rec['scene_dir']}/{rec['sequence']}: {len(rec['cameras'])} cameras x {len(rec['frames'])} frames "
-          f"(masks from {', '.join(rec['masks']) or 'none'}); next: anidress validate {rec['scene_dir']}")
-    _print_config_entry(rec)
+          f"(masks from {', '.join(rec['masks']) or 'none'})")
+    _report_import(rec)
 
 
 def _cmd_import_easymocap(args: argparse.Namespace) -> None:
@@ -278,8 +282,8 @@ def _cmd_import_easymocap(args: argparse.Namespace) -> None:
                                body_model=args.body_model, train=args.train, test=args.test, role=args.role,
                                fps=args.fps, link=args.link, height=args.height, threads=args.threads)
     print(f"{rec['scene_dir']}/{rec['sequence']}: {len(rec['cameras'])} cameras x {len(rec['frames'])} frames "
-          f"(masks {'from ' + rec['masks'] if rec['masks'] else 'none'}); next: anidress validate {rec['scene_dir']}")
-    _print_config_entry(rec)
+          f"(masks {'from ' + rec['masks'] if rec['masks'] else 'none'})")
+    _report_import(rec)
 
 
 def _cmd_validate(args: argparse.Namespace) -> None:

@@ -291,7 +291,10 @@ def test_cli_import_zju(tiny, tmp_path, capsys):
     rc = main(["import-zju", str(cap), str(dst), "--sequence", "walk", "--frames", "0:2", "--garment",
                str(data / "garment" / "template.obj"), "--garment-kind", "skirt", "--body-model",
                str(data / "body_model.npz"), "--train", "Camera (1),Camera (2),Camera (4)"])
-    assert rc == 0 and "walk: 4 cameras x 2 frames" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert rc == 0 and "walk: 4 cameras x 2 frames" in out and ": OK (3 train + 1 test cameras" in out  # validated
+    assert yaml.safe_load(out[out.index("scenes:"):])["scenes"]["cli"]["sequences"] == [
+        {"name": "walk", "frames": 2, "role": "train"}]  # the config entry, ready to paste
     assert yaml.safe_load((dst / "scene.yaml").read_text())["cameras"]["test"] == ["Camera_3"]
     bad = _broken(cap, tmp_path, lambda d: (d / "params" / "2.npy").unlink())
     assert main(["import-zju", str(bad), str(tmp_path / "x")]) == 2
