@@ -11,8 +11,8 @@
   SMPL-X body, with ``handl`` / ``handr`` [/ ``expression``]): :func:`_smpl_poses`.
   Several people per file: chosen by ``person_id``; frames without the person: an
   error, or interpolated (``max_gap``); :func:`read_easymocap_smpl_dir`.
-* ZJU-MoCap ``params/<i>.npy``: a pickled dict with poses (1, 72), Rh (1, 3),
-  Th (1, 3), shapes (1, 10) (EasyMocap convention).
+* ZJU-MoCap ``params/<i>.npy`` is read by :func:`anidress_core.io.zju.read_zju_params`
+  through this module's person-parameter checks.
 * AMASS ``.npz`` (Mahmood et al. 2019): ``poses`` (T, 156) SMPL-H or (T, 165) SMPL-X
   axis-angle, ``trans`` (T, 3), ``betas``, ``mocap_framerate`` (or
   ``mocap_frame_rate``); z-up world, global orientation about the pelvis (convert
@@ -42,7 +42,6 @@ __all__ = [
     "smpl_selection",
     "write_easymocap_smpl",
     "write_easymocap_smpl_dir",
-    "read_zju_params_dir",
     "read_amass_npz",
     "SMPL_REQUIRED_KEYS",
 ]
@@ -499,35 +498,6 @@ def write_easymocap_smpl_dir(directory: str | os.PathLike, poses, Rh, Th, shapes
         write_easymocap_smpl(path, P[i], R[i], T_[i], S[i], person_id)
         out.append(path)
     return out
-
-
-# ---------------------------------------------------------------------- ZJU-MoCap
-def read_zju_params_dir(directory: str | os.PathLike) -> dict[str, Any]:
-    """ZJU-MoCap ``params/<i>.npy`` files, sorted by i.
-
-    Returns dict(poses (T, 72), Rh (T, 3), Th (T, 3), shapes (T, S), frames list[int]).
-    """
-    d = _exists(directory, "dir")
-    files = [f for f in d.iterdir() if f.suffix == ".npy" and re.fullmatch(r"\d+", f.stem)]
-    if not files:
-        raise ValueError(f"{d}: no <i>.npy parameter files")
-    files.sort(key=lambda f: int(f.stem))
-    recs = []
-    for f in files:
-        obj = _load_npy_object(f)
-        if not isinstance(obj, dict):
-            raise ValueError(f"{f}: expected a pickled dict with poses, Rh, Th, shapes; got {type(obj).__name__}")
-        recs.append(_person_params(f, obj))
-    sizes = {r["shapes"].size for r in recs}
-    if len(sizes) != 1:
-        raise ValueError(f"{d}: 'shapes' sizes differ between frames: {sorted(sizes)}")
-    return {
-        "poses": np.stack([r["poses"] for r in recs]),
-        "Rh": np.stack([r["Rh"] for r in recs]),
-        "Th": np.stack([r["Th"] for r in recs]),
-        "shapes": np.stack([r["shapes"] for r in recs]),
-        "frames": [int(f.stem) for f in files],
-    }
 
 
 # ------------------------------------------------------------------------ AMASS

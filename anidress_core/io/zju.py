@@ -21,7 +21,7 @@ fifth ``_``-separated field (1): :func:`zju_frame_number`, neuralbody's rule.
 :func:`read_annots` returns our :class:`anidress_core.camera.Cameras` (metres) and the
 image lists; :func:`zju_mask_labels` maps the two mask kinds to the pipeline's labels
 (0 background, 1 body, 2 garment: ``anidress_core.synth.LABEL_*``);
-:func:`read_zju_params` reads the body parameters of given frame numbers;
+:func:`read_zju_params` reads the body parameters of given frame numbers (or all);
 :func:`zju_mask_paths` names the mask files of an image; :func:`safe_camera_names` turns
 the camera folders (``Camera (1)``) into names EasyMocap's files can hold.
 
@@ -210,18 +210,24 @@ def zju_frame_number(image: str) -> int:
                      "<...>_Camera_(<c>)_<number>_<time>.jpg)")
 
 
-def read_zju_params(directory: str | os.PathLike, numbers: Sequence[int]) -> dict[str, np.ndarray]:
-    """Body parameters of frame numbers ``numbers`` from ``<directory>/<i>.npy`` (``params/`` or ``new_params/``).
+def read_zju_params(directory: str | os.PathLike, numbers: Sequence[int] | None = None) -> dict[str, Any]:
+    """Body parameters from ``<directory>/<i>.npy`` (ZJU-MoCap's ``params/`` or ``new_params/``).
 
-    Returns dict(poses (T, 72), Rh (T, 3), Th (T, 3) metres, shapes (T, S)) float64, in the
-    order of ``numbers``. Each file is a pickled dict (read through the restricted unpickler)
-    with ``poses``, ``Rh``, ``Th`` and optionally ``shapes`` (default 10 zeros); ``poses`` of
-    any EasyMocap layout (72, 69, 63, ...: :mod:`anidress_core.io.motion`). A missing file, a
-    missing key or a wrong size raises ValueError naming the file and the field.
+    ``numbers``: the frame numbers i to read, in that order; None reads every ``<i>.npy`` in
+    numeric order. Returns dict(poses (T, 72), Rh (T, 3), Th (T, 3) metres, shapes (T, S))
+    float64 and ``frames`` (list[int], the numbers read). Each file is a pickled dict (read
+    through the restricted unpickler) with ``poses``, ``Rh``, ``Th`` and optionally ``shapes``
+    (default 10 zeros); ``poses`` of any EasyMocap layout (72, 69, 63, ...:
+    :mod:`anidress_core.io.motion`). A missing file, a missing key or a wrong size raises
+    ValueError naming the file and the field.
     """
     d = Path(directory)
     if not d.is_dir():
         raise FileNotFoundError(f"{d}: body parameter folder not found")
+    if numbers is None:
+        numbers = sorted(int(f.stem) for f in d.iterdir() if f.suffix == ".npy" and re.fullmatch(r"\d+", f.stem))
+        if not numbers:
+            raise ValueError(f"{d}: no <i>.npy parameter files")
     recs = []
     for i in numbers:
         f = d / f"{int(i)}.npy"
@@ -236,7 +242,9 @@ def read_zju_params(directory: str | os.PathLike, numbers: Sequence[int]) -> dic
     sizes = {r["shapes"].size for r in recs}
     if len(sizes) != 1:
         raise ValueError(f"{d}: 'shapes' sizes differ between frames: {sorted(sizes)}")
-    return {k: np.stack([r[k] for r in recs]) for k in ("poses", "Rh", "Th", "shapes")}
+    out: dict[str, Any] = {k: np.stack([r[k] for r in recs]) for k in ("poses", "Rh", "Th", "shapes")}
+    out["frames"] = [int(i) for i in numbers]
+    return out
 
 
 def zju_mask_paths(capture: str | os.PathLike, image: str) -> dict[str, Path]:

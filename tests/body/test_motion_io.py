@@ -13,10 +13,11 @@ from anidress_core.io.motion import (
     read_easymocap_smpl_dir,
     read_easymocap_smpl_file,
     read_smpl_model_file,
-    read_zju_params_dir,
     write_easymocap_smpl,
     write_easymocap_smpl_dir,
 )
+
+from anidress_core.io.zju import read_zju_params
 
 from .conftest import make_tiny_smpl
 
@@ -171,7 +172,7 @@ def test_zju_params_round_trip(tmp_path):
                "Th": rng.normal(size=(1, 3)), "shapes": rng.normal(size=(1, 10))}
         np.save(tmp_path / f"{i}.npy", rec)
         recs.append(rec)
-    got = read_zju_params_dir(tmp_path)
+    got = read_zju_params(tmp_path)
     assert got["frames"] == [0, 1, 2, 10]
     for k in ("poses", "Rh", "Th", "shapes"):
         np.testing.assert_array_equal(got[k], np.concatenate([r[k] for r in recs]))
@@ -180,10 +181,10 @@ def test_zju_params_round_trip(tmp_path):
 def test_zju_params_errors(tmp_path):
     np.save(tmp_path / "0.npy", {"poses": np.zeros((1, 72)), "Th": np.zeros((1, 3)), "shapes": np.zeros((1, 10))})
     with pytest.raises(ValueError, match=r"0\.npy.*missing.*Rh"):
-        read_zju_params_dir(tmp_path)
+        read_zju_params(tmp_path)
     np.save(tmp_path / "0.npy", np.zeros(3))
     with pytest.raises(ValueError, match=r"0\.npy.*expected a pickled dict"):
-        read_zju_params_dir(tmp_path)
+        read_zju_params(tmp_path)
 
     class Evil:
         def __reduce__(self):
@@ -193,11 +194,11 @@ def test_zju_params_errors(tmp_path):
 
     np.save(tmp_path / "0.npy", np.array(Evil(), dtype=object), allow_pickle=True)
     with pytest.raises(ValueError, match="refusing to unpickle"):
-        read_zju_params_dir(tmp_path)
+        read_zju_params(tmp_path)
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(ValueError, match="no <i>.npy"):
-        read_zju_params_dir(empty)
+        read_zju_params(empty)
 
 
 # ------------------------------------------------------------------------ AMASS
