@@ -15,6 +15,7 @@ residuals. Float64 for poses and geometry; CPU or CUDA (whatever device the inpu
 """
 from __future__ import annotations
 
+import math
 import warnings
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -33,7 +34,7 @@ if TYPE_CHECKING:
 
 __all__ = ["RigParts", "HessianLayout", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem",
            "contour_length", "occluder_depth", "sanitize_normals", "occluder_or_inf", "check_cues", "Crop",
-           "crop_window", "crop_frame", "uncrop_fragments", "downsample"]
+           "crop_window", "crop_frame", "uncrop_fragments", "downsample", "image_finite"]
 
 
 class RigParts(NamedTuple):
@@ -140,7 +141,8 @@ class Views(NamedTuple):
 class FrameCues(NamedTuple):
     """The 2D observations of one frame in C views (pixels on the image grid)."""
 
-    mask: Tensor  # (C, H, W) bool garment pixels (label 2), or float garment coverage in [0, 1]
+    mask: Tensor  # (C, H, W) bool garment pixels (label 2), or float garment coverage in [0, 1]; NaN = unknown
+    # (a float mask's NaN pixels are left out of every pixel term: :attr:`Problem.pixel_ok`)
     normals: Tensor | None  # (C, H, W, 3) camera-space unit normals; non-finite / zero = none
     occluder: Tensor | None  # (C, H, W) camera z of the body (+inf where none), see occluder_depth
     occluder_mesh: tuple | None = None
@@ -209,7 +211,7 @@ class Problem(NamedTuple):
     views: Views
     cfg: FitConfig
     mask: Tensor  # (C, H, W) bool garment pixels
-    mask_flat: Tensor  # (C H W,) float64 garment coverage in [0, 1]
+    mask_flat: Tensor  # (C H W,) float64 garment coverage in [0, 1] (0 where unknown)
     n_px: float  # the common normaliser of every image term: garment pixels in the masks (at least 1)
     normals: Tensor | None  # (C, H, W, 3) float64 or None (L_N off)
     normal_ok: Tensor | None  # (C, H, W) bool: pixels with a normal target
@@ -221,6 +223,10 @@ class Problem(NamedTuple):
     anchor_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
     anchor: "AnchorRef | None" = None
     contacts: "Contacts | None" = None  # L_collision's planes, or None (L_collision off)
+    pixel_ok: Tensor | None = None
+    """(C H W,) float64 1 where the mask is known, 0 where it is not (NaN in a float mask: a pixel
+    left out, or a whole view dropped by :func:`anidress_core.fit.fit_frame`); None = all known.
+    L_silhouette's residuals are multiplied by it; L_normal and L_anchor use only known garment pixels."""
 
 
 def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig,
@@ -232,7 +238,9 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
     check_cues(views, cues)
     w = cfg.weights
     soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
-    soft = torch.where(torch.isfinite(soft), soft.clamp(0, 1), torch.zeros_like(soft))
+    known = torch.isfinite(soft)
+    soft = torch.where(known, soft.clamp(0, 1), torch.zeros_like(soft))
+    pixel_ok = None if bool(known.all()) else known.reshape(-1).double()
     mask = soft > 0.5
     normals, nok = sanitize_normals(cues.normals if w.normal > 0 else None)
     if nok is not None:
@@ -243,7 +251,9 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
     anchor_feat = region = None
     if w.anchor > 0 and cues.image is not None and anchor is not None and bool(anchor.seen.any()):
         anchor_feat = image_features(chromaticity(cues.image), cfg.image_blur)
-        region = eroded(soft, cfg.flow_margin_px)
+        # colours count inside the eroded garment mask, away from non-finite image pixels (the blur
+        # of image_features spreads them over ~3 sigma: they are grown by that much)
+        region = eroded(soft * image_finite(cues.image, cfg.image_blur).double(), cfg.flow_margin_px)
     else:
         anchor = None
     n_px = float(max(float(soft.sum()), 1.0))  # the paper's sums over pixels / targets, one common scale
@@ -254,7 +264,19 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
         w_prior=w.prior / rig.rest.shape[0],
         anchor_feat=anchor_feat, anchor_region=region, anchor=anchor,
         contacts=contacts if w.collision > 0 and contacts is not None and contacts.vert.numel() else None,
+        pixel_ok=pixel_ok,
     )
+
+
+def image_finite(image: Tensor, blur: float) -> Tensor:
+    """(C, H, W) bool: pixels of ``image`` (C, H, W, 3) at least ceil(3 blur) + 1 pixels from any
+    non-finite value (the pixels that :func:`anidress_core.fit.images.image_features` computes from finite data)."""
+    bad = ~torch.isfinite(image).all(-1)
+    if not bool(bad.any()):
+        return ~bad
+    r = int(math.ceil(3 * blur)) + 1
+    grown = Fnn.max_pool2d(bad.double()[:, None], 2 * r + 1, stride=1, padding=r)[:, 0] > 0
+    return ~grown
 
 
 class Crop(NamedTuple):

@@ -35,7 +35,7 @@ from .terms.anchor import AnchorRef, update_anchor
 from .terms.collision import body_contacts
 from .terms.flow import flow_targets
 
-__all__ = ["FrameFit", "flow_align", "fit_problem", "fit_frame", "smooth_transforms", "fit_sequence"]
+__all__ = ["FrameFit", "cue_notes", "flow_align", "fit_problem", "fit_frame", "smooth_transforms", "fit_sequence"]
 
 
 @dataclass
@@ -59,6 +59,13 @@ class FrameFit:
     """Weighted total loss after each accepted step (index 0: the start)."""
     fragments: raster.Fragments | None = None
     """Occluded fragments of the result (for the next frame's flow targets)."""
+    notes: dict = field(default_factory=dict)
+    """What the fit did about defective cues in this frame (empty: nothing), see :func:`cue_notes`:
+    ``views_dropped`` (list of view indices whose mask had no garment pixel: left out of every
+    pixel term), ``no_mask`` (True: no view left, the start pose kept, not converged),
+    ``mask_unknown_px``, ``normals_nonfinite_px``, ``image_nonfinite_px`` (pixels left out),
+    ``flow_targets_nonfinite`` (targets dropped), ``no_flow`` (set by :func:`fit_sequence`: no
+    flow for the frame, L_flow off)."""
 
 
 def flow_align(rig: RigParts, views: Views, flow: FlowTargets, transforms: Tensor, iters: int) -> Tensor:
@@ -153,6 +160,52 @@ def vertex_adam(pb: Problem, cues: FrameCues, start_verts: Tensor, transforms: T
     return FrameFit(transforms.double().clone(), best_x, dict(ev.terms), ev.loss, it, converged, curve, ev.fragments)
 
 
+def cue_notes(cues: FrameCues, flow: FlowTargets | None) -> tuple[FrameCues, FlowTargets | None, dict]:
+    """Sanitise one frame's cues and say what was done (the ``notes`` of :class:`FrameFit`).
+
+    1. A view whose mask has no garment pixel (none known to be garment) is dropped: its mask
+       becomes NaN (unknown) so that no pixel term reads it. An empty view says only "no
+       garment here", which for a garment inside the cameras is a failed mask; kept, the
+       silhouette term would push the garment out of that view.
+    2. NaN pixels of a float mask are unknown (counted); non-finite normals and image pixels are
+       left out by the terms (counted).
+    3. Flow targets with a non-finite target are dropped (counted); none left: None.
+    Returns the cues (mask float with NaN where dropped, if any view was), the flow targets and the notes.
+    """
+    notes: dict = {}
+    m = cues.mask
+    if m.is_floating_point():
+        unknown = ~torch.isfinite(m)
+        if bool(unknown.any()):
+            notes["mask_unknown_px"] = int(unknown.sum())
+        garment = torch.where(unknown, torch.zeros_like(m), m) > 0.5
+    else:
+        garment = m.bool()
+    empty = ~garment.flatten(1).any(1)  # (C,)
+    if bool(empty.any()):
+        notes["views_dropped"] = empty.nonzero().flatten().tolist()
+        mf = m.double() if m.is_floating_point() else m.bool().double()
+        cues = cues._replace(mask=torch.where(empty[:, None, None], torch.full_like(mf, float("nan")), mf))
+        if bool(empty.all()):
+            notes["no_mask"] = True
+    if cues.normals is not None:
+        bad = ~torch.isfinite(cues.normals).all(-1) & garment
+        if bool(bad.any()):
+            notes["normals_nonfinite_px"] = int(bad.sum())
+    if cues.image is not None:
+        bad = ~torch.isfinite(cues.image).all(-1)
+        if bool(bad.any()):
+            notes["image_nonfinite_px"] = int(bad.sum())
+    if flow is not None:
+        ok = torch.isfinite(flow.target).all(-1)
+        if not bool(ok.all()):
+            notes["flow_targets_nonfinite"] = int((~ok).sum())
+            flow = FlowTargets(flow.cam[ok], flow.vert[ok], flow.target[ok])
+        if flow.cam.numel() == 0:
+            flow = None
+    return cues, flow, notes
+
+
 def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: FitConfig | None = None,
               flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None,
               anchor: AnchorRef | None = None) -> FrameFit:
@@ -164,7 +217,10 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     ``init_verts`` (V, 3) (default: LBS of ``init``) and ``init`` is returned unchanged.
     anchor: L_anchor's references (:func:`update_anchor`; used when ``cfg.weights.anchor`` > 0 and the cues
     carry images).
-    Never returns non-finite poses: steps with a non-finite loss are rejected. cfg: default
+    Never returns non-finite poses: steps with a non-finite loss are rejected, and defective
+    cues are handled as :func:`cue_notes` says (views with an empty mask dropped; no view left:
+    the start pose -- ``init`` moved by the flow alignment -- is kept, ``converged`` False;
+    NaN pixels and targets left out), recorded in the result's ``notes``. cfg: default
     :meth:`FitConfig.from_config` of an empty section (the pipeline's).
     """
     cfg = FitConfig.from_config({}) if cfg is None else cfg
@@ -175,6 +231,7 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         raise ValueError("fit_frame: the starting transforms contain NaN or inf")
     check_cues(views, cues)
     flow = None if first else flow
+    cues, flow, notes = cue_notes(cues, flow)
     full_hw = (views.height, views.width)
     G = init
     if cfg.method == "vertex":
@@ -197,10 +254,16 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         cues = cues._replace(occluder=occluder_or_inf(cues, views), occluder_mesh=None)
     if cfg.method == "vertex":
         pb = make_problem(rig, views, cues, flow, cfg, prior)
-        res = vertex_adam(pb, cues, x_start, init, cfg.vertex.max_iters * (3 if first else 1))
     else:
         pb = make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts)
+    if notes.get("no_mask"):  # no view has a mask: keep the start, not converged
+        ev = evaluate(pb, x_start)
+        res = FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, 0, False, [ev.loss], ev.fragments)
+    elif cfg.method == "vertex":
+        res = vertex_adam(pb, cues, x_start, init, cfg.vertex.max_iters * (3 if first else 1))
+    else:
         res = fit_problem(pb, G, cfg.max_iters_first if first else cfg.max_iters)
+    res.notes = notes
     if window is not None:  # visibility in whole images (outside the windows: no garment)
         res.fragments = uncrop_fragments(res.fragments, window, full_hw[0], full_hw[1],
                                          torch.full((views.K.shape[0], *full_hw), float("inf"), dtype=torch.float64,
@@ -238,11 +301,12 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
 
     cues_of(t) -> :class:`FrameCues` (with ``image`` for L_anchor); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
-    or None) of t-1 -> t, or None (no flow for that frame: L_flow off there, logged);
+    or None) of t-1 -> t, or None (no flow for that frame: L_flow off there, logged, ``notes['no_flow']``);
     init: (B, 4, 4) start of frame 0. Returns one :class:`FrameFit` per frame (with the
     wall time of each in ``terms['wall_s']``). L_anchor's references are taken from each frame's
     result (:func:`update_anchor`) and used from the next frame on; ``anchor_init`` (e.g.
     :func:`texture_anchor`) gives references from frame 0 on (vertices it covers keep them).
+    Each frame's ``notes`` (what was done about defective cues, :func:`cue_notes`) are logged as a warning.
     """
     from tqdm import tqdm
 
@@ -267,6 +331,10 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                 targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.visibility_depth_tol,
                                        cfg.flow_margin_px)
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor)
+        if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
+            res.notes["no_flow"] = True
+        if res.notes and log is not None:
+            log.warning("fit: frame %d: %s", t, res.notes)
         if cfg.weights.anchor > 0 and cues.image is not None:
             anchor = update_anchor(anchor, res.verts, views, res.fragments, cues.image, cues.mask, cfg)
         res.terms["wall_s"] = time.perf_counter() - t0

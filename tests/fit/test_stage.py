@@ -161,3 +161,33 @@ def test_garment_poses_reader_checks_the_caller_shapes(tmp_path):
     with pytest.raises(ValueError, match="without values"):
         save_garment_poses(p, G, np.zeros((T, V, 3)), np.zeros((1, 3), np.int64), np.full(T, 6.0), {}, weights,
                            np.ones(T), np.ones(T, bool), np.zeros(T), np.zeros(T), np.zeros((T, 2)), {}, {})
+
+
+def test_stage_records_what_it_did_about_bad_cues(tiny_skirt, tmp_path):
+    """An empty mask file (one camera, frame 2) and a missing flow file (frame 1): finite poses and
+    losses, the view dropped and the missing flow said per frame in the header's frame_notes."""
+    pytest.importorskip("warp")
+    import shutil
+
+    from anidress_core.io import files
+    from anidress_core.io.garment_poses import read_garment_poses
+    from anidress_core.stages.fit import run_fit, select_views
+
+    data, res = tiny_skirt
+    seq = data / "walk"
+    masks, flows = tmp_path / "masks", tmp_path / "flows"
+    shutil.copytree(seq / "gt" / "masks", masks)
+    shutil.copytree(seq / "gt" / "flows", flows)
+    from anidress_core.io.scene import read_scene
+
+    cams = select_views(read_scene(data)["cameras"]["train"], 3)
+    p = masks / cams[1] / "000002.png"
+    files.write_mask(p, np.zeros_like(files.read_mask(p)))
+    (flows / cams[0] / "000001.exr").unlink()
+    meta = run_fit(data, "walk", res / "rig.npz", res / "template.npz", masks, flows, seq / "normals",
+                   {"views": 3, "max_iters": 4, "max_iters_first": 6}, tmp_path / "gp.npz", progress=False)
+    gp = read_garment_poses(tmp_path / "gp.npz", frames=4, bones=6)
+    assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
+    assert all(np.isfinite(v).all() for v in gp.terms.values())
+    assert meta["frame_notes"] == {"1": {"no_flow": True}, "2": {"views_dropped": [1]}}
+    assert gp.header["meta"]["frame_notes"] == meta["frame_notes"]

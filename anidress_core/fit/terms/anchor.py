@@ -29,7 +29,7 @@ from torch import Tensor
 
 from ... import raster
 from ..images import blurred, chromaticity, eroded, pixel_ok, sample, sample_blurred
-from ..problem import Views
+from ..problem import Views, image_finite
 
 if TYPE_CHECKING:
     from ..config import FitConfig
@@ -63,6 +63,7 @@ def update_anchor(ref: AnchorRef | None, verts: Tensor, views: Views, fragments:
     K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
     uv, _ = raster.project_vertices(verts.detach(), K, E)
     soft = mask.double() if mask.is_floating_point() else mask.bool().double()
+    soft = soft * image_finite(image, cfg.image_blur).double()  # no reference from non-finite colours
     vis = raster.visible_vertices(verts.detach(), K, E, fragments, cfg.visibility_depth_tol)
     vis &= pixel_ok(eroded(torch.where(torch.isfinite(soft), soft, torch.zeros_like(soft)), cfg.flow_margin_px), uv)
     seen_now = vis.any(0)

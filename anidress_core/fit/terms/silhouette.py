@@ -2,7 +2,8 @@
 
 Hard rasterisation, antialiased at the silhouette edges (:func:`anidress_core.raster.silhouette`;
 the body is an occluder, :func:`anidress_core.raster.occlude`) against the garment mask
-(label 2): squared difference summed over all pixels of all views, divided by the problem's
+(label 2): squared difference summed over all pixels of all views whose mask is known
+(``Problem.pixel_ok``), divided by the problem's
 garment pixel count. Weight ``fit/weights/silhouette`` (paper: lambda_M = 2.0). Every
 silhouette crossing depends on its edge's two end points, so its derivative is computed
 locally by autograd on the gathered end points and chained per pixel (a pixel can collect the
@@ -44,6 +45,8 @@ def value(pb: "Problem", r) -> tuple[float, SilhouetteData]:
     pix = torch.where(t > 0.5, cr.outside, cr.inside)
     soft = hard.index_add(0, pix, t - 0.5)
     res = soft - pb.mask_flat
+    if pb.pixel_ok is not None:  # unknown mask pixels: no residual
+        res = res * pb.pixel_ok
     return float((res * res).sum()) / pb.n_px, SilhouetteData(cr.inside_xy, cr.outside_xy, cr.cam, cr.edge, pix, res)
 
 
@@ -69,6 +72,8 @@ def gauss_newton(pb: "Problem", s: SilhouetteData, uv: Tensor, Puv: Tensor, Jx: 
     Jt = torch.einsum("nj,njp->np", a0.to(jdtype), J3[e0]) + torch.einsum("nj,njp->np", a1.to(jdtype), J3[e1])
     upix, inv = torch.unique(s.pixel, return_inverse=True)
     Jp = torch.zeros(upix.shape[0], P, dtype=jdtype, device=uv.device).index_add(0, inv, Jt)
+    if pb.pixel_ok is not None:
+        Jp = Jp * pb.pixel_ok[upix].to(jdtype)[:, None]
     w = w_sil / pb.n_px
     H += w * (Jp.t() @ Jp).double()
     g += w * (Jp.t() @ s.residual[upix].to(jdtype)).double()
@@ -79,4 +84,7 @@ def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tens
     views, rig = pb.views, pb.rig
     K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
     s = raster.silhouette(verts, rig.faces, K, E, fragments, rig.edges)
-    return ((s - pb.mask.to(s.dtype)) ** 2).sum() / pb.n_px
+    r = s - pb.mask.to(s.dtype)
+    if pb.pixel_ok is not None:
+        r = r * pb.pixel_ok.view(r.shape).to(r.dtype)
+    return (r ** 2).sum() / pb.n_px
