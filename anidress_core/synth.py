@@ -69,9 +69,12 @@ def material_texture(material: str, size: int, seed: int) -> np.ndarray:
     """A procedural fabric/skin texture (size, size, 3) float32 in [0, 1].
 
     Materials: ``plaid`` (woven check shirt), ``denim`` (twill trousers), ``skin``,
-    ``leather`` (shoes), ``floral`` (printed fabric), ``floor`` (wooden planks),
-    ``wall`` (painted backdrop). Each mixes large-scale structure with fine,
-    non-repeating detail so optical flow and appearance are learnable.
+    ``leather`` (shoes), ``floral`` (printed fabric), ``plain`` (one-colour beige fabric with a
+    faint weave, like the AniDress paper's Skirt-Beige: the weave and a faint dye unevenness
+    change the brightness by a few percent and the chromaticity not at all, so a colour anchor
+    sees nothing), ``floor`` (wooden planks), ``wall`` (painted backdrop). Each but ``plain``
+    mixes large-scale structure with fine, non-repeating detail so optical flow and appearance
+    are learnable; ``plain`` has only the fine weave and the faint unevenness.
     """
     rng = np.random.default_rng(seed)
     u, v = _uv_grid(size)
@@ -104,6 +107,12 @@ def material_texture(material: str, size: int, seed: int) -> np.ndarray:
         tex = base * (0.9 + 0.1 * n2[..., None])
         tex = tex * (1 - blobs_a[..., None]) + blobs_a[..., None] * np.array([0.75, 0.2, 0.35], np.float32)
         tex = tex * (1 - blobs_b[..., None]) + blobs_b[..., None] * np.array([0.2, 0.45, 0.25], np.float32)
+    elif material == "plain":
+        # one colour times a brightness pattern (the same factor on r, g, b: chromaticity constant):
+        # a plain weave of ~100 threads per texture side (+-2.5 %) and a faint dye unevenness (+-2 %)
+        base = np.array([0.74, 0.64, 0.50], np.float32)
+        weave = np.sin(2 * np.pi * 96 * u) * np.sin(2 * np.pi * 96 * v)
+        tex = base * (0.95 + 0.025 * weave + 0.04 * (n2 - 0.5))[..., None]
     elif material == "floor":
         plank = np.floor(v * 16)
         shade = 0.75 + 0.25 * ((plank * 0.618) % 1.0)
@@ -118,7 +127,7 @@ def material_texture(material: str, size: int, seed: int) -> np.ndarray:
     return np.clip(tex, 0.0, 1.0).astype(np.float32)
 
 
-MATERIALS = ("plaid", "denim", "skin", "leather", "floral", "floor", "wall")
+MATERIALS = ("plaid", "denim", "skin", "leather", "floral", "plain", "floor", "wall")
 
 
 def body_part_material(part_name: str) -> str:

@@ -47,6 +47,28 @@ def test_material_textures_have_detail(material):
     assert np.array_equal(tex, synth.material_texture(material, 128, seed=3))  # deterministic
 
 
+def test_plain_fabric_is_one_colour_with_a_faint_weave():
+    """material 'plain' (issue 23: most real skirts are one colour): the chromaticity is the same on
+    every texel (what L_anchor reads carries no placement), the brightness varies by a few percent
+    (a weave that flow can still see up close); a printed fabric differs by orders of magnitude.
+    The scene config selects it (scenes/<scene>/garment/texture) and build_scene uses it."""
+    def chroma_spread(tex):
+        c = tex.astype(np.float64) / tex.astype(np.float64).sum(-1, keepdims=True)
+        return float(c.reshape(-1, 3).std(0).max())
+
+    tex = synth.material_texture("plain", 256, seed=5)
+    lum = tex.mean(-1)
+    assert chroma_spread(tex) < 1e-5  # measured ~1e-8 (float32 rounding)
+    assert 0.005 < float(lum.std() / lum.mean()) < 0.05
+    assert chroma_spread(synth.material_texture("floral", 256, seed=5)) > 0.02
+    assert chroma_spread(synth.material_texture("plaid", 256, seed=5)) > 100 * chroma_spread(tex)
+    cfg = tiny_scene_cfg(kind="skirt", seed=5, garment={"texture": "plain", "vertices": 300},
+                         sequences=[{"name": "walk", "motion": "walk", "frames": 2}])
+    assert cfg["garment"]["texture"] == "plain"
+    a = build_scene(cfg)
+    assert np.array_equal(a.garment_texture, synth.material_texture("plain", 256, seed=5 + 17))
+
+
 def _frame(assets, seq, t):
     m = assets.motions[seq]
     posed = assets.body.pose(torch.as_tensor(m.poses[t : t + 1]), torch.as_tensor(m.Rh[t : t + 1]),
