@@ -286,6 +286,23 @@ def _cmd_import_easymocap(args: argparse.Namespace) -> None:
     _report_import(rec)
 
 
+def _cmd_export_capture(args: argparse.Namespace) -> None:
+    from .stages.export_capture import run_export_capture
+
+    rec = run_export_capture(args.src, args.out, distort=args.distort, pose_noise_cm=args.pose_noise_cm,
+                             masks=args.masks, image_size=args.image_size, seed=args.seed, normals=args.normals,
+                             truth=args.truth, threads=args.threads)
+    for seq, r in rec["sequences"].items():
+        b = r["body_noise"]
+        print(f"{rec['scene_dir']}/{seq}: {len(r['cameras'])} cameras x {r['frames']} frames at "
+              f"{rec['options']['image_size']}, distortion {'on' if rec['options']['distort'] else 'off'}, body joint "
+              f"error {b['joint_error_cm']:.2f} cm (angles {b['joint_angle_deg']:.2f} deg, jitter {b['jitter_cm']:.2f} "
+              f"cm/frame), masks {rec['options']['masks']}"
+              + (f" (IoU person {r['mask_iou']['person']:.3f})" if r.get("mask_iou") else ""))
+    print(f"held back for scoring: {rec['truth_dir']} (export.json, gt/, exact smpl/)")
+    _report_import(rec)
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     from .stages.validate import format_summary, run_validate
 
@@ -564,6 +581,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how images reach the scene (default: %(default)s)")
     s.add_argument("--threads", type=int, default=2, help="files placed / masks converted at a time")
     s.set_defaults(func=_cmd_import_easymocap)
+
+    s = sub.add_parser("export-capture", help="write a synthetic scene as a capture would be (distorted non-square "
+                                              "images, noisy body poses, no plates, texture or gt/)")
+    s.add_argument("src", help="a synthetic scene (data/<scene>)")
+    s.add_argument("out", help="the capture-like scene to write (a new folder); its truth goes to OUT.truth")
+    s.add_argument("--distort", action=argparse.BooleanOptionalAction, default=True,
+                   help="apply lens distortion to the images and write it as dist_<cam> (default: on)")
+    s.add_argument("--pose-noise-cm", type=float, default=2.0,
+                   help="mean joint position error of the written body poses, cm (0: exact; default %(default)s)")
+    s.add_argument("--masks", default="none", choices=["none", "parser"],
+                   help="none: no masks/; parser: labels with a human parser's errors (default: %(default)s)")
+    s.add_argument("--image-size", help="WxH of the written images (crop / pad about the centre; default: the "
+                                        "width padded to 4:3)")
+    s.add_argument("--seed", type=int, default=0, help="seed of every random choice (default: %(default)s)")
+    s.add_argument("--normals", action=argparse.BooleanOptionalAction, default=True,
+                   help="keep the scene's predicted normals, warped (default: on)")
+    s.add_argument("--truth", help="where the held-back truth goes (default: OUT.truth beside OUT)")
+    s.add_argument("--threads", type=int, default=2, help="files written at a time")
+    s.set_defaults(func=_cmd_export_capture)
 
     s = sub.add_parser("validate", help="check a scene folder (cameras, frames, images, body, garment) before a run")
     s.add_argument("scene_dir", help="data/<scene>")
