@@ -12,7 +12,8 @@ Modules: :mod:`.config` (:class:`FitConfig`, the config section ``fit``), :mod:`
 cues, render windows), :mod:`.terms` (one module per loss term: value, Gauss-Newton block,
 autograd reference), :mod:`.objective` (the loss and its Gauss-Newton system), :mod:`.lm`
 (Levenberg-Marquardt), :mod:`.jacobians` (bone increments), :mod:`.sequence` (frames and
-sequences), :mod:`.images` (image sampling).
+sequences), :mod:`.proposals` (candidate poses from the simulation database, scored by the
+loss), :mod:`.images` (image sampling).
 """
 from __future__ import annotations
 
