@@ -44,15 +44,13 @@ from .. import __version__, plots
 from ..io import files
 from ..io.rig import read_rig
 from ..io.sim import read_sim
+from .references import REFERENCE_TABLES
 
 __all__ = ["REFERENCE_TABLES", "collect_report", "reference_label", "render_report", "run_report"]
 
 log = logging.getLogger("anidress.report")
 
 VARIANTS = ("full", "body_only")
-
-#: Committed reference tables the report can show (key -> path relative to the working directory).
-REFERENCE_TABLES = {"tradeoffs": "benchmarks/tradeoffs.csv", "rig_sweep": "benchmarks/rig.csv"}
 
 
 # --------------------------------------------------------------------------- small readers

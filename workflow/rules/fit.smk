@@ -6,13 +6,26 @@
 # normals_dir), or with fit/cues: ground_truth the synthetic scene's true masks and flows
 # and its shipped (degraded) normals -- an upper bound for the fitting alone.
 
-from anidress_core.fit.variants import VARIANTS as _FIT_VARIANTS
+# The loss variants are anidress_core.fit.variants.VARIANTS (the one list). Importing it imports torch
+# (~1 s), so it is imported only when a name other than the default 'pipeline' must be checked: a
+# non-default fit/loss or fit/ablations here, a fit_ablation job in the DAG (check_fit_variant); the
+# default config parses without torch (issue 22: a no-op rerun in a few seconds).
+_DEFAULT_FIT_VARIANT = "pipeline"  # the schema's fit/loss default; tests/workflow/test_parse_time.py: a VARIANTS key
 
-# the loss variants (anidress_core/fit/variants.py, the one list): fit/loss of rule fit, fit/ablations
-FIT_ABLATIONS = list(_FIT_VARIANTS)
+
+def check_fit_variant(name, where):
+    """``name`` if it is a loss variant of anidress_core.fit.variants.VARIANTS, else a ValueError naming ``where``."""
+    if name == _DEFAULT_FIT_VARIANT:
+        return name
+    from anidress_core.fit.variants import VARIANTS
+
+    if name not in VARIANTS:
+        raise ValueError(f"{where}: unknown loss variant {name!r}; choose from {list(VARIANTS)}")
+    return name
+
+
 for _v in [config["fit"]["loss"], *config["fit"]["ablations"]]:
-    if _v not in _FIT_VARIANTS:
-        raise ValueError(f"config fit: unknown loss variant {_v!r}; choose from {FIT_ABLATIONS}")
+    check_fit_variant(_v, "config fit")
 
 
 def _fit_sequences(scene):
@@ -106,7 +119,7 @@ rule fit_ablation:
     params:
         fit=lambda wc: {k: v for k, v in fit_params(wc.scene).items() if k != "loss"},  # the ablation is the loss
         cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
-        ablation=lambda wc: wc.ablation,
+        ablation=lambda wc: check_fit_variant(wc.ablation, f"target {wc.scene}/{wc.seq}/fit_ablations/{wc.ablation}"),
     threads: 2
     resources:
         mem_mb=4000,
@@ -114,7 +127,7 @@ rule fit_ablation:
         gpu=0,
     wildcard_constraints:
         seq="|".join(_FIT_SEQUENCES) or "^$",
-        ablation="|".join(FIT_ABLATIONS),
+        ablation="[A-Za-z0-9_]+",  # a variant name: checked by the params function (check_fit_variant)
     script:
         "../scripts/fit.py"
 

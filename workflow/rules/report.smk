@@ -7,7 +7,8 @@
 # change to them reruns the report), and the page labels them with their commit and date.
 
 
-from anidress_core.stages.report import REFERENCE_TABLES
+# (from the light module, not stages.report: parsing the workflow imports no torch; issue 22)
+from anidress_core.stages.references import REFERENCE_TABLES
 
 
 def report_reference(key):

@@ -8,8 +8,6 @@
 # The rule has no params: no setting reruns it, only a change of data/{scene} (computed once, reused
 # by every stage and variant).
 
-from anidress_core.io.scene import distorted_cameras as _distorted_cameras
-
 _UNDISTORT_SEQUENCES = sorted({s["name"] for sc in config["scenes"].values() for s in sc["sequences"]})
 
 
@@ -25,7 +23,9 @@ def undistorted_dir(scene, seq):
     scene_dir = os.path.join("data", scene)
     if not os.path.isfile(os.path.join(scene_dir, seq, "intri.yml")):
         return None
-    return f"results/{scene}/{seq}/undistorted" if _distorted_cameras(scene_dir, seq) else None
+    from anidress_core.io.scene import distorted_cameras  # here: only a captured scene imports it (torch)
+
+    return f"results/{scene}/{seq}/undistorted" if distorted_cameras(scene_dir, seq) else None
 
 
 def undistorted_input(scene, seq):
