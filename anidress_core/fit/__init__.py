@@ -24,7 +24,8 @@ from .lm import LMResult, levenberg_marquardt
 from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, total_loss
 from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, contour_length, crop_frame,
                       crop_window, downsample, make_problem, occluder_depth, uncrop_fragments)
-from .sequence import FrameFit, fit_frame, fit_problem, fit_sequence, flow_align, smooth_transforms
+from .sequence import (FrameFit, backward_pass, cue_notes, fit_frame, fit_problem, fit_sequence, flow_align,
+                       smooth_transforms)
 from .terms import TERM_NAMES, TERMS
 from .terms.anchor import AnchorRef, texture_anchor, texture_blur_texels, update_anchor
 from .terms.collision import Contacts, body_contacts
@@ -35,7 +36,7 @@ __all__ = [
     "FitConfig", "LossWeights", "VertexSettings", "VARIANTS", "PAPER_WEIGHTS", "apply_variant",
     "RigParts", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem", "Evaluation", "evaluate",
     "gauss_newton_system", "loss_terms", "total_loss", "TERMS", "TERM_NAMES", "LMResult", "levenberg_marquardt",
-    "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "flow_align", "smooth_transforms", "flow_targets",
+    "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "backward_pass", "cue_notes", "flow_align", "smooth_transforms", "flow_targets",
     "AnchorRef", "update_anchor", "texture_anchor", "texture_blur_texels", "Contacts", "body_contacts",
     "chromaticity", "image_features", "blurred", "sample", "sample_blurred", "contour_length", "occluder_depth",
     "downsample", "Crop", "crop_window", "crop_frame", "uncrop_fragments", "JACOBIAN_DTYPE", "apply_increment",

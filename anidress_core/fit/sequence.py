@@ -15,6 +15,7 @@ B bones, C cameras. Float64 for poses and geometry, float32 for the Jacobian pro
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -35,7 +36,8 @@ from .terms.anchor import AnchorRef, update_anchor
 from .terms.collision import body_contacts
 from .terms.flow import flow_targets
 
-__all__ = ["FrameFit", "cue_notes", "flow_align", "fit_problem", "fit_frame", "smooth_transforms", "fit_sequence"]
+__all__ = ["FrameFit", "cue_notes", "flow_align", "fit_problem", "fit_frame", "smooth_transforms", "backward_pass",
+           "fit_sequence"]
 
 
 @dataclass
@@ -292,6 +294,44 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
         inner[..., :3, :3] = nearest_rotation(inner[..., :3, :3])
         G[1:-1] = inner
     return G
+
+
+def backward_pass(rig: RigParts, views: Views, fits: list[FrameFit], cues_of: Callable[[int], FrameCues],
+                  cfg: FitConfig, anchor: AnchorRef | None = None, log=None) -> list[FrameFit]:
+    """Propagate the fit backwards: for t = T-2 .. 0, frame t is fitted again from the pose kept at
+    t + 1, and of the two poses of frame t (the forward fit's and this one) the one with the lower
+    loss is kept (issue 23: one frame's error is not carried to the end of the sequence).
+
+    Both poses are scored on one problem of frame t (:func:`anidress_core.fit.proposals.score_poses`)
+    without L_flow (its targets run forwards, from t - 1; the backward fit has none) and without
+    L_prior. The sweep starts at the last frame and restarts from every frame whose forward pose
+    wins, so a well-fitted later stretch (a keyframe, or where the forward chain found the answer)
+    carries back to the frames before it. fits: the forward pass's results (unchanged); returns the
+    kept results, the backward ones with ``notes['backward']`` = {'loss': ..., 'forward_loss': ...}
+    and the backward time added to ``terms['wall_s']``. anchor: L_anchor's references as the
+    forward pass ended with them.
+    """
+    from .proposals import score_poses
+
+    out = list(fits)
+    cfg_b = cfg.replace(weights={"flow": 0.0, "prior": 0.0})
+    for t in range(len(fits) - 2, -1, -1):
+        t0 = time.perf_counter()
+        cues = cues_of(t)
+        fwd = fits[t]
+        back = fit_frame(rig, views, cues, out[t + 1].transforms, cfg_b, None, first=False, anchor=anchor)
+        s = score_poses(rig, views, cues, torch.stack([fwd.transforms, back.transforms]), cfg_b, None, anchor)
+        dt = time.perf_counter() - t0
+        if bool(s[1] < s[0]):
+            back.notes = {**fwd.notes, **back.notes, "backward": {"loss": float(s[1]), "forward_loss": float(s[0])}}
+            back.terms["wall_s"] = fwd.terms.get("wall_s", 0.0) + dt
+            back.terms["flow_targets"] = 0
+            out[t] = back
+        else:
+            out[t] = dataclasses.replace(fwd, terms={**fwd.terms, "wall_s": fwd.terms.get("wall_s", 0.0) + dt})
+    if log is not None:
+        log.info("fit: backward pass kept %d of %d frames", sum("backward" in r.notes for r in out), len(out))
+    return out
 
 
 def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],

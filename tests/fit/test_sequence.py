@@ -194,3 +194,44 @@ def test_collision_pushes_the_garment_out_of_the_body():
     assert int((penetration_depth(still.verts[None], bv[None], bf)[0] > 0).sum()) >= int(inside.sum()) - 1
     with pytest.raises(ValueError, match="occluder_mesh"):
         fit.fit_frame(rig, views, seen._replace(occluder_mesh=None, occluder=None), G, full)
+
+
+def test_backward_pass_recovers_a_sequence_started_from_a_wrong_pose():
+    """A textured cone over 10 frames, frame 0 started 0.5 rad / 10 cm (per bone, random) from the
+    truth, 2 evaluations per frame, texture-like anchor references: the forward chain needs most of
+    the sequence to find the garment (measured 142 mm at frame 0, 9 mm at frame 9); the backward
+    pass carries the late frames' pose back, keeping it wherever its loss is lower, and the early
+    frames end near the late frames' error (measured 7-8 mm everywhere)."""
+    from anidress_core.fit.images import chromaticity
+
+    rig, views = toy(C=4, H=64, W=64)
+
+    def colour_of(p):
+        th = torch.atan2(p[:, 1], p[:, 0])
+        return torch.stack([0.5 + 0.4 * torch.sin(4 * th), 0.5 + 0.4 * torch.cos(3 * th + 8 * p[:, 2]),
+                            0.5 + 0.3 * torch.sin(2 * th - 12 * p[:, 2])], -1)
+
+    ref = fit.AnchorRef(chromaticity(colour_of(rig.rest)), torch.ones(rig.rest.shape[0], dtype=torch.bool))
+    g = torch.Generator().manual_seed(7)
+    T = 10
+    Gs = [pose(rig, g, 0.1, 0.02)]
+    Gs += [pose(rig, g, 0.01, 0.003, Gs[-1]) for _ in range(T - 1)]
+    frames = [textured(rig, views, G, colour_of) for G in Gs]
+    wrong = pose(rig, g, 0.5, 0.1, Gs[0])
+    cfg = config(dict(PAPER, normal=300.0, anchor=1e5, flow=0.0), max_iters=2, max_iters_first=2, smooth_passes=0)
+    cues_of = lambda t: frames[t][0]  # noqa: E731
+    fwd = fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, cfg, progress=False, anchor_init=ref)
+    err = lambda res: [rmse(r.verts, frames[t][1]) for t, r in enumerate(res)]  # noqa: E731
+    e_fwd = err(fwd)
+    late = sum(e_fwd[-3:]) / 3
+    assert sum(e_fwd[:3]) / 3 > 5 * late, e_fwd
+    back = fit.backward_pass(rig, views, fwd, cues_of, cfg, anchor=ref)
+    e_back = err(back)
+    assert sum(e_back[:3]) / 3 < 1.5 * late, (e_fwd, e_back)
+    assert max(e_back) < 2 * late, e_back
+    assert all("backward" in r.notes for r in back[:3]) and "backward" not in back[-1].notes
+    for r in back:
+        assert torch.isfinite(r.transforms).all() and math.isfinite(r.loss)
+        if "backward" in r.notes:
+            assert r.notes["backward"]["loss"] < r.notes["backward"]["forward_loss"]
+    assert torch.equal(back[-1].transforms, fwd[-1].transforms)
