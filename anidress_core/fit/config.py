@@ -97,6 +97,24 @@ class FitConfig:
     those of the unfiltered fit."""
     vertex: VertexSettings
     """Ablation (a): Adam settings."""
+    proposal_every: int
+    """Proposals from the simulation database (:mod:`anidress_core.fit.proposals`) at frame 0 and
+    every this many frames after it (keyframes; frames); 0 = off. At a keyframe the chained fit
+    competes with the proposals: the lowest loss (without L_prior) is kept."""
+    proposal_nearest: int
+    """Proposals per keyframe from other simulated motions: the nearest frames by body pose and
+    root velocity (count)."""
+    proposal_offsets: int
+    """Proposals per keyframe from the simulation of the observed motion: its frames t + o,
+    |o| <= this (frames); -1 = none."""
+    proposal_refine: int
+    """Lowest-scored proposals refined by Levenberg-Marquardt per keyframe (count)."""
+    proposal_velocity_weight: float
+    """Weight (s^2) of the squared root-velocity difference (m/s) against the squared pose-feature
+    distance (rotation matrices of the joints relative to the root) in the nearest-frame search."""
+    backward: bool
+    """After the forward pass: :func:`anidress_core.fit.backward_pass` (each frame refitted from the
+    next frame's kept pose, the lower loss kept)."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -118,6 +136,15 @@ class FitConfig:
                              f"{self.collision_clearance}, {self.collision_radius}")
         if int(self.smooth_passes) != self.smooth_passes or self.smooth_passes < 0:
             raise ValueError(f"FitConfig.smooth_passes must be an integer >= 0, got {self.smooth_passes}")
+        for k in ("proposal_every", "proposal_nearest", "proposal_refine"):
+            v = getattr(self, k)
+            if int(v) != v or v < 0:
+                raise ValueError(f"FitConfig.{k} must be an integer >= 0, got {v}")
+        if int(self.proposal_offsets) != self.proposal_offsets or self.proposal_offsets < -1:
+            raise ValueError(f"FitConfig.proposal_offsets must be an integer >= -1, got {self.proposal_offsets}")
+        if not (self.proposal_velocity_weight >= 0 and math.isfinite(self.proposal_velocity_weight)):
+            raise ValueError(f"FitConfig.proposal_velocity_weight must be finite and >= 0, got "
+                             f"{self.proposal_velocity_weight}")
         if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex.max_iters < 1:
             raise ValueError("FitConfig: iteration limits must be >= 1")
 
@@ -138,11 +165,13 @@ class FitConfig:
         kw["weights"] = LossWeights(**{k: float(v) for k, v in kw["weights"].items()})
         kw["vertex"] = VertexSettings(float(kw["vertex"]["lr"]), int(kw["vertex"]["max_iters"]),
                                       int(kw["vertex"]["patience"]))
-        for k in ("max_iters", "max_iters_first", "flow_margin_px", "flow_align_iters", "crop_margin", "smooth_passes"):
+        for k in ("max_iters", "max_iters_first", "flow_margin_px", "flow_align_iters", "crop_margin", "smooth_passes",
+                  "proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine"):
             kw[k] = int(kw[k])
         for k in ("rel_tol", "step_tol", "damping", "visibility_depth_tol", "image_blur", "anchor_scale",
-                  "collision_clearance", "collision_radius"):
+                  "collision_clearance", "collision_radius", "proposal_velocity_weight"):
             kw[k] = float(kw[k])
+        kw["backward"] = bool(kw["backward"])
         kw["loss"] = "pipeline"
         return apply_variant(cls(**kw), loss or p["loss"])
 

@@ -19,7 +19,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 from torch import Tensor
@@ -35,6 +35,9 @@ from .problem import (FlowTargets, FrameCues, Problem, RigParts, Views, check_cu
 from .terms.anchor import AnchorRef, update_anchor
 from .terms.collision import body_contacts
 from .terms.flow import flow_targets
+
+if TYPE_CHECKING:
+    from .proposals import Proposals
 
 __all__ = ["FrameFit", "cue_notes", "flow_align", "fit_problem", "fit_frame", "smooth_transforms", "backward_pass",
            "fit_sequence"]
@@ -337,7 +340,8 @@ def backward_pass(rig: RigParts, views: Views, fits: list[FrameFit], cues_of: Ca
 def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
                  cfg: FitConfig | None = None, progress: bool = True, log=None,
-                 anchor_init: AnchorRef | None = None) -> list[FrameFit]:
+                 anchor_init: AnchorRef | None = None, proposals_of: Callable[[int], "Proposals"] | None = None
+                 ) -> list[FrameFit]:
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
 
     cues_of(t) -> :class:`FrameCues` (with ``image`` for L_anchor); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
@@ -347,7 +351,14 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     result (:func:`update_anchor`) and used from the next frame on; ``anchor_init`` (e.g.
     :func:`texture_anchor`) gives references from frame 0 on (vertices it covers keep them).
     Each frame's ``notes`` (what was done about defective cues, :func:`cue_notes`) are logged as a warning.
+
+    Keyframes (``cfg.proposal_every`` > 0: frame 0 and every ``proposal_every`` frames):
+    ``proposals_of(t)`` -> :class:`anidress_core.fit.proposals.Proposals` (candidate poses of frame t,
+    e.g. :func:`anidress_core.fit.proposals.frame_proposals`) compete with the chained fit
+    (:func:`anidress_core.fit.proposals.best_of`; ``notes['proposal']``: the label kept and the
+    losses). ``cfg.backward``: then :func:`backward_pass`. The temporal filter comes last.
     """
+    from .proposals import best_of, data_loss
     from tqdm import tqdm
 
     cfg = FitConfig.from_config({}) if cfg is None else cfg
@@ -375,6 +386,19 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
             res.notes["no_flow"] = True
         if res.notes and log is not None:
             log.warning("fit: frame %d: %s", t, res.notes)
+        if (cfg.proposal_every > 0 and t % cfg.proposal_every == 0 and proposals_of is not None
+                and cfg.method == "rig" and not res.notes.get("no_mask")):
+            props = proposals_of(t)
+            if props.transforms.shape[0]:
+                best, rec = best_of(rig, views, cues, props, cfg, targets, anchor, first=(t == 0),
+                                    refine=cfg.proposal_refine, start=res)
+                best.notes = {**res.notes, "proposal": {"kept": rec["kept"], "loss": data_loss(best, cfg),
+                                                        "chained_loss": data_loss(res, cfg),
+                                                        "candidates": len(rec["labels"])}}
+                if log is not None:
+                    log.info("fit: frame %d: %d proposals, kept %s (loss %.6g, chained %.6g)", t, len(rec["labels"]),
+                             rec["kept"], best.notes["proposal"]["loss"], best.notes["proposal"]["chained_loss"])
+                res = best
         if cfg.weights.anchor > 0 and cues.image is not None:
             anchor = update_anchor(anchor, res.verts, views, res.fragments, cues.image, cues.mask, cfg)
         res.terms["wall_s"] = time.perf_counter() - t0
@@ -383,6 +407,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
         G = res.transforms
         x_prev = res.verts if cfg.method == "vertex" else None
         prev_mask = cues.mask
+    if cfg.backward and cfg.method == "rig" and len(out) >= 2:
+        out = backward_pass(rig, views, out, cues_of, cfg, anchor=anchor, log=log)
     if cfg.smooth_passes > 0 and cfg.method == "rig" and len(out) >= 3:
         Gs = smooth_transforms(torch.stack([r.transforms for r in out]), cfg.smooth_passes)
         for r, g in zip(out, Gs):

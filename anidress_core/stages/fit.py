@@ -82,6 +82,28 @@ def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.Rig
             f"{path} ({tex.shape[1]}x{tex.shape[0]}), blurred by {blur:.2f} texels (one image pixel + the images' blur)")
 
 
+def proposal_database(art, motions_dir: str | os.PathLike, body):
+    """The simulation database of the proposals (:func:`anidress_core.fit.proposals.make_database`):
+    every simulated sequence of the rig (``rig.npz`` ``sequences``) with the body it was simulated
+    on, ``<motions_dir>/<name>.npz`` (rule motions), posed by the scene's body model."""
+    from ..fit.proposals import make_database
+    from ..io.body_motion import read_motion
+
+    seqs = {}
+    for name in art.sequences:
+        path = Path(motions_dir) / f"{name}.npz"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: body motion of the simulated sequence {name} not found (rule motions; "
+                                    "needed by fit/proposal_every > 0)")
+        m = read_motion(path)
+        G = art.transforms_of(name).double()
+        if m.poses.shape[0] != G.shape[0]:
+            raise files.ArtifactError(f"{path}: {m.poses.shape[0]} frames, the rig has {G.shape[0]} for {name}")
+        joints = body.pose(m.poses, m.Rh, m.Th, m.shapes).transforms.double()
+        seqs[name] = (G.cpu(), joints, m.fps)
+    return make_database(seqs)  # on the CPU (the candidates are moved to the fit's device)
+
+
 def select_views(train: Sequence[str], count: int) -> list[str]:
     """``count`` training cameras spread evenly over the list (0 or >= len: all of them)."""
     train = list(train)
@@ -104,8 +126,9 @@ class CueReader:
     :class:`anidress_core.fit.Views` of ``cams``; num_frames: the last frame read ahead;
     seq_dir: the sequence folder whose images L_anchor reads (None: not read).
     ``cues(t)`` -> :class:`anidress_core.fit.FrameCues`, ``flow(t)`` -> (flow, valid) of
-    t-1 -> t or None; ``close()`` stops the helper thread. The files of frame t + 1 are
-    read by that thread while frame t is fitted. Used by :func:`run_fit` and the
+    t-1 -> t or None; ``close()`` stops the helper thread. The files of frame t + 1 (of t - 1
+    when the frames are read backwards, cues only: the fit's backward pass) are read by that
+    thread while frame t is fitted. Used by :func:`run_fit` and the
     benchmarks.
     """
 
@@ -123,6 +146,7 @@ class CueReader:
         self._pool = ThreadPoolExecutor(max_workers=1)
         self._ahead_cues: dict = {}
         self._ahead_flow: dict = {}
+        self._last: int | None = None
 
     def _prefetch(self, t: int):
         if self.num_frames is not None and 0 <= t < self.num_frames and t not in self._ahead_cues:
@@ -141,7 +165,13 @@ class CueReader:
     def cues(self, t: int) -> FIT.FrameCues:
         job = self._ahead_cues.pop(t, None)
         masks, nrm, img = job.result() if job is not None else self._read_cues(t)
-        self._prefetch(t + 1)
+        back = self._last is not None and t < self._last  # read ahead in the direction of travel
+        self._last = t
+        if back:  # the fit's backward pass reads cues only
+            if t - 1 >= 0 and t - 1 not in self._ahead_cues:
+                self._ahead_cues[t - 1] = self._pool.submit(self._read_cues, t - 1)
+        else:
+            self._prefetch(t + 1)
         dev = self.device
         return FIT.FrameCues(torch.as_tensor(masks, device=dev), None if nrm is None else
                              torch.as_tensor(nrm, device=dev).double(), None,
@@ -202,12 +232,14 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             masks_dir: str | os.PathLike, flows_dir: str | os.PathLike | None,
             normals_dir: str | os.PathLike | None, params: Mapping, out_npz: str | os.PathLike,
             ablation: str | None = None, progress: bool = True, cue_source: str = "",
-            undistorted_dir: str | os.PathLike | None = None) -> dict:
+            undistorted_dir: str | os.PathLike | None = None, motions_dir: str | os.PathLike | None = None) -> dict:
     """Fit the garment poses of sequence ``seq`` and write ``out_npz`` (see the module docstring).
 
     params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
     None/'full' (the section's ``loss``) or a loss variant (:data:`anidress_core.fit.VARIANTS`) to
-    run instead. Returns the header metadata written.
+    run instead. motions_dir: the simulated body motions (``results/<scene>/motions``, rule motions),
+    read when ``fit/proposal_every`` > 0 (the proposals' database, :func:`proposal_database`).
+    Returns the header metadata written.
     """
     t_start = time.perf_counter()
     scene_dir = Path(scene_dir)
@@ -284,12 +316,31 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         anchor_init, anchor_note = texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.image_blur,
                                                      device)
         log.info("fit: L_anchor references from the garment texture: %s", anchor_note)
-    # 6. fit
+    # 6. proposals from the simulation database (keyframes), if on
+    proposals_of, db_note = None, None
+    if cfg.proposal_every > 0 and cfg.method == "rig":
+        from ..fit.proposals import body_features, frame_proposals
+
+        if motions_dir is None:
+            raise ValueError("fit/proposal_every > 0 needs the simulated body motions (motions_dir: "
+                             "results/<scene>/motions, rule motions)")
+        db = proposal_database(art, motions_dir, body)
+        query = body_features(posed.transforms.double().cpu(), float(info["fps"]))
+        own = sim_name if (cfg.proposal_offsets >= 0 and sim_name in art.sequences) else None
+
+        def proposals_of(t):
+            p = frame_proposals(db, query, t, cfg.proposal_nearest, cfg.proposal_velocity_weight, own=own,
+                                offsets=max(cfg.proposal_offsets, 0))
+            return p._replace(transforms=p.transforms.to(device))
+
+        db_note = f"{db.transforms.shape[0]} simulated frames of {list(db.names)}"
+        log.info("fit: proposals every %d frames from %s", cfg.proposal_every, db_note)
+    # 7. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
     try:
         res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
-                               anchor_init=anchor_init)
+                               anchor_init=anchor_init, proposals_of=proposals_of)
     finally:
         reader.close()
     wall_fit = time.perf_counter() - t_fit
@@ -318,6 +369,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "wall_fit_s": wall_fit, "wall_total_s": time.perf_counter() - t_start, "fps": T / wall_fit,
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
+        "proposal_database": db_note,
         "frame_notes": {str(t): r.notes for t, r in enumerate(res) if r.notes},  # what was done about bad cues
         # (anidress_core.fit.FrameFit.notes: views dropped, frames kept at their start, NaN pixels, no flow)
         "transforms_note": "vertex ablation: rig transforms fitted to the fitted vertices" if cfg.method == "vertex"

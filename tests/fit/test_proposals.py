@@ -125,3 +125,49 @@ def test_best_of_refines_the_lowest_and_keeps_the_start_when_nothing_beats_it():
     kept, rec = P.best_of(rig, views, cues, bad, cfg, refine=1, start=best)
     assert kept is best and rec["kept"] == "start"
     assert all(math.isfinite(v) for v in rec["scores"])
+
+
+def test_fit_sequence_takes_proposals_at_keyframes():
+    """proposal_every = 3 on 6 frames: frames 0 and 3 are keyframes (notes['proposal']), the others
+    are not asked; a start far from the truth is replaced at frame 0 by the proposal near it, so the
+    whole sequence is near the truth; settings out of range are refused."""
+    from anidress_core.fit.images import chromaticity
+    from tests.fit.scenes import textured
+
+    rig, views = toy(C=4, H=64, W=64)
+
+    def colour_of(p):
+        th = torch.atan2(p[:, 1], p[:, 0])
+        return torch.stack([0.5 + 0.4 * torch.sin(4 * th), 0.5 + 0.4 * torch.cos(3 * th + 8 * p[:, 2]),
+                            0.5 + 0.3 * torch.sin(2 * th - 12 * p[:, 2])], -1)
+
+    ref = fit.AnchorRef(chromaticity(colour_of(rig.rest)), torch.ones(rig.rest.shape[0], dtype=torch.bool))
+    g = torch.Generator().manual_seed(7)
+    T = 6
+    Gs = [pose(rig, g, 0.1, 0.02)]
+    Gs += [pose(rig, g, 0.01, 0.003, Gs[-1]) for _ in range(T - 1)]
+    frames = [textured(rig, views, G, colour_of) for G in Gs]
+    wrong = pose(rig, g, 0.5, 0.1, Gs[0])
+    asked = []
+
+    def proposals_of(t):
+        asked.append(t)
+        return P.Proposals(torch.stack([pose(rig, g, 0.4, 0.08, Gs[t]), pose(rig, g, 0.01, 0.003, Gs[t])]),
+                           ["far", "near"])
+
+    cfg = config(dict(PAPER, normal=300.0, anchor=1e5, flow=0.0), max_iters=2, max_iters_first=2, smooth_passes=0,
+                 proposal_every=3, proposal_refine=1)
+    res = fit.fit_sequence(rig, views, T, lambda t: frames[t][0], lambda t: None, wrong, cfg, progress=False,
+                           anchor_init=ref, proposals_of=proposals_of)
+    assert asked == [0, 3]
+    assert [("proposal" in r.notes) for r in res] == [True, False, False, True, False, False]
+    assert res[0].notes["proposal"]["kept"] == "near" and res[0].notes["proposal"]["candidates"] == 2
+    assert res[0].notes["proposal"]["loss"] < res[0].notes["proposal"]["chained_loss"]
+    plain = fit.fit_sequence(rig, views, T, lambda t: frames[t][0], lambda t: None, wrong,
+                             cfg.replace(proposal_every=0), progress=False, anchor_init=ref)
+    err = [rmse(r.verts, frames[t][1]) for t, r in enumerate(res)]
+    err_plain = [rmse(r.verts, frames[t][1]) for t, r in enumerate(plain)]
+    assert max(err) < 0.02 < err_plain[0], (err, err_plain)
+    for bad in ({"proposal_every": -1}, {"proposal_offsets": -2}, {"proposal_velocity_weight": float("nan")}):
+        with pytest.raises(ValueError):
+            config(**bad)

@@ -191,3 +191,35 @@ def test_stage_records_what_it_did_about_bad_cues(tiny_skirt, tmp_path):
     assert all(np.isfinite(v).all() for v in gp.terms.values())
     assert meta["frame_notes"] == {"1": {"no_flow": True}, "2": {"views_dropped": [1]}}
     assert gp.header["meta"]["frame_notes"] == meta["frame_notes"]
+
+
+def test_stage_proposals_from_the_simulation_database(tiny_skirt, tmp_path):
+    """fit/proposal_every: the database is the rig's simulated sequences with their body motions
+    (motions_dir, rule motions' files); keyframes record what they kept; without motions_dir a clear
+    error. (The tiny rig's only sequence is the observed one, so only its time offsets are proposed.)"""
+    pytest.importorskip("warp")
+    from anidress_core.io.body_motion import write_motion
+    from anidress_core.io.garment_poses import read_garment_poses
+    from anidress_core.io.scene import load_sequence_motion, read_scene
+    from anidress_core.stages.fit import run_fit
+
+    data, res = tiny_skirt
+    seq = data / "walk"
+    write_motion(tmp_path / "seq-walk.npz", load_sequence_motion(data, "walk", read_scene(data)["fps"]))
+    params = {"views": 3, "max_iters": 4, "max_iters_first": 6, "proposal_every": 2, "proposal_refine": 1,
+              "backward": True}
+    args = (data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
+            seq / "normals", params, tmp_path / "gp.npz")
+    meta = run_fit(*args, progress=False, motions_dir=tmp_path)
+    gp = read_garment_poses(tmp_path / "gp.npz", frames=4, bones=6)
+    assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
+    assert meta["proposal_database"].startswith("4 simulated frames of ['seq-walk']")
+    notes = meta["frame_notes"]
+    for t in ("0", "2"):
+        p = notes[t]["proposal"]
+        assert p["candidates"] == (3 if t == "0" else 4)  # offsets -2..2 inside the 4 frames (0..3)
+        assert p["loss"] <= p["chained_loss"]
+    assert "proposal" not in notes.get("1", {}) and "proposal" not in notes.get("3", {})
+    assert meta["config"]["backward"] is True and meta["config"]["proposal_every"] == 2
+    with pytest.raises(ValueError, match="motions_dir"):
+        run_fit(*args, progress=False)
