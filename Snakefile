@@ -1,5 +1,6 @@
 # AniDress pipeline. Stages live in workflow/rules/*.smk; see README.md and DESIGN.md.
 include: "workflow/rules/common.smk"
+include: "workflow/rules/scene_files.smk"  # a captured scene's files as rule inputs
 include: "workflow/rules/synth.smk"
 include: "workflow/rules/validate.smk"
 include: "workflow/rules/undistort.smk"  # before the stages: their input functions use undistorted_dir()

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 
 from ..body.model import BodyModel, smpl_model
 from ..body.motions import Motion
@@ -18,33 +17,17 @@ from ..camera import Cameras, load_cameras
 from . import easymocap, files
 from .images import image_size_from_header
 from .motion import read_easymocap_smpl_dir, read_smpl_model_file, smpl_selection
+from .scene_info import DIST_EPS, distorted_cameras, read_scene  # torch-free (the workflow reads them while parsing)
 
 __all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path",
            "scene_image_size", "scene_cameras", "DIST_EPS", "UNDISTORT_RECORD", "distorted_cameras",
            "sequence_source"]
 
-DIST_EPS = 1e-9
-"""A distortion coefficient of magnitude at most this counts as zero (a pinhole camera)."""
 UNDISTORT_RECORD = "undistort.json"
 """The record rule undistort writes last into its folder (its presence marks a complete folder)."""
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 """Extensions of a sequence's ``images/<cam>/<frame:06d>.<ext>`` files, in the order they are looked for."""
-
-
-def read_scene(scene_dir: str | os.PathLike) -> dict:
-    """Parse ``<scene_dir>/scene.yaml`` with a clear error naming the file and the key."""
-    path = Path(scene_dir) / "scene.yaml"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: scene description not found")
-    try:
-        info = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise files.ArtifactError(f"{path}: not valid YAML ({e})") from e
-    for key in ("fps", "sequences", "body_model"):
-        if key not in info:
-            raise files.ArtifactError(f"{path}: missing key {key!r}")
-    return info
 
 
 def garment_texture_path(scene_dir: str | os.PathLike, info: dict) -> Path:
@@ -145,17 +128,6 @@ def scene_cameras(scene_dir: str | os.PathLike, seq: str, names: list[str] | Non
     except (ValueError, KeyError) as e:
         msg = str(e)
         raise ValueError(msg if str(intri) in msg else f"{intri}: {msg}") from e
-
-
-def distorted_cameras(scene_dir: str | os.PathLike, seq: str, info: dict | None = None) -> list[str]:
-    """The cameras of sequence ``seq`` with lens distortion (a ``dist_<cam>`` coefficient over
-    :data:`DIST_EPS`), among those scene.yaml uses (cameras/train + test; all of intri.yml if none)."""
-    scene_dir = Path(scene_dir)
-    info = read_scene(scene_dir) if info is None else info
-    cams = info.get("cameras") or {}
-    used = list(cams.get("train") or []) + list(cams.get("test") or [])
-    intri = easymocap.read_intri(scene_dir / seq / "intri.yml", used or None)
-    return [c for c, v in intri.items() if np.any(np.abs(np.asarray(v["dist"], np.float64)) > DIST_EPS)]
 
 
 def sequence_source(scene_dir: str | os.PathLike, seq: str, undistorted_dir: str | os.PathLike | None = None,

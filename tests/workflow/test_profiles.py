@@ -44,7 +44,7 @@ def _workflow_rules() -> tuple[set[str], set[str]]:
         text = f.read_text()
         rules |= set(re.findall(r"^(?:rule|checkpoint)\s+(\w+)\s*:", text, re.M))
         for m in re.finditer(r"^localrules:\s*(.+)$", text, re.M):
-            local |= {n.strip() for n in m.group(1).split(",") if n.strip()}
+            local |= {n.strip() for n in m.group(1).split("#")[0].split(",") if n.strip()}
     return rules, local
 
 

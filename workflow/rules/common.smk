@@ -85,6 +85,11 @@ def motion_params(wildcards):
             "amass": []}
 
 
+def motion_sequences(motion):
+    """[<sequence>] for a captured sequence's motion seq-<sequence> (its smpl/ files), else []."""
+    return [motion[len("seq-"):]] if motion.startswith("seq-") else []
+
+
 def get_final_outputs():
     """Everything the report summarises (`rule all` adds the report itself).
 
@@ -94,7 +99,8 @@ def get_final_outputs():
     """
     out = []
     for s in SCENES:
-        out += [f"data/{s}", f"results/{s}/scene_check.json"]
+        # a captured scene's folder: ancient (its files count through rule scene_files, scene_files.smk)
+        out += [f"data/{s}" if config["scenes"][s]["synthetic"] else ancient(f"data/{s}"), f"results/{s}/scene_check.json"]
         if has_garment(s):
             out += expand("results/{scene}/sim/{motion}.npz", scene=s, motion=sim_motion_names(s))
             out.append(f"results/{s}/rig.npz")

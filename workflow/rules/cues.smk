@@ -77,8 +77,9 @@ def _cue_template(wildcards):
 
 rule masks:
     input:
-        scene="data/{scene}",
+        scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
+        files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "images", "backgrounds")),
         template=_cue_template,
         undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
@@ -102,8 +103,9 @@ rule masks:
 
 rule flows:
     input:
-        scene="data/{scene}",
+        scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
+        files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "images", "masks")),
         masks=lambda wc: rule_input(masks_dir(wc.scene, wc.seq)),
         template=_cue_template,
         undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
@@ -129,8 +131,9 @@ rule flows:
 
 rule normals:
     input:
-        scene="data/{scene}",
+        scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
+        files=scene_inputs_fn(("scene", "cameras", "normals")),
         undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
         "results/{scene}/{seq}/normals.json",

@@ -21,8 +21,10 @@ def field_eval_undistorted(scene, seq, variant):
 
 rule evaluate_field:
     input:
-        scene="data/{scene}",
+        scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
+        files=lambda wc: scene_inputs(wc.scene, ("scene", "body", "cameras", "smpl", "images", "gt_masks"),
+                                     sorted({r[1] for r in field_eval_renders(wc.scene, wc.seq, wc.variant)})),
         renders=lambda wc: [r[2] for r in field_eval_renders(wc.scene, wc.seq, wc.variant)],
         undistorted=lambda wc: list(field_eval_undistorted(wc.scene, wc.seq, wc.variant).values()),
     output:

@@ -32,7 +32,8 @@ def field_masks(scene, seq):
 def field_train_inputs(wildcards):
     """Scene, masks (when a rule makes them), template; rig and fitted garment poses for `full`."""
     scene, seq, variant = wildcards.scene, wildcards.seq, wildcards.variant
-    inp = {"scene": f"data/{scene}", "check": ancient(f"results/{scene}/scene_check.json")}
+    inp = {"scene": scene_input(wildcards), "check": ancient(f"results/{scene}/scene_check.json"),
+           "files": scene_inputs(scene, ("scene", "body", "cameras", "smpl", "images", "masks", "backgrounds"), [seq])}
     m = field_masks(scene, seq)
     if m.startswith("results/") and rule_input(m):
         inp["masks"] = m
@@ -48,8 +49,9 @@ def field_train_inputs(wildcards):
 def field_render_inputs(wildcards):
     """Field, scene, template; for `full` the rig and the garment poses of the rendered sequence."""
     scene, variant = wildcards.scene, wildcards.variant
-    inp = {"field": f"results/{scene}/{wildcards.seq}/{variant}/field.pt", "scene": f"data/{scene}"}
+    inp = {"field": f"results/{scene}/{wildcards.seq}/{variant}/field.pt", "scene": scene_input(wildcards)}
     pose_seq = getattr(wildcards, "pose_seq", wildcards.seq)
+    inp["files"] = scene_inputs(scene, ("scene", "body", "cameras", "smpl"), [pose_seq])  # cameras and body motion
     inp["undistorted"] = undistorted_input(scene, pose_seq)  # the cameras rendered (library: the training seq's)
     motion = getattr(wildcards, "motion", None)
     if motion is not None:

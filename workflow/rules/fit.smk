@@ -53,7 +53,9 @@ def fit_inputs(wildcards):
     if not has_garment(scene):
         raise ValueError(f"scene {scene!r} has no garment (kind tight): nothing to fit")
     inp = {"rig": f"results/{scene}/rig.npz", "template": f"results/{scene}/template.npz",
-           "scene": f"data/{scene}", "check": ancient(f"results/{scene}/scene_check.json")}
+           "scene": scene_input(wildcards), "check": ancient(f"results/{scene}/scene_check.json"),
+           "files": scene_inputs(scene, ("scene", "body", "garment", "cameras", "smpl", "images", "masks", "normals"),
+                                [seq])}
     if config["fit"]["cues"] != "ground_truth":
         d = fit_cue_dirs(scene, seq)
         if d["masks"].startswith("results/") and rule_input(d["masks"]):
@@ -134,7 +136,7 @@ rule fit_ablation:
 
 rule fit_eval:
     input:
-        scene="data/{scene}",
+        scene="data/{scene}",  # synthetic scenes only (ground truth): rule synth's folder
         check=ancient("results/{scene}/scene_check.json"),
         rig="results/{scene}/rig.npz",
         full="results/{scene}/{seq}/garment_poses.npz",

@@ -5,8 +5,9 @@
 
 rule template:
     input:
-        "data/{scene}",
+        scene_input,
         check=ancient("results/{scene}/scene_check.json"),
+        files=scene_inputs_fn(("scene", "body", "garment")),
     output:
         ply="results/{scene}/template.ply",
         npz="results/{scene}/template.npz",
@@ -27,8 +28,10 @@ rule template:
 
 rule motions:
     input:
-        "data/{scene}",
+        scene_input,
         check=ancient("results/{scene}/scene_check.json"),
+        files=lambda wc: scene_inputs(wc.scene, ("scene", "body", "smpl"), motion_sequences(wc.motion)),
+        amass=lambda wc: motion_params(wc).get("amass", []),  # the AMASS file(s) of an amass-<stem> motion
     output:
         "results/{scene}/motions/{motion}.npz",
     log:
@@ -47,7 +50,8 @@ rule simulate:
     input:
         template="results/{scene}/template.npz",
         motion="results/{scene}/motions/{motion}.npz",
-        scene="data/{scene}",
+        scene=scene_input,
+        files=scene_inputs_fn(("scene", "body")),
     output:
         "results/{scene}/sim/{motion}.npz",
     log:

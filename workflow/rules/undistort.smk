@@ -11,6 +11,7 @@
 _UNDISTORT_SEQUENCES = sorted({s["name"] for sc in config["scenes"].values() for s in sc["sequences"]})
 
 
+@functools.lru_cache(maxsize=None)  # read once per Snakemake run (called by many input functions)
 def undistorted_dir(scene, seq):
     """results/<scene>/<seq>/undistorted when the sequence's cameras have lens distortion, else None.
 
@@ -23,7 +24,7 @@ def undistorted_dir(scene, seq):
     scene_dir = os.path.join("data", scene)
     if not os.path.isfile(os.path.join(scene_dir, seq, "intri.yml")):
         return None
-    from anidress_core.io.scene import distorted_cameras  # here: only a captured scene imports it (torch)
+    from anidress_core.io.scene_info import distorted_cameras  # torch-free; here: only a captured scene needs it
 
     return f"results/{scene}/{seq}/undistorted" if distorted_cameras(scene_dir, seq) else None
 
@@ -43,8 +44,9 @@ def sequence_data_dir(scene, seq, sub):
 
 rule undistort:
     input:
-        scene="data/{scene}",
+        scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
+        files=scene_inputs_fn(("scene", "cameras", "images", "masks", "normals", "backgrounds", "gt_masks")),
     output:
         directory("results/{scene}/{seq}/undistorted"),
     log:

@@ -1,12 +1,14 @@
 # Scene validation (issue 8, bad input): a malformed scene stops here with one message
 # naming the file and the problem, before any long computation; nothing is written
 # unless the scene passes. Downstream rules that read data/{scene} take
-# results/{scene}/scene_check.json as an input (wired in the rules that read the scene).
+# ancient(results/{scene}/scene_check.json) as an input (they run after it; its rerun does not rerun
+# them). A captured scene's files reach it and the stage rules through rule scene_files (scene_files.smk).
 
 
 rule validate_scene:
     input:
-        "data/{scene}",
+        scene_input,
+        files=lambda wc: scene_inputs(wc.scene, ALL_PARTS, scene_sequences(wc.scene)),  # every file it checks
     output:
         "results/{scene}/scene_check.json",
     log:

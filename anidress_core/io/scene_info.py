@@ -1,0 +1,47 @@
+"""scene.yaml and the lens distortion of a sequence's cameras, without torch.
+
+What the Snakemake workflow reads of a captured scene while it builds its DAG (rule undistort is
+planned for a sequence whose cameras have lens distortion): kept apart from
+:mod:`anidress_core.io.scene`, which imports torch, so that a no-op rerun stays a few seconds
+(issue 22). :mod:`anidress_core.io.scene` re-exports these names.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from . import easymocap, files
+
+__all__ = ["DIST_EPS", "read_scene", "distorted_cameras"]
+
+DIST_EPS = 1e-9
+"""A distortion coefficient of magnitude at most this counts as zero (a pinhole camera)."""
+
+
+def read_scene(scene_dir: str | os.PathLike) -> dict:
+    """Parse ``<scene_dir>/scene.yaml`` with a clear error naming the file and the key."""
+    path = Path(scene_dir) / "scene.yaml"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: scene description not found")
+    try:
+        info = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise files.ArtifactError(f"{path}: not valid YAML ({e})") from e
+    for key in ("fps", "sequences", "body_model"):
+        if key not in info:
+            raise files.ArtifactError(f"{path}: missing key {key!r}")
+    return info
+
+
+def distorted_cameras(scene_dir: str | os.PathLike, seq: str, info: dict | None = None) -> list[str]:
+    """The cameras of sequence ``seq`` with lens distortion (a ``dist_<cam>`` coefficient over
+    :data:`DIST_EPS`), among those scene.yaml uses (cameras/train + test; all of intri.yml if none)."""
+    scene_dir = Path(scene_dir)
+    info = read_scene(scene_dir) if info is None else info
+    cams = info.get("cameras") or {}
+    used = list(cams.get("train") or []) + list(cams.get("test") or [])
+    intri = easymocap.read_intri(scene_dir / seq / "intri.yml", used or None)
+    return [c for c, v in intri.items() if np.any(np.abs(np.asarray(v["dist"], np.float64)) > DIST_EPS)]
