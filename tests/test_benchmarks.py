@@ -33,3 +33,35 @@ def test_benchmark_parses_help(name, monkeypatch, capsys):
 def test_sim_reference_imports():
     mod = importlib.import_module("benchmarks.bench_sim_newton")
     assert callable(mod.run_newton)
+
+
+def test_scaling_quick(tmp_path):
+    """``bench_scaling --quick`` runs every stage at tiny sizes and writes a csv with finite, positive
+    per-unit costs and peak memory, the fitted exponents and a paper-scale estimate per stage."""
+    import csv
+    import math
+    import os
+    import subprocess
+    import sys
+
+    from benchmarks.bench_scaling import STAGES
+
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    res = subprocess.run([sys.executable, "-m", "benchmarks.bench_scaling", "--quick", "--out", str(tmp_path)],
+                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    rows = list(csv.DictReader(open(tmp_path / "scaling.csv")))
+    measured = [r for r in rows if r["kind"] == "measured"]
+    assert {r["stage"] for r in measured} == set(STAGES)
+    for r in measured:
+        for col in ("cpu_s_per_unit", "peak_rss_mb", "size"):
+            assert math.isfinite(float(r[col])) and float(r[col]) > 0, (r["stage"], r["axis"], col, r[col])
+        assert math.isfinite(float(r["exponent_cpu"])), (r["stage"], r["axis"])
+    paper = {r["stage"]: r for r in rows if r["kind"] == "paper_estimate"}
+    assert set(paper) == set(STAGES)
+    for r in paper.values():
+        for col in ("paper_total_cpu_s_low", "paper_total_cpu_s_high", "paper_rss_mb_high"):
+            assert math.isfinite(float(r[col])) and float(r[col]) > 0, (r["stage"], col, r[col])
+    md = (tmp_path / "scaling.md").read_text()
+    assert "CUDA" in md and "## Growth exponents" in md
+    assert not (tmp_path / "scaling_work").exists()  # the quick run's scratch folder is removed
