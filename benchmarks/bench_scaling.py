@@ -523,11 +523,11 @@ ASSUMED = {
 
 #: reasons identified for growth worse than linear in the work (printed only where the fitted exponent says so)
 SUPERLINEAR_REASONS: dict[tuple[str, str], str] = {
-    ("synth", "image"): "Identified so far: the rasterisation and shading (`synth.render_views`, 12 views, 2x "
-                        "supersampling) are linear in the pixels (cProfile of one frame at 512^2 and 768^2: CPU "
-                        "ratio equal to the pixel ratio); the excess is in the rest of the frame's work (ground-truth "
-                        "flow, normal degradation, PNG/EXR encoding on the writer thread) or memory traffic at "
-                        "that size (see the peak RSS), not profiled further.",
+    ("synth", "image"): "Timed alone (one process, 12 views, body only, 512^2 and 768^2), each part of a frame's "
+                        "work grows close to the pixel ratio: `synth.render_views`, `synth.forward_flow`, "
+                        "`synth.degrade_normals` and the PNG/EXR writes. The excess seen here is not identified; "
+                        "candidates are memory traffic at this peak RSS and the shared machine's load (one run "
+                        "per point).",
 }
 
 
