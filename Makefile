@@ -17,7 +17,7 @@ $(STAMP): envs/requirements.txt pyproject.toml
 	touch $(STAMP)
 
 demo: venv
-	$(SNAKEMAKE) --workflow-profile config/profiles/default
+	$(SNAKEMAKE) --workflow-profile profiles/default
 	@echo "report: $(CURDIR)/results/report.html"
 
 test: venv
@@ -30,7 +30,7 @@ test: venv
 # their references need envs/requirements-bench.txt. Research probes and findings: studies/.
 bench: venv
 	$(BIN)/pip install --disable-pip-version-check -q -r envs/requirements-bench.txt
-	$(SNAKEMAKE) --workflow-profile config/profiles/default bench
+	$(SNAKEMAKE) --workflow-profile profiles/default bench
 
 # Numerical stress tests alone (they also run in `make test`): extreme motions, degenerate
 # meshes and sequences, wrong scales, float32 vs float64 (tests/stress).
@@ -42,7 +42,7 @@ dag: venv
 	$(SNAKEMAKE) -n --quiet rules
 
 # SLURM smoke test (root; installs Debian SLURM + envs/requirements-slurm.txt, starts a
-# single-node cluster, runs the tiny scene with config/profiles/slurm, stops it again);
+# single-node cluster, runs the tiny scene with profiles/slurm, stops it again);
 # writes benchmarks/slurm.{md,csv}. SLURM_SMOKE_ARGS: e.g. --keep, --no-reference.
 .PHONY: slurm-smoke
 slurm-smoke: venv

@@ -1,6 +1,6 @@
 """What one pipeline run of a scene cost and measured, from its own files (no recomputation).
 
-Run after `make demo` (or `snakemake --workflow-profile config/profiles/default`):
+Run after `make demo` (or `snakemake --workflow-profile profiles/default`):
     .venv/bin/python -m benchmarks.collect_pipeline [--scene skirt] [--wall-s SECONDS]
 Writes benchmarks/pipeline.md and benchmarks/pipeline.csv. Not a test.
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# SLURM smoke test of config/profiles/slurm (issue 8, part 5).
+# SLURM smoke test of profiles/slurm (issue 8, part 5).
 #
 # Installs a single-node SLURM from Debian packages (slurmctld, slurmd, slurm-client,
 # munge) and snakemake-executor-plugin-slurm (envs/requirements-slurm.txt) on this
@@ -124,7 +124,7 @@ mkdir -p "$ROOT"/spool/{ctld,d}
 chmod 755 "$ROOT/munge"
 if [[ ! -s $ROOT/munge/munge.key ]]; then mungekey --create --keyfile="$ROOT/munge/munge.key"; fi
 chmod 400 "$ROOT/munge/munge.key"
-read -r NODE_CPUS NODE_MEM < <("$PY" "$REPO/scripts/slurm/smoke.py" node "$REPO/config/profiles/slurm/config.yaml")
+read -r NODE_CPUS NODE_MEM < <("$PY" "$REPO/scripts/slurm/smoke.py" node "$REPO/profiles/slurm/config.yaml")
 { echo "$MARKER (state in $ROOT); removed when the smoke test stops"
   sed -e "s#@ROOT@#$ROOT#g" -e "s#@CTLD_PORT@#$CTLD_PORT#g" -e "s#@SLURMD_PORT@#$SLURMD_PORT#g" \
       -e "s#@CPUS@#$NODE_CPUS#g" -e "s#@MEM_MB@#$NODE_MEM#g" "$REPO/scripts/slurm/slurm.conf.in"; } >"$CONF_DIR/slurm.conf"
@@ -163,7 +163,7 @@ log "srun --gpus=1 -> CUDA_VISIBLE_DEVICES=$gpu_env (fake GRES)"
 WORK=$ROOT/work
 rm -rf "$WORK" && mkdir -p "$WORK"
 cp "$REPO/scripts/slurm/tiny.yaml" "$WORK/tiny.yaml"
-"$PY" "$REPO/scripts/slurm/smoke.py" profile "$REPO/config/profiles/slurm/config.yaml" "$WORK/profile"
+"$PY" "$REPO/scripts/slurm/smoke.py" profile "$REPO/profiles/slurm/config.yaml" "$WORK/profile"
 SMK=("$PY" -m snakemake -s "$REPO/Snakefile" --directory "$WORK" --configfile "$WORK/tiny.yaml")
 log "snakemake --profile $WORK/profile (executor slurm): ${TARGETS[*]}"
 t0=$(date +%s.%N)
@@ -187,7 +187,7 @@ if [[ $REFERENCE -eq 1 ]]; then
     log "reference: local run of the same targets (default profile)"
     t0=$(date +%s.%N)
     (cd "$REF" && "$PY" -m snakemake -s "$REPO/Snakefile" --directory "$REF" --configfile "$REF/tiny.yaml" \
-        --workflow-profile "$REPO/config/profiles/default" --cores "$(nproc)" "${TARGETS[@]}") >"$REF/snakemake-local.log" 2>&1 \
+        --workflow-profile "$REPO/profiles/default" --cores "$(nproc)" "${TARGETS[@]}") >"$REF/snakemake-local.log" 2>&1 \
         || { tail -n 40 "$REF/snakemake-local.log" >&2; die "local reference run failed"; }
     t1=$(date +%s.%N)
     WALL_LOCAL=$(awk -v a="$t0" -v b="$t1" 'BEGIN { printf "%.1f", b - a }')

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-# Settings the smoke run adds to config/profiles/slurm (everything else is used as it is):
+# Settings the smoke run adds to profiles/slurm (everything else is used as it is):
 SMOKE_GLOBALS = {
     # no slurmdbd on the smoke cluster, so no sacct: poll with squeue (MinJobAge=3600 keeps
     # finished jobs visible)
@@ -331,7 +331,7 @@ def check(args) -> int:
     slurm_v = _cmd("sinfo", "--version") or "?"
     runs = [("slurm", "snakemake --profile <smoke profile> (executor slurm)", args.wall_slurm, sum(planned.values()))]
     if args.reference:
-        runs.append(("local", "snakemake --workflow-profile config/profiles/default --cores "
+        runs.append(("local", "snakemake --workflow-profile profiles/default --cores "
                      f"{os.cpu_count()} (reference)", args.wall_local, sum(planned.values())))
     ref_wall = args.wall_local if args.reference else None
     tmp = report.with_suffix(".csv.tmp")
@@ -348,7 +348,7 @@ def check(args) -> int:
     L = []
     L.append("# SLURM smoke test (scripts/slurm-smoke.sh)\n")
     L.append(f"**Result: {'PASS' if ok_all else 'FAIL'}** — the tiny garment scene through "
-             "`snakemake --executor slurm` with config/profiles/slurm on a single-node SLURM cluster "
+             "`snakemake --executor slurm` with profiles/slurm on a single-node SLURM cluster "
              "started on this machine.\n")
     L.append(f"- date: {dt.datetime.now().astimezone().isoformat(timespec='seconds')}")
     L.append(f"- machine: {platform.node()}, {os.cpu_count()} CPUs, {mem_total_mb()} MB RAM, "

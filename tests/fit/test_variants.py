@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_variant_names_come_from_one_place():
     """rule fit_ablation's wildcard and fit/loss check read VARIANTS; the CLI offers exactly them; the
     schema lists no copy of them."""
-    smk = (ROOT / "workflow/rules/fit.smk").read_text()
+    smk = (ROOT / "workflow/rules/helpers/fit.smk").read_text()
     # imported inside check_fit_variant (only where a non-default name is checked: no torch at parse, issue 22)
     assert re.search(r"^ +from anidress_core\.fit\.variants import VARIANTS$", smk, re.M)
     schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]["fit"]

@@ -3,7 +3,7 @@
 The rules' parse-time and DAG-time helpers use light modules (anidress_core.config,
 anidress_core.stages.references); anidress_core.fit.variants (torch) is imported only where a loss
 variant other than the default must be checked, anidress_core.io.scene only for a captured scene.
-Measured on the tiny run with config/profiles/default (README/issue 22): 2.3 s -> 1.0 s per no-op run.
+Measured on the tiny run with profiles/default (README/issue 22): 2.3 s -> 1.0 s per no-op run.
 """
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def test_a_noop_rerun_is_fast_and_imports_no_torch(tiny_run):
     assert res.returncode == 0 and "Nothing to be done" in res.stdout + res.stderr, res.stderr[-2000:]
     assert "torch" not in mods and "anidress_core.fit.variants" not in mods
     t0 = time.perf_counter()  # a real no-op run with the workstation profile (its rerun triggers)
-    res = snakemake(tiny_run, "--workflow-profile", str(REPO / "config" / "profiles" / "default"))
+    res = snakemake(tiny_run, "--workflow-profile", str(REPO / "profiles" / "default"))
     wall = time.perf_counter() - t0
     assert res.returncode == 0 and "Nothing to be done" in res.stdout + res.stderr, res.stderr[-2000:]
     assert wall <= NOOP_LIMIT_S, f"no-op rerun took {wall:.1f} s"
@@ -66,7 +66,7 @@ def test_a_non_default_loss_variant_is_checked_at_parse(tiny_run):
 def test_the_default_variant_the_rules_skip_checking_is_a_variant():
     from anidress_core.fit.variants import VARIANTS
 
-    smk = (REPO / "workflow" / "rules" / "fit.smk").read_text()
+    smk = (REPO / "workflow" / "rules" / "helpers" / "fit.smk").read_text()
     schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
     default = schema["properties"]["fit"]["properties"]["loss"]["default"]
     assert f'_DEFAULT_FIT_VARIANT = "{default}"' in smk and default in VARIANTS

@@ -1,4 +1,4 @@
-"""The SLURM profile (config/profiles/slurm) against the workflow's rules and the SLURM executor plugin.
+"""The SLURM profile (profiles/slurm) against the workflow's rules and the SLURM executor plugin.
 
 SLURM itself is not run here (no daemons in CI): scripts/slurm-smoke.sh does that.
 """
@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[2]
-PROFILE = REPO / "config" / "profiles" / "slurm" / "config.yaml"
+PROFILE = REPO / "profiles" / "slurm" / "config.yaml"
 
 # Resources snakemake-executor-plugin-slurm 2.8 turns into sbatch options (runtime -> -t,
 # mem_mb -> --mem, cpus_per_task -> --cpus-per-task, gpu -> --gpus, ...), plus Snakemake's own.

@@ -1,7 +1,7 @@
 """Exact rerun sets (DESIGN.md §1): a setting reruns the stage whose params hold it and what depends on
 it, nothing upstream. Against the tiny run built once (conftest.py), each case changes one value of one
 config section (each stage's section, each part of a scene section) and reads the jobs of
-``snakemake -n`` with the rerun triggers of config/profiles/default (params, input, mtime; not
+``snakemake -n`` with the rerun triggers of profiles/default (params, input, mtime; not
 code / software-env, nothing changes there)."""
 import copy
 import re

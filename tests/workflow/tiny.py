@@ -43,7 +43,7 @@ TINY = {
     },
 }
 
-# as config/profiles/default without `code` and `software-env` (no script or environment changes here)
+# as profiles/default without `code` and `software-env` (no script or environment changes here)
 RERUN_TRIGGERS = ("--rerun-triggers", "params", "input", "mtime")
 
 

@@ -15,15 +15,7 @@ rule bench:
     params:
         scene=BENCH_SCENE,
     threads: 2  # the sweeps run torch on 2 threads (a fixed count: other verbs need no --cores)
-    run:
-        import sys
-
-        import yaml
-
-        if params.scene is None:
-            raise WorkflowError("bench: no garment scene in run_scenes to sweep")
-        cfg_path = "benchmarks/runs/tradeoffs/config.yaml"
-        os.makedirs(os.path.dirname(cfg_path), exist_ok=True)
-        with open(cfg_path, "w") as fh:
-            yaml.safe_dump(dict(config), fh)
-        shell(f"{sys.executable} -m benchmarks.bench_tradeoffs --scene {params.scene} --config {cfg_path} > {log} 2>&1")
+    conda:
+        "../../envs/anidress.yaml"
+    script:
+        "../scripts/bench.py"

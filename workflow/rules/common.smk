@@ -54,7 +54,7 @@ SCENE_STAGE_SECTIONS = ("fit",)
 
 
 def synth_params(wildcards):
-    """The scene section rule synth renders from: everything but the stage overrides (scenes/<scene>/fit)."""
+    """The scene section that rule synth renders from, without the stage overrides (scenes/<scene>/fit)."""
     return {k: v for k, v in scene_cfg(wildcards).items() if k not in SCENE_STAGE_SECTIONS}
 
 
@@ -66,9 +66,9 @@ def has_garment(scene):
 def sim_motion_names(scene):
     """seq-<sequence> for each captured sequence, lib-<name> for the library, amass-<stem>."""
     sim = config["simulate"]
-    names = ["seq-" + s["name"] for s in config["scenes"][scene]["sequences"]]
-    names += ["lib-" + m for m in sim["library"]]
-    names += ["amass-" + os.path.splitext(os.path.basename(p))[0] for p in sim["amass"]]
+    names = [f"seq-{s['name']}" for s in config["scenes"][scene]["sequences"]]
+    names += [f"lib-{m}" for m in sim["library"]]
+    names += [f"amass-{os.path.splitext(os.path.basename(p))[0]}" for p in sim["amass"]]
     return names
 
 

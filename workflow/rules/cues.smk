@@ -5,76 +5,6 @@
 # The input functions masks_dir / flows_dir / normals_dir are what the fit rule uses.
 
 
-def _cue_sequences(scene):
-    return [s["name"] for s in config["scenes"][scene]["sequences"]]
-
-
-_ALL_SEQUENCES = sorted({s for sc in config["scenes"] for s in _cue_sequences(sc)})
-
-
-def _shipped(scene, seq, what):
-    """A captured (non-synthetic) sequence ships data/<scene>/<seq>/<what>/ when the folder exists.
-
-    Synthetic scenes are decided from the config (their data may not exist yet at
-    DAG-build time): they ship predicted normals and no masks (gt/ is evaluation only).
-    """
-    if config["scenes"][scene]["synthetic"]:
-        return what == "normals"
-    return os.path.isdir(os.path.join("data", scene, seq, what))
-
-
-def masks_dir(scene, seq):
-    """The masks the fitting uses: shipped data/<scene>/<seq>/masks if present, else the estimated ones."""
-    if _shipped(scene, seq, "masks"):
-        return sequence_data_dir(scene, seq, "masks")  # undistort.smk: data/ or its undistorted copy
-    return f"results/{scene}/{seq}/masks"
-
-
-def flows_dir(scene, seq):
-    """Forward optical flow t-1 -> t of a sequence (rule flows)."""
-    return f"results/{scene}/{seq}/flows"
-
-
-def normals_dir(scene, seq):
-    """Shipped normal maps of a sequence, or None (no normals, or cues/normals: off): normal weight 0.
-
-    Pass it to a rule as a param, not an input: for a synthetic scene the folder lies
-    inside rule synth's directory output data/<scene> (Snakemake's ChildIOException);
-    the input to depend on is normals_record(scene, seq).
-    """
-    if config["cues"]["normals"] == "off" or not _shipped(scene, seq, "normals"):
-        return None
-    return sequence_data_dir(scene, seq, "normals")  # undistort.smk: data/ or its undistorted copy
-
-
-def normals_record(scene, seq):
-    """results/<scene>/<seq>/normals.json (rule normals): the folder used, or the skip and its reason."""
-    return f"results/{scene}/{seq}/normals.json"
-
-
-def _normals_skip_reason(scene, seq):
-    if config["cues"]["normals"] == "off":
-        return "cues/normals is 'off' in the config"
-    return f"data/{scene}/{seq}/normals does not exist: the sequence ships no normal maps"
-
-
-def cues_outputs(scene):
-    """Every cue target of a scene (for rule all): masks (where estimated), flows and normals.json per sequence."""
-    out = []
-    for seq in _cue_sequences(scene):
-        if masks_dir(scene, seq) == f"results/{scene}/{seq}/masks":  # estimated (not shipped, maybe undistorted)
-            out.append(masks_dir(scene, seq))
-        out += [flows_dir(scene, seq), normals_record(scene, seq)]
-    return out
-
-
-def _cue_template(wildcards):
-    """The garment template: shape prior of the masks and flow prior of the flows (none: tight clothes)."""
-    if has_garment(wildcards.scene):
-        return f"results/{wildcards.scene}/template.npz"
-    return []
-
-
 rule masks:
     input:
         scene=scene_input,
@@ -97,6 +27,8 @@ rule masks:
         runtime=20,
     wildcard_constraints:
         seq="|".join(_ALL_SEQUENCES) or "^$",
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/masks.py"
 
@@ -125,6 +57,8 @@ rule flows:
         runtime=20,
     wildcard_constraints:
         seq="|".join(_ALL_SEQUENCES) or "^$",
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/flows.py"
 
@@ -149,5 +83,7 @@ rule normals:
         runtime=5,
     wildcard_constraints:
         seq="|".join(_ALL_SEQUENCES) or "^$",
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/normals.py"

@@ -5,20 +5,6 @@
 # held-out sequence. Library-motion renders have no ground truth and are not evaluated.
 
 
-def field_eval_renders(scene, seq, variant):
-    """(kind, sequence, render folder) of everything evaluated for one trained field."""
-    base = f"results/{scene}/{seq}/{variant}/renders"
-    out = [("novel_view", seq, f"{base}/novel_view")]
-    out += [("novel_pose", p, f"{base}/novel_pose/{p}") for p in field_sequences(scene, "novel_pose")]
-    return out
-
-
-def field_eval_undistorted(scene, seq, variant):
-    """{sequence: undistorted folder} of the evaluated sequences whose cameras have lens distortion."""
-    seqs = {r[1] for r in field_eval_renders(scene, seq, variant)}
-    return {s: undistorted_dir(scene, s) for s in sorted(seqs) if undistorted_dir(scene, s)}
-
-
 rule evaluate_field:
     input:
         scene=scene_input,
@@ -42,5 +28,7 @@ rule evaluate_field:
     resources:
         mem_mb=3000,
         runtime=20,
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/evaluate.py"

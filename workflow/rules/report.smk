@@ -7,22 +7,6 @@
 # change to them reruns the report), and the page labels them with their commit and date.
 
 
-# (from the light module, not stages.report: parsing the workflow imports no torch; issue 22)
-from anidress_core.stages.references import REFERENCE_TABLES
-
-
-def report_reference(key):
-    """Input function: [path] of a committed reference table if present here, else []."""
-    path = REFERENCE_TABLES[key]
-    return lambda wildcards: [path] if os.path.isfile(path) else []
-
-
-def report_scenes():
-    """What the page takes from the config: the scenes run, their kind and sequences (names, roles, frames)."""
-    return {"run_scenes": config["run_scenes"],
-            "scenes": {s: {k: config["scenes"][s][k] for k in ("kind", "sequences")} for s in config["run_scenes"]}}
-
-
 rule report:
     input:
         outputs=get_final_outputs(),
@@ -38,5 +22,7 @@ rule report:
     resources:
         mem_mb=2000,
         runtime=10,
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/report.py"

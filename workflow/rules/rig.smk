@@ -20,5 +20,7 @@ rule rig:
         mem_mb=4000,
         runtime=30,
         gpu=0,
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/rig.py"

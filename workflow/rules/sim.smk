@@ -22,6 +22,8 @@ rule template:
     resources:
         mem_mb=2000,
         runtime=10,
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/template.py"
 
@@ -42,6 +44,8 @@ rule motions:
     resources:
         mem_mb=1000,
         runtime=5,
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/motions.py"
 
@@ -65,5 +69,7 @@ rule simulate:
         mem_mb=2000,
         runtime=60,
         gpu=0,
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/simulate.py"

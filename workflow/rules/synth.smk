@@ -16,5 +16,7 @@ rule synth:
         runtime=30,
     wildcard_constraints:
         scene="|".join(SYNTHETIC_SCENES) or "^$",
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/synth.py"

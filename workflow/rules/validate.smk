@@ -19,5 +19,7 @@ rule validate_scene:
     resources:
         mem_mb=1000,
         runtime=5,
+    conda:
+        "../../envs/anidress.yaml"
     script:
         "../scripts/validate_scene.py"

@@ -1,0 +1,80 @@
+# Helpers of workflow/rules/fit.smk: the loss variants, the cues and the settings of a garment fit.
+# Functions and settings only, no rules (the Snakefile includes every helper file before the rules).
+
+# The loss variants are anidress_core.fit.variants.VARIANTS (the one list). Importing it imports torch
+# (~1 s), so it is imported only when a name other than the default 'pipeline' must be checked: a
+# non-default fit/loss or fit/ablations here, a fit_ablation job in the DAG (check_fit_variant); the
+# default config parses without torch (issue 22: a no-op rerun in a few seconds).
+_DEFAULT_FIT_VARIANT = "pipeline"  # the schema's fit/loss default; tests/workflow/test_parse_time.py: a VARIANTS key
+
+
+def check_fit_variant(name, where):
+    """``name`` if it is a loss variant of anidress_core.fit.variants.VARIANTS, else a ValueError naming ``where``."""
+    if name == _DEFAULT_FIT_VARIANT:
+        return name
+    from anidress_core.fit.variants import VARIANTS
+
+    if name not in VARIANTS:
+        raise ValueError(f"{where}: unknown loss variant {name!r}; choose from {list(VARIANTS)}")
+    return name
+
+
+for _v in [config["fit"]["loss"], *config["fit"]["ablations"]]:
+    check_fit_variant(_v, "config fit")
+
+
+def _fit_sequences(scene):
+    return [s["name"] for s in config["scenes"][scene]["sequences"]]
+
+
+_FIT_SEQUENCES = sorted({s for sc in config["scenes"] for s in _fit_sequences(sc)})
+
+
+def fit_cue_dirs(scene, seq):
+    """{masks, flows, normals (or None), source} folders the fit of one sequence reads."""
+    if config["fit"]["cues"] == "ground_truth":
+        if not config["scenes"][scene]["synthetic"]:
+            raise ValueError(f"fit/cues is 'ground_truth' but scene {scene!r} is not synthetic")
+        normals = None if config["cues"]["normals"] == "off" else f"data/{scene}/{seq}/normals"
+        return {"masks": f"data/{scene}/{seq}/gt/masks", "flows": f"data/{scene}/{seq}/gt/flows",
+                "normals": normals, "source": "ground_truth (gt/masks, gt/flows, shipped normals)"}
+    return {"masks": masks_dir(scene, seq), "flows": flows_dir(scene, seq), "normals": normals_dir(scene, seq),
+            "source": "pipeline (rules masks, flows, normals)"}
+
+
+def fit_inputs(wildcards):
+    """Rig, template, scene and (pipeline cues) the cue rule outputs of one sequence."""
+    scene, seq = wildcards.scene, wildcards.seq
+    if not has_garment(scene):
+        raise ValueError(f"scene {scene!r} has no garment (kind tight): nothing to fit")
+    inp = {"rig": f"results/{scene}/rig.npz", "template": f"results/{scene}/template.npz",
+           "scene": scene_input(wildcards), "check": ancient(f"results/{scene}/scene_check.json"),
+           "files": scene_inputs(scene, ("scene", "body", "garment", "cameras", "smpl", "images", "masks", "normals"),
+                                [seq])}
+    if config["fit"]["cues"] != "ground_truth":
+        d = fit_cue_dirs(scene, seq)
+        if d["masks"].startswith("results/") and rule_input(d["masks"]):
+            inp["masks"] = d["masks"]
+        inp["undistorted"] = undistorted_input(scene, seq)  # undistort.smk: images, cameras, shipped cues
+        inp["flows"] = d["flows"]
+        inp["normals"] = normals_record(scene, seq)
+    return inp
+
+
+def fit_params(scene):
+    """The settings that shape a fit of one scene: the fit section with the scene's own overrides
+    (scenes/<scene>/fit), the ablation list and eval settings excluded (no rerun when they change)."""
+    return {k: v for k, v in scene_section(config, "fit", scene).items() if k not in ("ablations", "eval", "threads")}
+
+
+def fit_outputs(scene):
+    """Every fit target of a garment scene: poses per sequence (+ ablations) and, if synthetic, the metrics."""
+    if not has_garment(scene):
+        return []
+    out = []
+    for seq in _fit_sequences(scene):
+        out.append(f"results/{scene}/{seq}/garment_poses.npz")
+        out += [f"results/{scene}/{seq}/fit_ablations/{a}/garment_poses.npz" for a in config["fit"]["ablations"]]
+        if config["scenes"][scene]["synthetic"]:
+            out.append(f"results/{scene}/{seq}/fit_metrics.csv")
+    return out
