@@ -17,7 +17,8 @@ from ..camera import Cameras, load_cameras
 from . import easymocap, files
 from .images import image_size_from_header
 from .motion import read_easymocap_smpl_dir, read_smpl_model_file, smpl_selection
-from .scene_info import DIST_EPS, distorted_cameras, read_scene  # torch-free (the workflow reads them while parsing)
+from .scene_info import (DIST_EPS, distorted_cameras, garment_texture_path,  # torch-free (the workflow reads
+                         read_scene)                                          # them while it builds the DAG)
 
 __all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path",
            "scene_image_size", "scene_cameras", "DIST_EPS", "UNDISTORT_RECORD", "distorted_cameras",
@@ -28,14 +29,6 @@ UNDISTORT_RECORD = "undistort.json"
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 """Extensions of a sequence's ``images/<cam>/<frame:06d>.<ext>`` files, in the order they are looked for."""
-
-
-def garment_texture_path(scene_dir: str | os.PathLike, info: dict) -> Path:
-    """The garment template's texture: ``garment_texture`` in scene.yaml, else ``texture.png``
-    beside the template (which may not exist: the texture is optional)."""
-    if info.get("garment_texture"):
-        return Path(scene_dir) / info["garment_texture"]
-    return (Path(scene_dir) / info.get("garment_template", "garment/template.obj")).parent / "texture.png"
 
 
 def load_body(scene_dir: str | os.PathLike, info: dict | None = None) -> BodyModel:

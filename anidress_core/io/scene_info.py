@@ -1,7 +1,8 @@
-"""scene.yaml and the lens distortion of a sequence's cameras, without torch.
+"""scene.yaml, the garment texture's path and the lens distortion of a sequence's cameras, without torch.
 
 What the Snakemake workflow reads of a captured scene while it builds its DAG (rule undistort is
-planned for a sequence whose cameras have lens distortion): kept apart from
+planned for a sequence whose cameras have lens distortion; rule validate_scene is told when a fit needs
+a garment texture the scene lacks): kept apart from
 :mod:`anidress_core.io.scene`, which imports torch, so that a no-op rerun stays a few seconds
 (issue 22). :mod:`anidress_core.io.scene` re-exports these names.
 """
@@ -15,7 +16,7 @@ import yaml
 
 from . import easymocap, files
 
-__all__ = ["DIST_EPS", "read_scene", "distorted_cameras"]
+__all__ = ["DIST_EPS", "read_scene", "garment_texture_path", "distorted_cameras"]
 
 DIST_EPS = 1e-9
 """A distortion coefficient of magnitude at most this counts as zero (a pinhole camera)."""
@@ -34,6 +35,14 @@ def read_scene(scene_dir: str | os.PathLike) -> dict:
         if key not in info:
             raise files.ArtifactError(f"{path}: missing key {key!r}")
     return info
+
+
+def garment_texture_path(scene_dir: str | os.PathLike, info: dict) -> Path:
+    """The garment template's texture: ``garment_texture`` in scene.yaml, else ``texture.png``
+    beside the template (which may not exist: the texture is optional)."""
+    if info.get("garment_texture"):
+        return Path(scene_dir) / info["garment_texture"]
+    return (Path(scene_dir) / info.get("garment_template", "garment/template.obj")).parent / "texture.png"
 
 
 def distorted_cameras(scene_dir: str | os.PathLike, seq: str, info: dict | None = None) -> list[str]:

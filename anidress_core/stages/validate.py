@@ -220,6 +220,18 @@ def _check_body(scene_dir: Path, info: dict, checks: list[str]):
 
 
 # =========================================================================== garment
+def _check_fit_texture(scene_dir: Path, info: dict, fit_texture: dict, checks: list[str]) -> None:
+    """The garment texture a fit's L_anchor samples at the template's UVs (fit/anchor_reference: texture)."""
+    tex = garment_texture_path(scene_dir, info)
+    setting = fit_texture.get("setting", "fit/anchor_reference")
+    if not tex.is_file():
+        _fail(tex, f"{setting} is 'texture' (the garment texture at the template's UVs is L_anchor's reference "
+                   f"in the fit's loss {', '.join(fit_texture.get('losses') or ['pipeline'])}) but the garment has no "
+                   f"texture: add one (scene.yaml garment_texture, or texture.png beside the template) or set "
+                   f"{setting}: images")
+    checks.append("garment texture for the fit's L_anchor (anchor_reference texture)")
+
+
 def _check_garment(scene_dir: Path, info: dict, body, checks: list[str], warnings: list[str]) -> dict | None:
     rel = info.get("garment_template")
     if not rel:
@@ -520,11 +532,16 @@ def _check_body_in_view(sdir: Path, params: dict, body, raw: dict, used: list[st
 
 
 # =========================================================================== the stage
-def validate_scene(scene_dir: str | os.PathLike, images: str = "ends") -> dict:
+def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_texture: dict | None = None) -> dict:
     """Check a scene folder (DESIGN.md §3) and return a summary; raise SceneError on the first problem.
 
     images: 'ends' (every image's header; first and last frame of each camera decoded)
     or 'all' (every image decoded; ~5 ms per 256x256 PNG).
+    fit_texture: ``{"losses": [...], "setting": "fit/anchor_reference"}`` when a garment fit of the
+    scene samples the garment texture (L_anchor with anchor_reference 'texture', for those loss
+    variants; the workflow passes it when the scene has no texture): the texture must exist, else a
+    SceneError naming it and the setting, before any long stage (rule fit would stop after template,
+    simulate, rig and the cues ran). None: no fit needs it.
     Returns dict(scene, scene_dir, cameras {train, test}, image_size [H, W], sequences
     {name: {frames, first_frame, last_frame, cameras, images, images_decoded, masks,
     normals, camera_distance_m}}, garment (bool), garment_template (dict | None),
@@ -542,6 +559,8 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends") -> dict:
     info = _check_scene_yaml(scene_dir, checks)
     body, body_sum = _check_body(scene_dir, info, checks)
     g = _check_garment(scene_dir, info, body, checks, warnings)
+    if fit_texture and g is not None:
+        _check_fit_texture(scene_dir, info, fit_texture, checks)
     seqs = {}
     size_all = None
     train = list(info["cameras"]["train"])
@@ -587,9 +606,9 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends") -> dict:
 
 
 def run_validate(scene_dir: str | os.PathLike, out_json: str | os.PathLike | None = None,
-                 images: str = "ends") -> dict:
+                 images: str = "ends", fit_texture: dict | None = None) -> dict:
     """:func:`validate_scene`, then (only when the scene passes) write the summary to ``out_json`` atomically."""
-    summary = validate_scene(scene_dir, images=images)
+    summary = validate_scene(scene_dir, images=images, fit_texture=fit_texture)
     if out_json is not None:
         files.write_json(out_json, summary)
     log.info("validate %s: OK (%d checks, %.2f s)%s", scene_dir, len(summary["checks"]), summary["wall_s"],

@@ -15,6 +15,8 @@ rule validate_scene:
         "logs/{scene}/validate_scene.log",
     benchmark:
         "benchmarks/runs/{scene}/validate_scene.tsv"
+    params:
+        fit_texture=lambda wc: fit_texture_check(wc.scene),  # a fit's garment texture the scene lacks, or None
     threads: 1
     resources:
         mem_mb=1000,

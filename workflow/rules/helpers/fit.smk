@@ -1,6 +1,8 @@
 # Helpers of workflow/rules/fit.smk: the loss variants, the cues and the settings of a garment fit.
 # Functions and settings only, no rules (the Snakefile includes every helper file before the rules).
 
+from anidress_core.config import section_defaults
+
 # The loss variants are anidress_core.fit.variants.VARIANTS (the one list). Importing it imports torch
 # (~1 s), so it is imported only when a name other than the default 'pipeline' must be checked: a
 # non-default fit/loss or fit/ablations here, a fit_ablation job in the DAG (check_fit_variant); the
@@ -78,3 +80,32 @@ def fit_outputs(scene):
         if config["scenes"][scene]["synthetic"]:
             out.append(f"results/{scene}/{seq}/fit_metrics.csv")
     return out
+
+
+def fit_texture_check(scene):
+    """The param of rule validate_scene, {"losses", "setting"} when a fit of this captured garment scene samples the
+    garment texture (L_anchor with anchor_reference 'texture' and a weight > 0, as stages/fit.py decides: rule
+    fit's fit/loss and the fit/ablations) and the scene has no texture; else None (synthetic scenes: rule
+    synth writes the texture). Only the outcome is the param: a fit setting changes it only when the check's
+    answer changes. (A param that followed the fit settings would rerun validate_scene with each of them, and
+    snakemake#4166 would then skip rule fit in that run, see scene_files.smk.)"""
+    if config["scenes"][scene]["synthetic"] or not has_garment(scene):
+        return None
+    from anidress_core.io.scene_info import garment_texture_path  # (cv2) only for a captured scene
+
+    if os.path.isfile(garment_texture_path(os.path.join("data", scene), _scene_yaml(scene))):
+        return None
+    section = fit_params(scene)
+    losses = list(dict.fromkeys([section["loss"], *config["fit"]["ablations"]]))
+    if losses == [_DEFAULT_FIT_VARIANT]:  # the section as written (its defaults filled), without torch
+        full = section_defaults("fit", section)
+        needing = losses if full["anchor_reference"] == "texture" and full["weights"]["anchor"] > 0 else []
+    else:
+        from anidress_core.fit.config import FitConfig
+
+        cfgs = {loss: FitConfig.from_config(section, loss) for loss in losses}
+        needing = [loss for loss, c in cfgs.items() if c.anchor_reference == "texture" and c.weights.anchor > 0]
+    if not needing:
+        return None
+    own = "anchor_reference" in (config["scenes"][scene].get("fit") or {})
+    return {"losses": needing, "setting": f"scenes/{scene}/fit/anchor_reference" if own else "fit/anchor_reference"}
