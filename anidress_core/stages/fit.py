@@ -18,9 +18,15 @@
 * the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
 * ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start.
 
+* with ``proposal_every`` > 0 the body motions of the rig's simulated sequences
+  (``motions_dir``: ``results/<scene>/motions/<name>.npz``, rule motions), the proposals' database;
+
 and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts,
 the weighted loss and every unweighted term ``loss_<term>`` per frame, with the loss variant
-that ran and every weight as used in the header.
+that ran and every weight as used in the header; the header's ``meta['frame_notes']`` says per
+frame what the fit did about defective cues (views dropped, a frame kept at its start, NaN pixels,
+no flow: :attr:`anidress_core.fit.FrameFit.notes`), which proposal a keyframe kept and which frames
+the backward pass replaced.
 
 ``fit_eval`` writes ``fit_metrics.csv``: per method and frame, vertex RMSE against the
 ground-truth garment carried onto the template's vertices, the rig's floor on that
