@@ -17,9 +17,14 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-__all__ = ["schema_path", "report_template_dir"]
+__all__ = ["REFERENCE_TABLES", "schema_path", "report_template_dir"]
 
 _SOURCE_ROOT = Path(__file__).resolve().parent.parent
+
+#: The committed reference tables the report shows beside a run's outputs (no rule of a run
+#: makes them): key -> path relative to the working directory. Here, in a module without torch,
+#: so that workflow/rules/helpers/report.smk names them as inputs at parse time cheaply.
+REFERENCE_TABLES = {"tradeoffs": "benchmarks/tradeoffs.csv", "rig_sweep": "benchmarks/rig.csv"}
 
 
 def _locate(source_rel: str, data_rel: str) -> Path:

@@ -44,7 +44,7 @@ from .. import __version__, plots
 from ..io import files
 from ..io.rig import read_rig
 from ..io.sim import read_sim
-from .references import REFERENCE_TABLES
+from ..resources import REFERENCE_TABLES
 
 __all__ = ["REFERENCE_TABLES", "collect_report", "reference_label", "render_report", "run_report"]
 

@@ -1,7 +1,7 @@
 """Parsing the workflow imports no torch, so that a no-op rerun takes about a second (issue 22: <= 5 s).
 
 The rules' parse-time and DAG-time helpers use light modules (anidress_core.config,
-anidress_core.stages.references); anidress_core.fit.variants (torch) is imported only where a loss
+anidress_core.resources); anidress_core.fit.variants (torch) is imported only where a loss
 variant other than the default must be checked, anidress_core.io.scene only for a captured scene.
 Measured on the tiny run with profiles/default (README/issue 22): 2.3 s -> 1.0 s per no-op run.
 """

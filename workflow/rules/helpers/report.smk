@@ -2,7 +2,7 @@
 # Functions and settings only, no rules (the Snakefile includes every helper file before the rules).
 
 # (from the light module, not stages.report: parsing the workflow imports no torch; issue 22)
-from anidress_core.stages.references import REFERENCE_TABLES
+from anidress_core.resources import REFERENCE_TABLES
 
 
 def report_reference(key):
