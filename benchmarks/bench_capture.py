@@ -1,0 +1,380 @@
+"""The demo skirt as a capture (issue 24 items 4, 5): the workflow on the synthetic scene and on its
+``anidress export-capture`` variants, scored against the held-back truth.
+
+Reduced scale (stated in the output): the demo skirt scene (config/config.yaml scenes/skirt: 12
+cameras, 8 train, 256 x 256, 3K-vertex garment) with ``--frames`` frames of walk (train) and of dance
+(novel pose), one library motion (sway, 60 frames) for the rig, the ``full`` field only with
+``--steps`` steps, novel-pose renders of every ``--render-stride``-th frame of dance (12 cameras).
+
+Variants (``--variants``, in order; each a separate Snakemake run in ``WORK/<variant>``, one at a time):
+
+* ``synthetic``: the scene as rule synth writes it (plates, texture, exact poses, pinhole, square);
+* ``capture``: every degradation (distortion, 4:3 images, 2 cm body noise, no masks: the pipeline's
+  masks from a temporal median, no plates, no texture: fit anchor on image references);
+* ``crutchless``: no plates, no texture (always dropped by the export) but pinhole, square, exact poses;
+* ``pose_noise``: crutchless + 2 cm body noise; ``distort``: crutchless + distortion and 4:3 images;
+* ``parser``: crutchless + parser-like masks shipped with the scene;
+* ``image_anchor``: the synthetic run (copied with its Snakemake records) with fit/anchor_reference: images:
+  the garment texture unused (the one crutch an export cannot drop alone);
+* ``parser_pose_noise``: parser + 2 cm body noise (the noise with good masks).
+
+Scores (held-back truth, the pipeline's own scorers): the fit of walk by
+:func:`anidress_core.stages.fit.run_fit_eval` (vertex RMSE and its ratio to the run's rig floor), the
+novel-pose renders of dance by :func:`anidress_core.stages.evaluate.run_evaluate` (PSNR, IoU), in the
+working cameras of rule undistort for a distorted variant (truth masks undistorted with the images).
+
+    .venv/bin/python -m benchmarks.bench_capture --work /tmp/capbench [--variants synthetic,capture]
+
+writes benchmarks/capture.md and .csv.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from .benchutil import cpu_model, git_rev
+
+REPO = Path(__file__).resolve().parents[1]
+VARIANTS = {
+    "synthetic": None,
+    "capture": {"distort": True, "pose_noise_cm": 2.0, "masks": "none", "image_size": None},
+    "crutchless": {"distort": False, "pose_noise_cm": 0.0, "masks": "none", "image_size": "256x256"},
+    "pose_noise": {"distort": False, "pose_noise_cm": 2.0, "masks": "none", "image_size": "256x256"},
+    "distort": {"distort": True, "pose_noise_cm": 0.0, "masks": "none", "image_size": None},
+    "parser": {"distort": False, "pose_noise_cm": 0.0, "masks": "parser", "image_size": "256x256"},
+    "image_anchor": None,
+    "parser_pose_noise": {"distort": False, "pose_noise_cm": 2.0, "masks": "parser", "image_size": "256x256"},
+}
+"""Export options of each variant; None: the synthetic scene itself (``image_anchor``: a copy of the
+synthetic run with fit/anchor_reference: images, i.e. the garment texture unused: its cost alone)."""
+COLUMNS = ["variant", "distort", "image_size", "pose_noise_cm", "masks", "plates", "texture",
+           "body_joint_error_cm", "body_joint_angle_deg", "body_jitter_cm", "mask_images", "mask_iou_person",
+           "mask_iou_garment", "fit_frames", "fit_vertex_rmse_mm", "rig_floor_mm", "fit_ratio_to_floor",
+           "novel_pose_images", "novel_pose_psnr_db", "novel_pose_iou", "jobs", "jobs_wall_s", "jobs_cpu_s",
+           "status"]
+
+
+def _config(args, scene: str, entry: dict, exported: bool) -> dict:
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    cfg["run_scenes"] = [scene]
+    cfg["scenes"] = {scene: entry}
+    cfg["simulate"]["library"] = ["sway"]
+    cfg["simulate"]["library_frames"] = 60
+    cfg["field"]["variants"] = ["full"]
+    cfg["field"]["train"]["steps"] = args.steps
+    cfg["field"]["train"]["checkpoint_every"] = args.steps
+    cfg["field"]["render"]["frame_stride"] = args.render_stride
+    cfg["field"]["render"]["library"] = []
+    if exported:
+        cfg.setdefault("cues", {}).setdefault("masks", {})["background"] = "temporal_median"
+    return cfg
+
+
+def _synthetic_entry(args) -> dict:
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    e = dict(cfg["scenes"]["skirt"])
+    e["sequences"] = [{"name": "walk", "motion": "walk", "frames": args.frames, "role": "train"},
+                      {"name": "dance", "motion": "dance", "frames": args.frames, "role": "novel_pose"}]
+    return e
+
+
+def _snakemake(work: Path, targets: list[str], cores: int, log: Path) -> tuple[int, float]:
+    cmd = [sys.executable, "-m", "snakemake", *targets, "-s", str(REPO / "Snakefile"), "--directory", str(work),
+           "--configfile", str(work / "config.yaml"), "--cores", str(cores), "--rerun-triggers", "params", "input",
+           "mtime"]
+    t0 = time.perf_counter()
+    with open(log, "w") as fh:
+        rc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT,
+                            env={**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}).returncode
+    return rc, time.perf_counter() - t0
+
+
+def _score_scene(scene: Path, truth: Path | None, out: Path) -> Path:
+    """The scene with the truth's gt/ beside each sequence (symlinks), for the pipeline's scorers."""
+    if truth is None:
+        return scene
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    for p in scene.iterdir():
+        if p.is_dir() and (truth / p.name).is_dir():
+            (out / p.name).mkdir()
+            for q in p.iterdir():
+                (out / p.name / q.name).symlink_to(q.resolve())
+            (out / p.name / "gt").symlink_to((truth / p.name / "gt").resolve())
+        else:
+            (out / p.name).symlink_to(p.resolve())
+    return out
+
+
+def _mask_iou(pred_dir: Path, truth_dir: Path) -> dict:
+    """Mean IoU of the pipeline's walk masks against the truth (subject: labels > 0; garment: label 2), over
+    every camera and frame it wrote (the training cameras)."""
+    import numpy as np
+
+    from anidress_core.io import files
+
+    person, garment = [], []
+    for p in sorted(pred_dir.glob("*/*.png")):
+        a, b = files.read_mask(p), files.read_mask(truth_dir / p.parent.name / p.name)
+        for out, x, y in ((person, a > 0, b > 0), (garment, a == 2, b == 2)):
+            u = np.logical_or(x, y).sum()
+            if u:
+                out.append(np.logical_and(x, y).sum() / u)
+    return {"mask_iou_person": round(float(np.mean(person)), 4), "mask_iou_garment": round(float(np.mean(garment)), 4),
+            "mask_images": len(person)}
+
+
+def _score(work: Path, scene_name: str, scene: Path, truth: Path | None) -> dict:
+    from anidress_core.io.scene import distorted_cameras
+    from anidress_core.stages.evaluate import run_evaluate
+    from anidress_core.stages.fit import run_fit_eval
+    from anidress_core.stages.undistort import run_undistort
+
+    res = work / "results" / scene_name
+    sc = _score_scene(scene, truth, work / "score" / scene_name)
+    fit = run_fit_eval(sc, "walk", res / "rig.npz", {"pipeline": res / "walk" / "garment_poses.npz"},
+                       work / "score" / "fit_metrics.csv")["methods"]["pipeline"]
+    und = {}
+    for seq in ("walk", "dance"):
+        if distorted_cameras(sc, seq):
+            run_undistort(sc, seq, work / "score" / f"undistorted_{seq}", threads=1, progress=False)
+            und[seq] = work / "score" / f"undistorted_{seq}"
+    seq_dir = und.get("walk", sc / "walk")
+    pred = res / "walk" / "masks" if (res / "walk" / "masks").is_dir() else seq_dir / "masks"  # else: shipped
+    masks = _mask_iou(pred, seq_dir / "gt" / "masks")
+    ev = run_evaluate(sc, [("novel_pose", "dance", res / "walk" / "full" / "renders" / "novel_pose" / "dance")],
+                      work / "score" / "metrics.csv", work / "score" / "metrics_summary.json", {"box_pad_m": 0.05},
+                      progress=False, undistorted=und)
+    return {"fit": fit, "eval": ev, "masks": masks}
+
+
+def _job_costs(work: Path, scene: str) -> dict:
+    """Jobs, summed wall and CPU seconds of the last run of each job (Snakemake's benchmark files)."""
+    rows = []
+    for p in sorted((work / "benchmarks" / "runs" / scene).rglob("*.tsv")):
+        lines = p.read_text().splitlines()
+        if len(lines) >= 2:
+            rows.append(dict(zip(lines[0].split("\t"), lines[-1].split("\t"))))
+    return {"jobs": len(rows), "jobs_wall_s": round(sum(float(r["s"]) for r in rows), 1),
+            "jobs_cpu_s": round(sum(float(r.get("cpu_time") or "nan") for r in rows), 1)}
+
+
+def _summary_row(ev_json: Path) -> dict:
+    """The novel-pose entry of run_evaluate's metrics_summary.json."""
+    s = json.loads(ev_json.read_text())
+    for m in s.get("metrics", []):
+        if m.get("kind") == "novel_pose":
+            return m
+    raise ValueError(f"{ev_json}: no novel_pose entry in 'metrics'")
+
+
+def run_variant(args, name: str, work_root: Path) -> dict:
+    from anidress_core.stages.export_capture import run_export_capture
+    from anidress_core.stages.import_capture import scene_config_entry
+
+    opts = VARIANTS[name]
+    work = work_root / name
+    work.mkdir(parents=True, exist_ok=True)
+    row = {"variant": name, "status": "ok", "command": " ".join(sys.argv[1:]), "git": git_rev(),
+           "date": dt.datetime.now().isoformat(timespec="seconds")}
+    if opts is None:
+        scene_name, entry, truth = "skirt", _synthetic_entry(args), None
+        row.update(distort=False, image_size="256x256", pose_noise_cm=0.0, masks="plate background", plates=True,
+                   texture=name == "synthetic", body_joint_error_cm=0.0,
+                   body_joint_angle_deg=0.0, body_jitter_cm=0.0)
+        if name == "image_anchor":
+            entry["fit"] = {**entry.get("fit", {}), "anchor_reference": "images"}
+            if not (work / "data" / scene_name).is_dir():  # the synthetic run, mtimes and records kept
+                shutil.rmtree(work)
+                subprocess.run(["cp", "-a", str(work_root / "synthetic"), str(work)], check=True)
+    else:
+        src = work_root / "synthetic" / "data" / "skirt"
+        scene_name = "skirtcap"
+        scene = work / "data" / scene_name
+        truth = work / "data" / f"{scene_name}.truth"
+        if not (truth / "export.json").is_file():
+            for d in (scene, truth):
+                if d.exists():
+                    shutil.rmtree(d)
+            rec = run_export_capture(src, scene, seed=args.seed, threads=1, **opts)
+        else:
+            rec = json.loads((truth / "export.json").read_text())
+        entry = scene_config_entry(yaml.safe_load((scene / "scene.yaml").read_text()))
+        b = rec["sequences"]["walk"]["body_noise"]
+        row.update(distort=opts["distort"], image_size=rec["options"]["image_size"],
+                   pose_noise_cm=opts["pose_noise_cm"],
+                   masks="temporal median (no plates)" if opts["masks"] == "none" else "parser-like, shipped",
+                   plates=False, texture=False, body_joint_error_cm=round(b["joint_error_cm"], 3),
+                   body_joint_angle_deg=round(b["joint_angle_deg"], 3), body_jitter_cm=round(b["jitter_cm"], 3))
+    exported = opts is not None
+    (work / "config.yaml").write_text(yaml.safe_dump(_config(args, scene_name, entry, exported), sort_keys=False))
+    targets = [f"results/{scene_name}/walk/garment_poses.npz", f"results/{scene_name}/rig.npz",
+               f"results/{scene_name}/walk/full/renders/novel_pose/dance"]
+    if name == "synthetic":
+        targets.insert(0, f"data/{scene_name}")
+    rc, wall = _snakemake(work, targets, args.cores, work / "snakemake.log")
+    row.update(_job_costs(work, scene_name))
+    if rc != 0:
+        row["status"] = f"workflow failed (rc {rc}, {work / 'snakemake.log'})"
+        return row
+    scene = work / "data" / scene_name
+    s = _score(work, scene_name, scene, None if not exported else work / "data" / f"{scene_name}.truth")
+    f = s["fit"]
+    row.update(fit_frames=args.frames, fit_vertex_rmse_mm=round(1e3 * f["vertex_rmse_m"], 2),
+               rig_floor_mm=round(1e3 * f["rig_floor_rmse_m"], 2),
+               fit_ratio_to_floor=round(f["vertex_rmse_m"] / f["rig_floor_rmse_m"], 3))
+    row.update(s["masks"])
+    e = _summary_row(work / "score" / "metrics_summary.json")
+    row.update(novel_pose_images=e["images"], novel_pose_psnr_db=round(e["psnr_db"], 2),
+               novel_pose_iou=round(e["iou"], 4))
+    return row
+
+
+def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None:
+    out_csv, out_md = REPO / "benchmarks" / "capture.csv", REPO / "benchmarks" / "capture.md"
+    with open(out_csv, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r.get(k, "") for k in COLUMNS})
+    lines = [
+        "# The demo skirt as a capture: synthetic scene against its export-capture variants",
+        "",
+        f"- written {started}; rows measured {', '.join(sorted(dict.fromkeys(r.get('date', '?')[:16] for r in rows)))} "
+        f"(scored), code git {', '.join(dict.fromkeys(r.get('git', '?') for r in rows))}",
+        f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs (shared with other jobs)",
+        "- commands (rows kept in WORK/rows.json between invocations): "
+        + "; ".join(f"`.venv/bin/python -m benchmarks.bench_capture {c}`"
+                    for c in dict.fromkeys(r.get("command", " ".join(argv)) for r in rows)),
+        f"- REDUCED scale: the demo skirt scene (12 cameras, 8 train, 256x256, 3K-vertex garment) with {args.frames} "
+        f"frames of walk (train) and {args.frames} of dance (novel pose); simulate library [sway] x 60 frames; field "
+        f"variant full only, {args.steps} training steps (demo: 600); novel-pose renders of every "
+        f"{args.render_stride}th dance frame x 12 cameras. Each variant: one Snakemake run (--cores {args.cores}) of "
+        "the workflow to the walk fit, the rig and the novel-pose renders; exported scenes with "
+        "cues/masks/background: temporal_median (no plates) and fit/anchor_reference: images (no texture).",
+        "- scores: the pipeline's scorers against the held-back truth (OUT.truth of export-capture): "
+        "`stages.fit.run_fit_eval` on walk (vertex RMSE, ratio to the rig floor of the same run), "
+        "`stages.evaluate.run_evaluate` on the dance renders (PSNR in the subject box, IoU of the rendered alpha; "
+        "distorted variants in the working cameras of rule undistort, truth masks undistorted with the images)",
+        "- jobs wall / CPU: summed over the last run of each job of the variant's workflow (Snakemake's benchmark "
+        "files; the exported variants do not include rule synth, which made the scene they were exported from)",
+        "- walk mask IoU: the masks the fit and the field used (the pipeline's, or the shipped parser-like ones "
+        "as rule masks passes them on) against the true labels, in the working cameras, over every camera x frame "
+        "of the folder used (the pipeline estimates the 8 training cameras; shipped masks cover all 12)",
+        "- rig floor: that of the run's own rig (noisy body poses change the simulations of the captured motions, "
+        "hence the rig); `image_anchor` is a copy of the `synthetic` run with fit, train_field and the render rerun: "
+        "its jobs columns include the copied jobs",
+        "- one run per variant, one export seed: runs are deterministic on one machine (README), so the differences "
+        "are not run-to-run noise, but the spread over seeds and scenes is not measured",
+        "- body noise: the exporter's own measure on walk (mean joint position error; mean local joint angle "
+        "error; mean frame-to-frame change of the joint error, i.e. jitter), in export.json",
+        "",
+        "| variant | distortion | image | body joint error (cm) / angle (deg) / jitter (cm) | masks | plates | texture "
+        "| walk mask IoU subject / garment | fit RMSE (mm) "
+        "| rig floor (mm) | fit / floor | novel-pose PSNR (dB) | IoU | images | jobs | jobs wall (s) | jobs CPU (s) "
+        "| status |",
+        "|" + " --- |" * 7 + " ---: |" * 10 + " --- |",
+    ]
+    for r in rows:
+        r = dict(r, body_noise=f"{r.get('body_joint_error_cm', '')} / {r.get('body_joint_angle_deg', '')} / "
+                               f"{r.get('body_jitter_cm', '')}",
+                 mask_iou=f"{r.get('mask_iou_person', '')} / {r.get('mask_iou_garment', '')}")
+        lines.append("| " + " | ".join(str(r.get(k, "")) for k in (
+            "variant", "distort", "image_size", "body_noise", "masks", "plates", "texture", "mask_iou",
+            "fit_vertex_rmse_mm", "rig_floor_mm", "fit_ratio_to_floor", "novel_pose_psnr_db", "novel_pose_iou",
+            "novel_pose_images", "jobs", "jobs_wall_s", "jobs_cpu_s", "status")) + " |")
+    ok = {r["variant"]: r for r in rows if r["status"] == "ok"}
+    causes = [("garment texture unused (fit anchor on image references)", "image_anchor", "synthetic"),
+              ("no background plates (masks from a temporal median), given no texture", "crutchless", "image_anchor"),
+              ("no plates and no texture together", "crutchless", "synthetic"),
+              ("lens distortion + 4:3 images (undistorted by rule undistort)", "distort", "crutchless"),
+              ("body-pose noise", "pose_noise", "crutchless"),
+              ("parser-like masks shipped instead of the temporal-median masks", "parser", "crutchless"),
+              ("body-pose noise, with the parser-like masks", "parser_pose_noise", "parser"),
+              ("all degradations of `capture`", "capture", "synthetic")]
+    att = [(what, a, b) for what, a, b in causes if a in ok and b in ok]
+    if att:
+        lines += ["", "Attribution: each cause as the difference of two variants that differ by it alone "
+                  "(`a - b`: fit / floor, novel-pose PSNR, IoU, walk mask IoU of the subject):", ""]
+        for what, a, b in att:
+            ra, rb = ok[a], ok[b]
+            d_fit = ra["fit_ratio_to_floor"] - rb["fit_ratio_to_floor"]
+            d_psnr = ra["novel_pose_psnr_db"] - rb["novel_pose_psnr_db"]
+            lines.append(f"- {what} (`{a}` - `{b}`): fit / floor {d_fit:+.3f}, PSNR {d_psnr:+.2f} dB, IoU "
+                         f"{ra['novel_pose_iou'] - rb['novel_pose_iou']:+.4f}, mask IoU "
+                         f"{ra['mask_iou_person'] - rb['mask_iou_person']:+.4f}")
+        singles = [("crutchless", "synthetic"), ("distort", "crutchless"), ("pose_noise", "crutchless")]
+        if all(a in ok and b in ok for a, b in singles) and "capture" in ok:
+            tot = sum(ok[a]["fit_ratio_to_floor"] - ok[b]["fit_ratio_to_floor"] for a, b in singles)
+            tot_p = sum(ok[a]["novel_pose_psnr_db"] - ok[b]["novel_pose_psnr_db"] for a, b in singles)
+            lines.append(f"- sum of the single causes (plates + texture, distortion, pose noise): fit / floor "
+                         f"{tot:+.3f}, PSNR {tot_p:+.2f} dB; against `capture` - `synthetic`: "
+                         f"{ok['capture']['fit_ratio_to_floor'] - ok['synthetic']['fit_ratio_to_floor']:+.3f}, "
+                         f"{ok['capture']['novel_pose_psnr_db'] - ok['synthetic']['novel_pose_psnr_db']:+.2f} dB "
+                         "(the rest: interactions and run-to-run spread, not measured here)")
+    missing = [v for v in VARIANTS if v not in {r["variant"] for r in rows}]
+    if missing:
+        lines += ["", f"Not run in this benchmark run: {', '.join(missing)}."]
+    out_md.write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_capture", description=__doc__.split("\n\n")[0])
+    p.add_argument("--work", required=True, help="scratch folder of the runs (never results/ of the repository)")
+    p.add_argument("--variants", default="synthetic,capture", help=f"comma list of {list(VARIANTS)}")
+    p.add_argument("--frames", type=int, default=16, help="frames of walk and of dance (demo: 60)")
+    p.add_argument("--steps", type=int, default=200, help="field training steps (demo: 600)")
+    p.add_argument("--render-stride", type=int, default=4, help="render every n-th dance frame")
+    p.add_argument("--cores", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0, help="export-capture seed")
+    p.add_argument("--report-only", action="store_true",
+                   help="only rewrite capture.md / .csv from WORK/rows.json (the rows of earlier invocations)")
+    args = p.parse_args(argv)
+    names = [v.strip() for v in args.variants.split(",") if v.strip()]
+    bad = [v for v in names if v not in VARIANTS]
+    if bad:
+        p.error(f"unknown variants {bad}; choose from {list(VARIANTS)}")
+    have_synthetic = (Path(args.work) / "synthetic" / "data" / "skirt").is_dir()
+    if not args.report_only and names and names[0] != "synthetic" and not have_synthetic:
+        p.error("the other variants need the synthetic run first (put synthetic first)")
+    work = Path(args.work).resolve()
+    if work == (REPO / "results").resolve() or REPO.resolve() in work.parents and "results" in work.parts:
+        p.error("--work must be a scratch folder, not the repository's results/")
+    started = dt.datetime.now().isoformat(timespec="seconds")
+    rows = []
+    prev = work / "rows.json"
+    done = {r["variant"]: r for r in json.loads(prev.read_text())} if prev.is_file() else {}
+    if args.report_only:
+        if not done:
+            p.error(f"{prev}: no rows to report")
+        for v, r in done.items():  # rows of runs before the date was kept: the time they were scored
+            m = work / v / "score" / "metrics_summary.json"
+            if "date" not in r and m.is_file():
+                r["date"] = dt.datetime.fromtimestamp(m.stat().st_mtime).isoformat(timespec="seconds")
+        write_outputs([done[k] for k in VARIANTS if k in done], args, argv, started)
+        return 0
+    for v in names:
+        print(f"[bench_capture] {v} ...", flush=True)
+        row = run_variant(args, v, work)
+        done[v] = row
+        print(f"[bench_capture] {v}: {row}", flush=True)
+        prev.write_text(json.dumps(list(done.values()), indent=1))
+        rows = [done[k] for k in VARIANTS if k in done]
+        write_outputs(rows, args, argv, started)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
