@@ -88,9 +88,10 @@ log = logging.getLogger("anidress.export")
 
 DEFAULT_DIST = (-0.20, 0.05, 4e-4, -6e-4, 0.0)
 """OpenCV ``k1 k2 p1 p2 k3`` of the exported cameras: a moderate barrel distortion (at the corner of a
-341 x 256 image with the demo's 38 degree vertical field of view, r = 0.48, the radial factor is 0.93:
-about 11 px of displacement), tangential terms of a slightly decentred lens. Monotonic over the image
-(d r_d / d r = 1 + 3 k1 r^2 + 5 k2 r^4 > 0 for every r)."""
+342 x 256 image with the demo's 38 degree vertical field of view, r = 0.57, the radial factor is 0.94:
+about 13 px of displacement), tangential terms of a slightly decentred lens. Monotonic over the image
+(d r_d / d r = 1 + 3 k1 r^2 + 5 k2 r^4 > 0 for every r at these values; with the per-camera spread below,
+at three sigma, up to r = 1.3, far beyond the image corners)."""
 DIST_SPREAD = 0.15
 """Relative spread of each camera's coefficients about :data:`DEFAULT_DIST` (normal, seeded): the
 cameras of a rig are not identical."""
