@@ -91,7 +91,7 @@ DEFAULT_DIST = (-0.20, 0.05, 4e-4, -6e-4, 0.0)
 342 x 256 image with the demo's 38 degree vertical field of view, r = 0.57, the radial factor is 0.94:
 about 13 px of displacement), tangential terms of a slightly decentred lens. Monotonic over the image
 (d r_d / d r = 1 + 3 k1 r^2 + 5 k2 r^4 > 0 for every r at these values; with the per-camera spread below,
-at three sigma, up to r = 1.3, far beyond the image corners)."""
+at three sigma, up to r = 1.2, far beyond the image corners)."""
 DIST_SPREAD = 0.15
 """Relative spread of each camera's coefficients about :data:`DEFAULT_DIST` (normal, seeded): the
 cameras of a rig are not identical."""
