@@ -16,7 +16,8 @@ Variants (``--variants``, in order; each a separate Snakemake run in ``WORK/<var
 * ``parser``: crutchless + parser-like masks shipped with the scene;
 * ``image_anchor``: the synthetic run (copied with its Snakemake records) with fit/anchor_reference: images:
   the garment texture unused (the one crutch an export cannot drop alone);
-* ``parser_pose_noise``: parser + 2 cm body noise (the noise with good masks).
+* ``parser_pose_noise``: parser + 2 cm body noise (the noise with good masks);
+* ``capture_parser``: capture with parser-like masks shipped (a user who runs a human parser).
 
 Scores (held-back truth, the pipeline's own scorers): the fit of walk by
 :func:`anidress_core.stages.fit.run_fit_eval` (vertex RMSE and its ratio to the run's rig floor), the
@@ -54,6 +55,7 @@ VARIANTS = {
     "parser": {"distort": False, "pose_noise_cm": 0.0, "masks": "parser", "image_size": "256x256"},
     "image_anchor": None,
     "parser_pose_noise": {"distort": False, "pose_noise_cm": 2.0, "masks": "parser", "image_size": "256x256"},
+    "capture_parser": {"distort": True, "pose_noise_cm": 2.0, "masks": "parser", "image_size": None},
 }
 """Export options of each variant; None: the synthetic scene itself (``image_anchor``: a copy of the
 synthetic run with fit/anchor_reference: images, i.e. the garment texture unused: its cost alone)."""
@@ -302,7 +304,8 @@ def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None
               ("body-pose noise", "pose_noise", "crutchless"),
               ("parser-like masks shipped instead of the temporal-median masks", "parser", "crutchless"),
               ("body-pose noise, with the parser-like masks", "parser_pose_noise", "parser"),
-              ("all degradations of `capture`", "capture", "synthetic")]
+              ("all degradations of `capture`", "capture", "synthetic"),
+              ("all degradations, parser-like masks shipped (`capture_parser`)", "capture_parser", "synthetic")]
     att = [(what, a, b) for what, a, b in causes if a in ok and b in ok]
     if att:
         lines += ["", "Attribution: each cause as the difference of two variants that differ by it alone "
