@@ -183,7 +183,7 @@ def _summary_row(ev_json: Path) -> dict:
 
 def run_variant(args, name: str, work_root: Path) -> dict:
     from anidress_core.stages.export_capture import run_export_capture
-    from anidress_core.stages.import_capture import scene_config_entry
+    from anidress_core.io.scene_info import scene_config_entry
 
     opts = VARIANTS[name]
     work = work_root / name

@@ -63,7 +63,7 @@ def wd(tmp_path_factory):
 
 def test_config_entry_is_valid():
     from anidress_core.config import default_schema_path, validate_config
-    from anidress_core.stages.import_capture import scene_config_entry
+    from anidress_core.io.scene_info import scene_config_entry
 
     info = {"kind": "skirt", "fps": 50.0, "image_size": [48, 40], "sequences": [{"name": "a", "frames": 3},
                                                                                  {"name": "b", "frames": 2,

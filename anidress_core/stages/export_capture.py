@@ -78,7 +78,7 @@ from ..io import easymocap, files
 from ..io.images import image_size_from_header
 from ..io.motion import read_easymocap_smpl_dir
 from ..io.scene import IMAGE_EXTS, image_path, load_body, read_scene, scene_cameras, scene_image_size
-from .import_capture import scene_config_entry
+from ..io.scene_info import scene_config_entry
 
 __all__ = ["DEFAULT_DIST", "DIST_SPREAD", "MASK_MODES", "WarpMaps", "parse_image_size", "default_image_size",
            "camera_distortions", "exported_cameras", "warp_maps", "warp_image", "warp_labels", "warp_normals",

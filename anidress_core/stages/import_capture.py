@@ -58,11 +58,12 @@ from ..garment import KINDS
 from ..io import easymocap, files
 from ..io.images import image_size_from_header
 from ..io.motion import read_easymocap_smpl_dir, write_easymocap_smpl_dir
+from ..io.scene_info import scene_config_entry
 from ..io.zju import (CIHP_GARMENT_LABELS, MASK_KINDS, read_annots, read_zju_params, safe_camera_names,
                       zju_frame_number, zju_mask_labels, zju_mask_paths)
 
 __all__ = ["parse_frames", "split_cameras", "LINK_MODES", "PARAMS_DIRS", "ZJU_FPS", "run_import_zju", "SMPL_DIRS",
-           "MASK_FORMATS", "EASYMOCAP_FPS", "run_import_easymocap", "scene_config_entry"]
+           "MASK_FORMATS", "EASYMOCAP_FPS", "run_import_easymocap"]
 
 log = logging.getLogger("anidress.import")
 
@@ -162,23 +163,6 @@ def split_cameras(names: list[str], sources: list[str] | None = None, train: str
     if not tr:
         raise ValueError("no training camera left")
     return tr, te
-
-
-def scene_config_entry(info: dict) -> dict:
-    """The ``scenes/<scene>`` entry of the pipeline config (workflow/schemas/config.schema.yaml) for a
-    captured scene whose parsed scene.yaml is ``info``: synthetic false, kind, fps, image_size and
-    the sequences (name, frames, role; no motion: a captured sequence's motion is its smpl/).
-
-    A garment without a texture (a capture has none unless one was given) gets the scene override
-    ``fit: {anchor_reference: images}``: the default ``texture`` references need the texture and
-    the fit would stop on it."""
-    entry = {"synthetic": False, "kind": info.get("kind", "tight"), "fps": info["fps"],
-             "image_size": list(info["image_size"]),
-             "sequences": [{"name": s["name"], "frames": int(s["frames"]), "role": s.get("role", "train")}
-                           for s in info["sequences"]]}
-    if info.get("garment_template") and not info.get("garment_texture"):
-        entry["fit"] = {"anchor_reference": "images"}
-    return entry
 
 
 # =========================================================================== scene-level files
