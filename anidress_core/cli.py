@@ -303,6 +303,16 @@ def _cmd_export_capture(args: argparse.Namespace) -> None:
     _report_import(rec)
 
 
+def _cmd_refine_body(args: argparse.Namespace) -> None:
+    from .stages.refine_body import run_refine_body
+
+    rec = run_refine_body(args.scene_dir, args.sequence, args.out, masks_dir=args.masks, chunk=args.chunk,
+                          max_frames=args.max_frames, threads=args.threads)
+    print(f"{args.out}/smpl: {rec['frames']} frames x {len(rec['cameras'])} cameras refined in {rec['seconds']:.1f} s "
+          f"({rec['seconds_per_frame']:.2f} s/frame); body silhouette IoU {rec['body_iou_before']:.3f} -> "
+          f"{rec['body_iou_after']:.3f}")
+
+
 def _cmd_validate(args: argparse.Namespace) -> None:
     from .stages.validate import format_summary, run_validate
 
@@ -600,6 +610,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--truth", help="where the held-back truth goes (default: OUT.truth beside OUT)")
     s.add_argument("--threads", type=int, default=2, help="files written at a time")
     s.set_defaults(func=_cmd_export_capture)
+
+    s = sub.add_parser("refine-body", help="refine a sequence's body poses (smpl/) against its label masks")
+    s.add_argument("scene_dir", help="data/<scene> (pinhole cameras: undistort first)")
+    s.add_argument("sequence", help="the sequence name")
+    s.add_argument("out", help="folder for smpl/<frame>.json and refine_body.json")
+    s.add_argument("--masks", help="label masks <cam>/<frame:06d>.png (default: <scene>/<sequence>/masks)")
+    s.add_argument("--chunk", type=int, default=16, help="frames optimised together (default: %(default)s)")
+    s.add_argument("--max-frames", type=int, help="only the first N frames")
+    s.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
+    s.set_defaults(func=_cmd_refine_body)
 
     s = sub.add_parser("validate", help="check a scene folder (cameras, frames, images, body, garment) before a run")
     s.add_argument("scene_dir", help="data/<scene>")

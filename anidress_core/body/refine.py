@@ -81,9 +81,9 @@ class RefineConfig:
     """Weight of L_smooth (mean over frames and joints of (acceleration / sigma_accel)^2)."""
     sigma_accel: float = 0.01
     """Acceptable frame-to-frame second difference of a joint position (m)."""
-    reassign_every: int = 5
+    reassign_every: int = 10
     """Steps between nearest-vertex assignments of L_cover."""
-    max_outline_px: int = 4000
+    max_outline_px: int = 300
     """At most this many outline pixels per view (evenly subsampled) in L_cover."""
 
 
@@ -126,7 +126,7 @@ class RefineResult(NamedTuple):
     seconds: float
 
 
-def mask_targets(labels: Tensor, max_outline_px: int = 4000) -> MaskTargets:
+def mask_targets(labels: Tensor, max_outline_px: int = 300) -> MaskTargets:
     """Distance fields and body outline pixels of label masks.
 
     labels: (T, C, H, W) integer 0 background / 1 body / 2 garment (other values: background).
@@ -177,7 +177,8 @@ def project_points(x: Tensor, K: Tensor, world_to_cam: Tensor) -> tuple[Tensor, 
     Returns uv (T, C, V, 2) pixels and z (T, C, V) camera depth.
     """
     # X[t, c, v, i] = sum_j R[c, i, j] x[t, v, j] + t[c, i]
-    Xc = torch.einsum("cij,tvj->tcvi", world_to_cam[:, :3, :3].to(x.dtype), x) + world_to_cam[None, :, None, :3, 3].to(x.dtype)
+    E = world_to_cam.to(x.dtype)
+    Xc = torch.einsum("cij,tvj->tcvi", E[:, :3, :3], x) + E[None, :, None, :3, 3]
     z = Xc[..., 2]
     zs = torch.where(z.abs() > 1e-6, z, torch.full_like(z, 1e-6))
     # p[t, c, v, i] = sum_j K[c, i, j] X[t, c, v, j] / z
@@ -203,19 +204,27 @@ def _sample(field: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
 
 @torch.no_grad()
 def _nearest_vertex(uv: Tensor, z: Tensor, tgt: MaskTargets, chunk: int = 1 << 24) -> Tensor:
-    """(N,) index of the projected vertex (in front of the camera) nearest to each outline pixel."""
+    """(N,) index of the projected vertex (in front of the camera) nearest to each outline pixel.
+
+    The outline pixels are padded to (T C, N_max, 2) per view and compared with that view's
+    projected vertices by ``torch.cdist`` (a matrix product), a chunk of views at a time (memory).
+    """
     T, C, V, _ = uv.shape
     tc = tgt.outline_tc
     N = tc.shape[0]
-    out = torch.empty(N, dtype=torch.int64)
-    step = max(1, chunk // max(V, 1))
-    for a in range(0, N, step):  # chunks of outline pixels (memory), not a loop over pixels
-        b = min(N, a + step)
-        q = uv[tc[a:b, 0], tc[a:b, 1]]  # (n, V, 2)
-        d = (q - tgt.outline_xy[a:b, None].to(uv.dtype)).square().sum(-1)
-        d = torch.where(z[tc[a:b, 0], tc[a:b, 1]] > 1e-3, d, torch.full_like(d, float("inf")))
-        out[a:b] = d.argmin(-1)
-    return out
+    view = tc[:, 0] * C + tc[:, 1]
+    counts = torch.bincount(view, minlength=T * C)
+    k = torch.arange(N) - (torch.cumsum(counts, 0) - counts)[view]
+    n_max = int(counts.max()) if N else 0
+    pts = torch.zeros(T * C, n_max, 2, dtype=uv.dtype)
+    pts[view, k] = tgt.outline_xy.to(uv.dtype)
+    uvv, behind = uv.reshape(T * C, V, 2), (z <= 1e-3).reshape(T * C, 1, V)
+    idx = torch.zeros(T * C, n_max, dtype=torch.int64)
+    step = max(1, chunk // max(n_max * V, 1))
+    for a in range(0, T * C, step):  # chunks of views (memory), not a loop over pixels
+        d = torch.cdist(pts[a:a + step], uvv[a:a + step])  # (n, N_max, V)
+        idx[a:a + step] = d.masked_fill_(behind[a:a + step], float("inf")).argmin(-1)
+    return idx[view, k]
 
 
 def refine_body_poses(body_model: BodyModel, K: Tensor, world_to_cam: Tensor, masks: Tensor, poses: Tensor,

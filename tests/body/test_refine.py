@@ -123,3 +123,33 @@ def test_bad_shapes_are_named(scene):
         refine_body_poses(body, cams.K, cams.world_to_cam, labels, m.poses[:, :69], m.Rh, m.Th)
     with pytest.raises(ValueError, match="masks must be"):
         refine_body_poses(body, cams.K, cams.world_to_cam, labels[:, :2], m.poses, m.Rh, m.Th)
+
+
+def test_stage_and_cli_write_refined_smpl(tmp_path, mannequin_cache):
+    """anidress refine-body on the tiny skirt exported as a capture (no distortion, parser masks, 2 cm noise)."""
+    import json
+
+    from anidress_core.cli import main
+    from anidress_core.io.motion import read_easymocap_smpl_dir
+    from anidress_core.stages.export_capture import run_export_capture
+    from anidress_core.stages.refine_body import run_refine_body
+
+    from tests.io.test_scene_cameras import build_tiny_skirt
+
+    data, _ = build_tiny_skirt(tmp_path)
+    cap = tmp_path / "cap" / "s"
+    run_export_capture(data, cap, distort=False, masks="parser", seed=3, normals=False, threads=1)
+    out = tmp_path / "refined"
+    assert main(["refine-body", str(cap), "walk", str(out), "--chunk", "2"]) in (0, None)
+    d = read_easymocap_smpl_dir(out / "smpl")
+    src = read_easymocap_smpl_dir(cap / "walk" / "smpl")
+    assert d["frames"] == src["frames"] and np.isfinite(d["poses"]).all() and np.isfinite(d["Th"]).all()
+    assert np.allclose(d["shapes"], src["shapes"]) and not np.allclose(d["poses"], src["poses"])
+    rec = json.loads((out / "refine_body.json").read_text())
+    assert rec["frames"] == len(src["frames"]) and len(rec["chunks"]) == 2
+    assert 0 < rec["body_iou_before"] <= 1 and 0 < rec["body_iou_after"] <= 1 and rec["seconds_per_frame"] > 0
+    # distorted cameras are refused, naming the file
+    dcap = tmp_path / "cap" / "d"
+    run_export_capture(data, dcap, distort=True, masks="parser", seed=3, normals=False, threads=1)
+    with pytest.raises(ValueError, match="intri.yml"):
+        run_refine_body(dcap, "walk", tmp_path / "x")
