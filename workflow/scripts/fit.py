@@ -1,4 +1,6 @@
 # Rules fit / fit_ablation: garment poses of one sequence from its 2D cues.
+from pathlib import Path
+
 from anidress_core.stages import setup_logging
 from anidress_core.stages.fit import run_fit
 
@@ -9,7 +11,8 @@ try:
     run_fit(snakemake.input.scene, snakemake.wildcards.seq, snakemake.input.rig, snakemake.input.template,
             cues["masks"], cues["flows"], cues["normals"], params, snakemake.output[0],
             ablation=None if snakemake.params.ablation == "full" else snakemake.params.ablation,
-            cue_source=cues["source"], undistorted_dir=snakemake.input.get("undistorted") or None)
+            cue_source=cues["source"], undistorted_dir=snakemake.input.get("undistorted") or None,
+            motions_dir=Path(snakemake.input.motions[0]).parent if "motions" in snakemake.input.keys() else None)
 except Exception:
     log.exception("fit failed")
     raise
