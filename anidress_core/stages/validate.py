@@ -232,6 +232,18 @@ def _check_fit_texture(scene_dir: Path, info: dict, fit_texture: dict, checks: l
     checks.append("garment texture for the fit's L_anchor (anchor_reference texture)")
 
 
+def _check_mask_plates(scene_dir: Path, mask_plates: dict, checks: list[str]) -> None:
+    """The background plates rule masks reads (cues/masks/background: plate) for sequences without masks."""
+    setting = mask_plates.get("setting", "cues/masks/background")
+    for seq in mask_plates.get("sequences") or []:
+        plates = scene_dir / seq / "backgrounds"
+        if not plates.is_dir():
+            _fail(plates, f"{setting} is 'plate' (masks are estimated against a background plate per camera, "
+                          f"backgrounds/<cam>.png) but sequence '{seq}' ships neither masks nor background plates: "
+                          f"add them, or set {setting}: temporal_median (a median of the frames as the plate)")
+    checks.append("background plates for the estimated masks (cues/masks/background plate)")
+
+
 def _check_garment(scene_dir: Path, info: dict, body, checks: list[str], warnings: list[str]) -> dict | None:
     rel = info.get("garment_template")
     if not rel:
@@ -532,7 +544,8 @@ def _check_body_in_view(sdir: Path, params: dict, body, raw: dict, used: list[st
 
 
 # =========================================================================== the stage
-def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_texture: dict | None = None) -> dict:
+def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_texture: dict | None = None,
+                   mask_plates: dict | None = None) -> dict:
     """Check a scene folder (DESIGN.md §3) and return a summary; raise SceneError on the first problem.
 
     images: 'ends' (every image's header; first and last frame of each camera decoded)
@@ -542,6 +555,10 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_textu
     variants; the workflow passes it when the scene has no texture): the texture must exist, else a
     SceneError naming it and the setting, before any long stage (rule fit would stop after template,
     simulate, rig and the cues ran). None: no fit needs it.
+    mask_plates: ``{"sequences": [...], "setting": "cues/masks/background"}``, the sequences whose
+    masks rule masks estimates against background plates (the workflow passes the captured scene's
+    sequences without shipped masks when the setting is 'plate'): each must ship ``backgrounds/``,
+    else a SceneError naming the folder and the setting (rule masks would stop on the first plate).
     Returns dict(scene, scene_dir, cameras {train, test}, image_size [H, W], sequences
     {name: {frames, first_frame, last_frame, cameras, images, images_decoded, masks,
     normals, camera_distance_m}}, garment (bool), garment_template (dict | None),
@@ -561,6 +578,8 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_textu
     g = _check_garment(scene_dir, info, body, checks, warnings)
     if fit_texture and g is not None:
         _check_fit_texture(scene_dir, info, fit_texture, checks)
+    if mask_plates:
+        _check_mask_plates(scene_dir, mask_plates, checks)
     seqs = {}
     size_all = None
     train = list(info["cameras"]["train"])
@@ -606,9 +625,9 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_textu
 
 
 def run_validate(scene_dir: str | os.PathLike, out_json: str | os.PathLike | None = None,
-                 images: str = "ends", fit_texture: dict | None = None) -> dict:
+                 images: str = "ends", fit_texture: dict | None = None, mask_plates: dict | None = None) -> dict:
     """:func:`validate_scene`, then (only when the scene passes) write the summary to ``out_json`` atomically."""
-    summary = validate_scene(scene_dir, images=images, fit_texture=fit_texture)
+    summary = validate_scene(scene_dir, images=images, fit_texture=fit_texture, mask_plates=mask_plates)
     if out_json is not None:
         files.write_json(out_json, summary)
     log.info("validate %s: OK (%d checks, %.2f s)%s", scene_dir, len(summary["checks"]), summary["wall_s"],

@@ -17,6 +17,7 @@ rule validate_scene:
         "benchmarks/runs/{scene}/validate_scene.tsv"
     params:
         fit_texture=lambda wc: fit_texture_check(wc.scene),  # a fit's garment texture the scene lacks, or None
+        mask_plates=lambda wc: mask_plates_check(wc.scene),  # sequences rule masks needs plates for, or None
     threads: 1
     resources:
         mem_mb=1000,

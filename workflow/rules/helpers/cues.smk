@@ -69,3 +69,16 @@ def _cue_template(wildcards):
     if has_garment(wildcards.scene):
         return f"results/{wildcards.scene}/template.npz"
     return []
+
+
+def mask_plates_check(scene):
+    """The param of rule validate_scene, {"sequences", "setting"} when rule masks would estimate masks of this
+    captured scene against background plates (cues/masks/background: plate) for sequences that ship neither
+    masks nor plates (data/<scene>/<seq>/backgrounds); else None (synthetic scenes: rule synth writes the
+    plates; temporal_median needs none). Only the outcome is the param, as fit_texture_check's: a scene with
+    its plates keeps None whatever the setting, so switching it reruns rule masks, not validate_scene (whose
+    rerun would make snakemake#4166 skip rule masks in that run, see scene_files.smk)."""
+    if config["scenes"][scene]["synthetic"] or config["cues"]["masks"]["background"] != "plate":
+        return None
+    seqs = [q for q in _cue_sequences(scene) if not _shipped(scene, q, "masks") and not _shipped(scene, q, "backgrounds")]
+    return {"sequences": seqs, "setting": "cues/masks/background"} if seqs else None
