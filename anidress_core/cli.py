@@ -232,8 +232,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> None:
     m = cfg["metrics"]
     summary = args.summary or str(Path(args.out).with_name("metrics_summary.json"))
     undistorted = dict(item.split("=", 1) for item in args.undistorted or [])
+    masks = dict(item.split("=", 1) for item in args.masks or [])
     run_evaluate(args.scene_dir, renders, args.out, summary, m, lpips=load_lpips(**m["lpips"]),
-                 dists=load_dists(**m["dists"]), progress=not args.quiet, undistorted=undistorted)
+                 dists=load_dists(**m["dists"]), progress=not args.quiet, undistorted=undistorted, masks=masks)
     print(args.out)
 
 
@@ -251,10 +252,16 @@ def _report_import(rec: dict) -> None:
 
     from .stages.validate import format_summary, validate_scene
 
-    print(format_summary(validate_scene(rec["scene_dir"])))
+    summary = validate_scene(rec["scene_dir"])
+    print(format_summary(summary))
     name = Path(rec["scene_dir"]).name
     print(f"the pipeline's config entry for it (scenes/{name}; data/{name} is where the workflow reads it):")
     print(yaml.safe_dump({"scenes": {name: rec["config_entry"]}}, sort_keys=False).rstrip())
+    bare = [q for q, v in summary["sequences"].items()
+            if not v["masks"] and not (Path(rec["scene_dir"]) / q / "backgrounds").is_dir()]
+    if bare:  # rule masks estimates them; the default plates do not exist (validate_scene in the workflow says so)
+        print(f"sequences {', '.join(bare)} ship neither masks nor background plates: run the workflow with "
+              "cues/masks/background: temporal_median (a global setting; the default 'plate' stops at validate_scene)")
 
 
 def _cmd_import_zju(args: argparse.Namespace) -> None:
@@ -489,7 +496,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_render)
 
-    s = sub.add_parser("evaluate", help="image metrics of renders against the ground truth (metrics.csv)")
+    s = sub.add_parser("evaluate", help="image metrics of renders against the ground truth, or a capture's "
+                                        "images under the pipeline's masks (metrics.csv)")
     s.add_argument("scene_dir", help="data/<scene>")
     s.add_argument("renders", nargs="+", help="KIND:SEQ:DIR with KIND novel_view | novel_pose")
     s.add_argument("--config", default="config/config.yaml", help="metrics settings (LPIPS / DISTS weights)")
@@ -497,6 +505,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--summary", help="output summary JSON (default: metrics_summary.json beside --out)")
     s.add_argument("--undistorted", action="append", metavar="SEQ=DIR",
                    help="a sequence undistorted by `anidress undistort` (one per sequence with lens distortion)")
+    s.add_argument("--masks", action="append", metavar="SEQ=DIR",
+                   help="the pipeline's masks of a sequence without gt/masks (a capture): images are compared under "
+                        "them (mask_source pipeline); without either an image is not scored")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_evaluate)
     s = sub.add_parser("rig", help="garment rigging model from a scene's simulations (rig.npz)")

@@ -1,16 +1,29 @@
-"""Stage `evaluate`: image metrics of the field's renders against the ground truth (DESIGN.md §10).
+"""Stage `evaluate`: image metrics of the field's renders against the captured images (DESIGN.md §10).
 
 Reads render folders written by :func:`anidress_core.stages.field.run_render` (their
-``render.json`` lists frames and cameras) and the sequence's ground truth:
-``data/<scene>/<seq>/images/<cam>/<frame>.png`` masked by ``gt/masks`` (labels > 0)
-onto the render's background colour (the field models the subject only, as in the
-Neural Body protocol), and ``gt/meshes.npz`` for the subject box (else the posed body).
+``render.json`` lists frames and cameras) and the sequence's images
+``data/<scene>/<seq>/images/<cam>/<frame>.png`` masked (labels > 0) onto the render's
+background colour (the field models the subject only, as in the Neural Body protocol), and
+``gt/meshes.npz`` for the subject box (else the posed body). The masks, per sequence:
+
+* ``gt/masks`` when the sequence has them (synthetic scenes): ``mask_source`` "gt/masks";
+* else the masks the pipeline has (``masks``: {sequence: folder}, the shipped masks or those of
+  rule masks, as the field trained on them): ``mask_source`` "pipeline". A captured scene has no
+  ground truth: its PSNR / SSIM / LPIPS / DISTS compare with the captured images composited by
+  these masks, and its IoU is the agreement of the rendered alpha with them, not an accuracy;
+* a camera / frame without either (e.g. test cameras, when rule masks ran on the training cameras
+  only, ``cues/cameras: train``): ``mask_source`` "none" and every metric NaN (not scored); a
+  pipeline mask without a foreground pixel likewise (``mask_source`` "empty": an estimate that
+  failed, e.g. a temporal-median plate of a subject that stays in place, would score an empty
+  render as perfect).
 
 Writes ``metrics.csv``, one row per (kind, sequence, camera, frame) with columns
 ``kind, sequence, camera, frame, psnr_db, ssim, iou, lpips, dists, lpips_available,
-dists_available, box_source``, and ``metrics_summary.json``: per (kind, sequence) the
-mean of every metric, the image count, and why LPIPS / DISTS are unavailable when
-they are (their columns are then NaN and ``*_available`` is 0 -- never a stand-in).
+dists_available, box_source, mask_source``, and ``metrics_summary.json``: per (kind, sequence) the
+mean of every metric over the scored images, the image count, the scored count and the mask
+sources; ``ground_truth`` (whether every scored image had gt/masks), ``sources`` (per sequence the
+images and masks folders read) and why LPIPS / DISTS are unavailable when they are (their columns
+are then NaN and ``*_available`` is 0 -- never a stand-in).
 Renders of library motions have no ground truth and are not evaluated. A sequence whose
 cameras have lens distortion is compared in its pinhole working cameras: images and
 ``gt/masks`` of its undistorted copy (``undistorted``, rule undistort), as the field saw them.
@@ -40,7 +53,10 @@ __all__ = ["run_evaluate", "COLUMNS", "read_metrics_csv"]
 log = logging.getLogger("anidress.evaluate")
 
 COLUMNS = ["kind", "sequence", "camera", "frame", "psnr_db", "ssim", "iou", "lpips", "dists", "lpips_available",
-           "dists_available", "box_source"]
+           "dists_available", "box_source", "mask_source"]
+MASK_SOURCES = ("gt/masks", "pipeline", "none", "empty")
+"""``mask_source`` of a row: the sequence's ground-truth masks, the pipeline's masks; not scored: no mask, an empty
+mask of the pipeline."""
 
 
 def _subject_points(scene_dir: Path, seq: str, info: dict, frames: Sequence[int]) -> tuple[dict, str]:
@@ -69,11 +85,15 @@ def _nan_if_none(x) -> float:
 def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str, str | os.PathLike]],
                  out_csv: str | os.PathLike, out_summary: str | os.PathLike, params: dict,
                  lpips=None, dists=None, progress: bool = True,
-                 undistorted: Mapping[str, str | os.PathLike] | None = None) -> dict:
+                 undistorted: Mapping[str, str | os.PathLike] | None = None,
+                 masks: Mapping[str, str | os.PathLike] | None = None) -> dict:
     """Evaluate render folders ``renders``: (kind, sequence, folder) each.
 
     undistorted: {sequence: folder of rule undistort} for sequences whose cameras have lens
     distortion (:func:`anidress_core.io.scene.sequence_source`).
+    masks: {sequence: folder ``<cam>/<frame:06d>.png``} of the pipeline's masks, used for a sequence
+    without ``gt/masks`` (in the working cameras: for a distorted sequence, masks of its undistorted
+    images). A sequence with neither is evaluated on no image (every row NaN, mask_source "none").
 
     params: the ``metrics`` config section (``box_pad_m``). lpips / dists: loaded
     models or :class:`anidress_core.metrics.image.Unavailable` (or None: not requested).
@@ -85,7 +105,7 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
     lp_ok, ds_ok = bool(lpips), bool(dists)
     notes = {"lpips": "available" if lp_ok else getattr(lpips, "reason", "not requested"),
              "dists": "available" if ds_ok else getattr(dists, "reason", "not requested")}
-    rows = []
+    rows, sources = [], {}
     for kind, seq, folder in renders:
         folder = Path(folder)
         rj = files.read_json(folder / "render.json")
@@ -94,6 +114,12 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
         cams = scene_cameras(scene_dir, seq, cams_names, info, seq_dir=src)
         bg = torch.tensor(rj.get("background", [0.0, 0.0, 0.0]), dtype=torch.float32)
         pts, box_source = _subject_points(scene_dir, seq, info, frames)
+        mask_dir, mask_source = src / "gt" / "masks", "gt/masks"
+        if not mask_dir.is_dir():
+            pipe = (masks or {}).get(seq)
+            mask_dir, mask_source = (Path(pipe), "pipeline") if pipe is not None else (None, "none")
+        sources[seq] = {"images": str(src / "images"), "masks": None if mask_dir is None else str(mask_dir),
+                        "mask_source": mask_source}
         todo = [(f, ci) for f in frames for ci in range(len(cams_names))]
         it = todo
         if progress:
@@ -105,10 +131,23 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
             alpha_u16 = _read_u16(folder / "alpha" / cam / f"{f:06d}.png")
             alpha = torch.from_numpy(alpha_u16.astype(np.float32) / 65535.0)
             img = torch.from_numpy(files.read_image(src / "images" / cam / f"{f:06d}.png"))
-            mask = torch.from_numpy(files.read_mask(src / "gt" / "masks" / cam / f"{f:06d}.png") > 0)
             if img.shape != pred.shape:
                 raise files.ArtifactError(f"{folder / 'rgb' / cam / f'{f:06d}.png'}: size {tuple(pred.shape)} differs "
-                                          f"from the ground truth {tuple(img.shape)}")
+                                          f"from the image {tuple(img.shape)} ({src / 'images' / cam})")
+            mask_path = None if mask_dir is None else mask_dir / cam / f"{f:06d}.png"
+            unscored = None
+            if mask_path is None or (mask_source == "pipeline" and not mask_path.is_file()):
+                unscored = "none"  # no mask for this image (the captured background is not the render's)
+            else:
+                mask = torch.from_numpy(files.read_mask(mask_path) > 0)
+                if mask_source == "pipeline" and not bool(mask.any()):
+                    unscored = "empty"  # a failed estimate, not a subject out of view
+            if unscored:
+                rows.append({"kind": kind, "sequence": seq, "camera": cam, "frame": int(f),
+                             **{k: float("nan") for k in ("psnr_db", "ssim", "iou", "lpips", "dists")},
+                             "lpips_available": int(lp_ok), "dists_available": int(ds_ok), "box_source": box_source,
+                             "mask_source": unscored})
+                continue
             gt = torch.where(mask[..., None], img, bg)
             H, W = mask.shape
             box = M.subject_box_mask(pts[f], cams.K[ci], cams.world_to_cam[ci], H, W, pad)
@@ -117,7 +156,7 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
             row = {"kind": kind, "sequence": seq, "camera": cam, "frame": int(f),
                    "psnr_db": M.psnr(pred, gt, box), "ssim": M.ssim(crop_p, crop_g), "iou": M.iou(alpha, mask),
                    "lpips": float("nan"), "dists": float("nan"), "lpips_available": int(lp_ok),
-                   "dists_available": int(ds_ok), "box_source": box_source}
+                   "dists_available": int(ds_ok), "box_source": box_source, "mask_source": mask_source}
             if (lp_ok or ds_ok) and y1 > y0 and x1 > x0:
                 a = crop_p.permute(2, 0, 1)[None]
                 b = crop_g.permute(2, 0, 1)[None]
@@ -138,16 +177,20 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((r["kind"], r["sequence"]), []).append(r)
+    scored = [r for r in rows if r["mask_source"] in ("gt/masks", "pipeline")]
     summary = {"metrics": [], "lpips": notes["lpips"], "dists": notes["dists"], "box_pad_m": pad,
-               "code_version": __version__, "wall_s": time.perf_counter() - t0}
+               "ground_truth": bool(scored) and all(r["mask_source"] == "gt/masks" for r in scored),
+               "sources": sources, "code_version": __version__, "wall_s": time.perf_counter() - t0}
     for (kind, seq), rs in groups.items():
-        ent = {"kind": kind, "sequence": seq, "images": len(rs)}
+        ent = {"kind": kind, "sequence": seq, "images": len(rs),
+               "scored": sum(r["mask_source"] in ("gt/masks", "pipeline") for r in rs),
+               "mask_sources": sorted({r["mask_source"] for r in rs})}
         for k in ("psnr_db", "ssim", "iou", "lpips", "dists"):
             vals = [r[k] for r in rs if not math.isnan(r[k]) and not math.isinf(r[k])]
             ent[k] = float(np.mean(vals)) if vals else float("nan")
         summary["metrics"].append(ent)
-        log.info("%s %s: %d images, PSNR %.2f dB, SSIM %.4f, IoU %.4f, LPIPS %s, DISTS %s", kind, seq, len(rs),
-                 ent["psnr_db"], ent["ssim"], ent["iou"], f"{ent['lpips']:.4f}" if lp_ok else "unavailable",
+        log.info("%s %s: %d images (%d scored; masks: %s), PSNR %.2f dB, SSIM %.4f, IoU %.4f, LPIPS %s, DISTS %s", kind, seq, len(rs), ent["scored"],
+                 ", ".join(ent["mask_sources"]), ent["psnr_db"], ent["ssim"], ent["iou"], f"{ent['lpips']:.4f}" if lp_ok else "unavailable",
                  f"{ent['dists']:.4f}" if ds_ok else "unavailable")
     files.write_text(out_summary, json.dumps(summary, indent=1))
     return summary

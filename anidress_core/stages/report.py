@@ -20,7 +20,10 @@ labelled on the page with its file and the commit and date git reports for it
 and renders ``reports/report.html.j2`` (Jinja2) into one HTML file: tables shaped like the
 paper's (novel view / novel pose, full vs body_only), fitting error per frame and per
 ablation, rig RMSE per bone count, run time and memory per stage, image grids
-(ground truth | render | error heat map), the trade-off plots, and "skipped and why".
+(ground truth | render | error heat map), the trade-off plots, and "skipped and why". A captured
+scene has no ground truth: the page says so, its fit is not scored, and its image metrics and grids
+use the images and masks evaluate_field compared with (``metrics_summary.json`` ``sources``: the
+pipeline's masks, in the working cameras of a distorted sequence).
 Charts are inline SVG (:mod:`anidress_core.plots`), images inline PNG. A small script in
 the page records load errors and counts the images and tables that rendered, in
 ``<body data-*>`` attributes a headless-browser test reads.
@@ -172,7 +175,12 @@ def _field(res: Path, data: Path, seq: str, info: dict) -> dict:
         p = res / seq / v / "metrics_summary.json"
         if p.is_file():
             out["variants"][v] = files.read_json(p)
-    # image grid: ground truth | full | body_only | |error| of full, for one novel-view and one novel-pose image
+    # the images and masks evaluate_field compared with, per sequence (metrics_summary.json "sources"; older
+    # summaries: the scene's images and gt/masks)
+    sources = next((summ["sources"] for summ in out["variants"].values() if summ.get("sources")), {})
+    # ground truth: every summary scored against gt/masks (older summaries, without the key, always were)
+    out["ground_truth"] = all(summ.get("ground_truth", True) for summ in out["variants"].values())
+    # image grid: reference | full | body_only | |error| of full, for one novel-view and one novel-pose image
     for kind, rel in (("novel_view", "novel_view"), *[("novel_pose", f"novel_pose/{s['name']}")
                                                       for s in info.get("sequences", []) if s["role"] == "novel_pose"]):
         folder = res / seq / "full" / "renders" / rel
@@ -183,21 +191,36 @@ def _field(res: Path, data: Path, seq: str, info: dict) -> dict:
         frames, cams = r.get("frames", []), r.get("cameras", [])
         if not frames or not cams:
             continue
-        f, cam = frames[len(frames) // 2], cams[0]
+        f = frames[len(frames) // 2]
         gseq = seq if kind == "novel_view" else rel.split("/", 1)[1]
+        if sources.get(gseq):  # paths relative to the workflow's directory (the root above results/)
+            src, base = sources[gseq], res.parent.parent
+        else:  # an older summary: the scene's images and gt/masks
+            src, base = {"images": data / gseq / "images", "masks": data / gseq / "gt" / "masks",
+                         "mask_source": "gt/masks"}, Path()
+        images, masks = base / src["images"], base / src["masks"] if src.get("masks") else None
+        # the first camera with a mask (a captured scene's test cameras may have none), else the first
+        cam = next((c for c in cams if masks is not None and (masks / c / f"{f:06d}.png").is_file()), cams[0])
         try:
-            img = files.read_image(data / gseq / "images" / cam / f"{f:06d}.png")
-            mask = files.read_mask(data / gseq / "gt" / "masks" / cam / f"{f:06d}.png") > 0
-            bg = np.asarray(r.get("background", [0.0, 0.0, 0.0]), dtype=np.float32)
-            gt = np.where(mask[..., None], img, bg)
-            tiles = [("ground truth", gt)]
+            img = files.read_image(images / cam / f"{f:06d}.png")
+            mpath = None if masks is None else masks / cam / f"{f:06d}.png"
+            mask = None
+            if mpath is not None and (src["mask_source"] == "gt/masks" or mpath.is_file()):
+                mask = files.read_mask(mpath) > 0
+            if mask is not None and (src["mask_source"] == "gt/masks" or mask.any()):
+                bg = np.asarray(r.get("background", [0.0, 0.0, 0.0]), dtype=np.float32)
+                gt = np.where(mask[..., None], img, bg)
+                label = "ground truth" if src["mask_source"] == "gt/masks" else "captured image, pipeline's mask"
+            else:  # not scored (evaluate_field): the captured background is not the render's, no error map
+                gt, label = None, f"captured image ({'no' if mask is None else 'empty'} mask: not scored)"
+            tiles = [(label, img if gt is None else gt)]
             err = None
             for v in VARIANTS:
                 pp = res / seq / v / "renders" / rel / "rgb" / cam / f"{f:06d}.png"
                 if pp.is_file():
                     pred = files.read_image(pp)
                     tiles.append((v, pred))
-                    if v == "full":
+                    if v == "full" and gt is not None:
                         err = np.abs(pred - gt).mean(-1)
             if err is not None:
                 tiles.append(("|error| full (0..0.25)", _heat(err, 0.25)))
@@ -348,6 +371,8 @@ def collect_report(config: dict, root: str | os.PathLike = ".",
                             "tight-clothed scene (no garment template): the field uses body poses only "
                             "(DESIGN.md §6)"})
         check = files.read_json(res / "scene_check.json") if (res / "scene_check.json").is_file() else None
+        synthetic = bool(scfg.get("synthetic", True))
+        ground_truth = synthetic  # a captured scene: no ground truth (fit not scored; images under its own masks)
         seqs = []
         for s in scfg.get("sequences", []):
             seq = s["name"]
@@ -366,9 +391,19 @@ def collect_report(config: dict, root: str | os.PathLike = ".",
                                 "reason": "masks shipped with the data used as they are"})
             if garment:
                 ent["fit"] = _fit(res, seq)
+                if ent["fit"] is None and not synthetic:
+                    skipped.append({"scene": name, "stage": f"fit metrics ({seq})", "reason":
+                                    "no ground truth (captured scene: no true garment meshes): the fit is not scored"})
             if s["role"] == "train":
                 ent["field"] = _field(res, data, seq, info or scfg)
                 for v, summ in ent["field"]["variants"].items():
+                    if not summ.get("ground_truth", True):
+                        n = sum(m.get("images", 0) for m in summ.get("metrics", []))
+                        k = sum(m.get("scored", m.get("images", 0)) for m in summ.get("metrics", []))
+                        skipped.append({"scene": name, "stage": f"image metrics against ground truth ({seq}, {v})",
+                                        "reason": f"no ground truth: {k} of {n} images scored against the captured "
+                                                  "images under the pipeline's masks (IoU: agreement with those "
+                                                  "masks); images without a mask or with an empty one not scored (n/a)"})
                     for metric in ("lpips", "dists"):
                         note = summ.get(metric, "")
                         if note and note != "available":
@@ -385,6 +420,8 @@ def collect_report(config: dict, root: str | os.PathLike = ".",
         stage_rows.sort(key=lambda r: -r["total_s"])
         scenes.append({
             "name": name, "kind": scfg.get("kind"), "garment": garment, "info": info, "check": check,
+            "synthetic": synthetic,
+            "ground_truth": ground_truth and all((q["field"] or {}).get("ground_truth", True) for q in seqs),
             "sims": _sims(res) if garment else [], "rig": _rig(res) if garment else None, "sequences": seqs,
             "runtimes": stage_rows,
             "runtime_chart": plots.bar_chart([(r["stage"], r["total_s"]) for r in stage_rows],

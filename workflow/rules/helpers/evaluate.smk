@@ -13,3 +13,13 @@ def field_eval_undistorted(scene, seq, variant):
     """{sequence: undistorted folder} of the evaluated sequences whose cameras have lens distortion."""
     seqs = {r[1] for r in field_eval_renders(scene, seq, variant)}
     return {s: undistorted_dir(scene, s) for s in sorted(seqs) if undistorted_dir(scene, s)}
+
+
+def field_eval_masks(scene, seq, variant):
+    """{sequence: masks folder} of the evaluated sequences without ground-truth masks (a captured scene's
+    gt/masks): the masks the pipeline has, masks_dir() of helpers/cues.smk (shipped, or estimated by rule
+    masks; in the working cameras of a distorted sequence). Synthetic scenes: {} (rule synth writes gt/)."""
+    if config["scenes"][scene]["synthetic"]:
+        return {}
+    seqs = {r[1] for r in field_eval_renders(scene, seq, variant)}
+    return {s: masks_dir(scene, s) for s in sorted(seqs) if not scene_part_files(scene, f"{s}/gt_masks")}

@@ -12,6 +12,8 @@ def report_reference(key):
 
 
 def report_scenes():
-    """What the page takes from the config: the scenes run, their kind and sequences (names, roles, frames)."""
+    """What the page takes from the config: the scenes run, their kind, whether synthetic (a captured scene has no
+    ground truth) and sequences (names, roles, frames)."""
     return {"run_scenes": config["run_scenes"],
-            "scenes": {s: {k: config["scenes"][s][k] for k in ("kind", "sequences")} for s in config["run_scenes"]}}
+            "scenes": {s: {k: config["scenes"][s][k] for k in ("kind", "synthetic", "sequences")}
+                       for s in config["run_scenes"]}}
