@@ -311,10 +311,12 @@ def _cmd_export_capture(args: argparse.Namespace) -> None:
 
 
 def _cmd_refine_body(args: argparse.Namespace) -> None:
+    from .body.refine import LM_SETTINGS, RefineConfig
     from .stages.refine_body import run_refine_body
 
+    cfg = RefineConfig(**LM_SETTINGS) if args.method == "lm" else RefineConfig()
     rec = run_refine_body(args.scene_dir, args.sequence, args.out, masks_dir=args.masks, chunk=args.chunk,
-                          max_frames=args.max_frames, threads=args.threads)
+                          max_frames=args.max_frames, cfg=cfg, threads=args.threads)
     print(f"{args.out}/smpl: {rec['frames']} frames x {len(rec['cameras'])} cameras refined in {rec['seconds']:.1f} s "
           f"({rec['seconds_per_frame']:.2f} s/frame); body silhouette IoU {rec['body_iou_before']:.3f} -> "
           f"{rec['body_iou_after']:.3f}")
@@ -629,6 +631,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--masks", help="label masks <cam>/<frame:06d>.png (default: <scene>/<sequence>/masks)")
     s.add_argument("--chunk", type=int, default=16, help="frames optimised together (default: %(default)s)")
     s.add_argument("--max-frames", type=int, help="only the first N frames")
+    s.add_argument("--method", default="adam", choices=["adam", "lm"],
+                   help="optimiser: Adam or Levenberg-Marquardt (default: %(default)s)")
     s.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
     s.set_defaults(func=_cmd_refine_body)
 

@@ -84,7 +84,8 @@ def run_refine_body(scene_dir: str | os.PathLike, seq: str, out: str | os.PathLi
         for p in (out / "smpl").glob("*.json.tmp"):
             p.rename(p.with_suffix(""))
     rec = {
-        "scene_dir": str(scene_dir), "sequence": seq, "masks_dir": str(mdir), "frames": T, "cameras": list(cams.names),
+        "scene_dir": str(scene_dir), "sequence": seq, "method": cfg.method, "masks_dir": str(mdir), "frames": T,
+        "cameras": list(cams.names),
         "config": dataclasses.asdict(cfg), "chunk": chunk, "seconds": seconds, "seconds_per_frame": seconds / max(T, 1),
         "body_iou_before": iou_before, "body_iou_after": iou_after, "chunks": chunks,
     }

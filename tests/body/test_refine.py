@@ -15,7 +15,8 @@ import torch
 from anidress_core import raster
 from anidress_core.body.model import mannequin_model
 from anidress_core.body.motions import make_motion
-from anidress_core.body.refine import RefineConfig, mask_targets, refine_body_poses, silhouette_iou
+from anidress_core.body.refine import (LM_SETTINGS, RefineConfig, mask_targets, project_points, project_points_jacobian,
+                                       refine_body_poses, silhouette_iou)
 from anidress_core.camera import ring_cameras
 from anidress_core.stages.export_capture import noisy_body, pose_errors
 
@@ -85,6 +86,18 @@ def test_exact_poses_stay_put(scene):
     assert e["joint_error_cm"] < 0.45, e
 
 
+def test_levenberg_marquardt_reduces_noise_and_keeps_exact_poses(scene):
+    body, m, cams, labels, true = scene
+    cfg = RefineConfig(**LM_SETTINGS)
+    nz = noisy_body(body, true["poses"], true["Rh"], true["Th"], None, 2.0, 30.0, seed=1)
+    P, R, Th = (torch.from_numpy(a).float() for a in (nz.poses, nz.Rh, nz.Th))
+    r = refine_body_poses(body, cams.K, cams.world_to_cam, labels, P, R, Th, cfg=cfg)
+    assert _err(body, true, r)["joint_error_cm"] < 0.5 * nz.errors["joint_error_cm"]
+    assert r.loss_curve[-1] < r.loss_curve[0] and len(r.loss_curve) <= cfg.lm_iters + 1
+    e = _err(body, true, refine_body_poses(body, cams.K, cams.world_to_cam, labels, m.poses, m.Rh, m.Th, cfg=cfg))
+    assert e["joint_error_cm"] < 0.3, e  # measured 0.135 cm
+
+
 def test_empty_masks_give_no_nan(scene):
     body, m, cams, labels, true = scene
     lab = labels.clone()
@@ -92,15 +105,17 @@ def test_empty_masks_give_no_nan(scene):
     lab[2] = 0  # one frame without any mask
     nz = noisy_body(body, true["poses"], true["Rh"], true["Th"], None, 2.0, 30.0, seed=2)
     P, R, Th = (torch.from_numpy(a).float() for a in (nz.poses, nz.Rh, nz.Th))
-    r = refine_body_poses(body, cams.K, cams.world_to_cam, lab, P, R, Th, cfg=RefineConfig(iters=10))
-    assert all(torch.isfinite(x).all() for x in (r.poses, r.Rh, r.Th))
-    assert all(np.isfinite(v) for v in r.terms_after.values())
+    for cfg in (RefineConfig(iters=10), RefineConfig(**dict(LM_SETTINGS, lm_iters=3))):
+        r = refine_body_poses(body, cams.K, cams.world_to_cam, lab, P, R, Th, cfg=cfg)
+        assert all(torch.isfinite(x).all() for x in (r.poses, r.Rh, r.Th))
+        assert all(np.isfinite(v) for v in r.terms_after.values())
     tg = mask_targets(lab)
     assert not tg.view_ok[:, 0].any() and not tg.view_ok[2].any() and tg.view_ok[0, 1]
     assert (tg.outline_tc[:, 1] != 0).all() and (tg.outline_tc[:, 0] != 2).all()
     # everything empty: only the prior and the smoothness act, the poses stay finite
-    r = refine_body_poses(body, cams.K, cams.world_to_cam, torch.zeros_like(lab), P, R, Th, cfg=RefineConfig(iters=3))
-    assert torch.isfinite(r.poses).all() and r.terms_after["inside"] == 0.0 and r.terms_after["cover"] == 0.0
+    for cfg in (RefineConfig(iters=3), RefineConfig(**dict(LM_SETTINGS, lm_iters=2))):
+        r = refine_body_poses(body, cams.K, cams.world_to_cam, torch.zeros_like(lab), P, R, Th, cfg=cfg)
+        assert torch.isfinite(r.poses).all() and r.terms_after["inside"] == 0.0 and r.terms_after["cover"] == 0.0
 
 
 def test_mask_targets_signed_distance_and_outline():
@@ -115,6 +130,25 @@ def test_mask_targets_signed_distance_and_outline():
     # body rows 2..4: top row (v = 2 - 0.5) and the side columns (u = 2 - 0.5, 6 + 0.5); never row 5+
     assert (xy[:, 1] <= 4.0).all() and xy.shape[0] == 5 + 2 + 2
     assert int(torch.isclose(xy[:, 1], torch.tensor(1.5)).sum()) == 3  # top row without the corners
+
+
+def test_projection_jacobian_matches_autograd_float64():
+    """The hand-written d uv / d x of the LM system against autograd (float64, skewed K)."""
+    cams = ring_cameras(n=3, radius=3.0, height=1.0, target=(0, 0, 0.9), focal_px=100.0, image_height=64,
+                        image_width=48, dtype=torch.float64)
+    K = cams.K.clone()
+    K[:, 0, 1] = 0.7
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 5, 3, generator=g, dtype=torch.float64) * torch.tensor([0.6, 0.6, 1.6], dtype=torch.float64) \
+        - torch.tensor([0.3, 0.3, 0.0], dtype=torch.float64)
+    uv, z = project_points(x, K, cams.world_to_cam)
+    J = project_points_jacobian(uv, z, K, cams.world_to_cam)  # (T, C, V, 2, 3)
+    ref = torch.autograd.functional.jacobian(lambda y: project_points(y, K, cams.world_to_cam)[0], x)
+    # ref[t, c, v, i, s, w, k]: only s = t, w = v is non-zero
+    t, v = torch.meshgrid(torch.arange(2), torch.arange(5), indexing="ij")
+    diag = ref[t, :, v, :, t, v].permute(0, 2, 1, 3, 4)  # (T, C, V, 2, 3)
+    assert torch.allclose(J, diag, atol=1e-10)
+    assert torch.autograd.gradcheck(lambda y: project_points(y, K, cams.world_to_cam)[0], (x.requires_grad_(),))
 
 
 def test_bad_shapes_are_named(scene):
@@ -141,6 +175,8 @@ def test_stage_and_cli_write_refined_smpl(tmp_path, mannequin_cache):
     run_export_capture(data, cap, distort=False, masks="parser", seed=3, normals=False, threads=1)
     out = tmp_path / "refined"
     assert main(["refine-body", str(cap), "walk", str(out), "--chunk", "2"]) in (0, None)
+    assert main(["refine-body", str(cap), "walk", str(tmp_path / "lm"), "--method", "lm"]) in (0, None)
+    assert json.loads((tmp_path / "lm" / "refine_body.json").read_text())["method"] == "lm"
     d = read_easymocap_smpl_dir(out / "smpl")
     src = read_easymocap_smpl_dir(cap / "walk" / "smpl")
     assert d["frames"] == src["frames"] and np.isfinite(d["poses"]).all() and np.isfinite(d["Th"]).all()
