@@ -5,7 +5,7 @@ cameras whose intri.yml has no H_/W_, 4:3 images, noisy EasyMocap >= 0.2 body fi
 background plates, no garment texture, no masks. With the config entry it prints:
 
 1. the default cues/masks/background 'plate' stops at validate_scene with one message naming the
-   missing backgrounds/ folder and the setting (before any long stage; a copy of the scene);
+   missing backgrounds/ folder and the setting (before any long stage);
 2. with cues/masks/background: temporal_median, `snakemake` (default target: every rule through
    evaluate_field and the report) runs with no failure; metrics.csv scores the images with a mask
    of the pipeline (mask_source 'pipeline') and leaves the test camera, which rule masks did not
@@ -22,7 +22,6 @@ import csv
 import json
 import math
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -79,23 +78,32 @@ def _write_cfg(wd: Path, entry: dict, **extra) -> None:
                                                  **extra}))
 
 
-def test_missing_plates_are_named_by_validate_scene(capture, tmp_path):
-    """The default cues/masks/background 'plate' on a capture without plates: validate_scene names the missing
-    backgrounds/ folder and the setting, and nothing after it runs."""
-    src, entry = capture
-    shutil.copytree(src / "data", tmp_path / "data")
-    _write_cfg(tmp_path, entry)
-    res = _snakemake(tmp_path)
+@pytest.fixture(scope="module")
+def plates_run(capture):
+    """`snakemake` with the default cues/masks/background 'plate' on the capture: (result, validate_scene's log,
+    whether scene_check.json / template.npz were written). Run first in the capture's workdir: the manifests
+    of rule scene_files (2 s each) serve the run of ``ran`` too."""
+    wd, entry = capture
+    _write_cfg(wd, entry)
+    res = _snakemake(wd)
+    log = wd / "logs" / "cap" / "validate_scene.log"
+    out = wd / "results" / "cap"
+    return res, log.read_text() if log.is_file() else "", (out / "scene_check.json").exists(), \
+        (out / "template.npz").exists()
+
+
+def test_missing_plates_are_named_by_validate_scene(plates_run):
+    """The default 'plate' on a capture without plates: validate_scene names the missing backgrounds/ folder
+    and the setting, and nothing after it runs."""
+    res, log, checked, template = plates_run
     assert res.returncode != 0
-    log = (tmp_path / "logs" / "cap" / "validate_scene.log").read_text()
-    assert "cues/masks/background is 'plate'" in log and "temporal_median" in log, log
+    assert "cues/masks/background is 'plate'" in log and "temporal_median" in log, log + _tail(res)
     assert str(Path("walk") / "backgrounds") in log, log
-    assert not (tmp_path / "results" / "cap" / "scene_check.json").exists()
-    assert not (tmp_path / "results" / "cap" / "template.npz").exists()  # stopped before any long stage
+    assert not checked and not template  # stopped before any long stage
 
 
 @pytest.fixture(scope="module")
-def ran(capture):
+def ran(capture, plates_run):
     """The capture's workdir after `snakemake` (default target) with temporal-median plates."""
     wd, entry = capture
     _write_cfg(wd, entry, cues={"masks": {"background": "temporal_median"}})
