@@ -315,7 +315,8 @@ def _cmd_refine_body(args: argparse.Namespace) -> None:
     from .stages.refine_body import run_refine_body
 
     cfg = RefineConfig(**LM_SETTINGS) if args.method == "lm" else RefineConfig()
-    rec = run_refine_body(args.scene_dir, args.sequence, args.out, masks_dir=args.masks, chunk=args.chunk,
+    rec = run_refine_body(args.scene_dir, args.sequence, args.out, masks_dir=args.masks,
+                          undistorted_dir=args.undistorted, chunk=args.chunk,
                           max_frames=args.max_frames, cfg=cfg, threads=args.threads)
     print(f"{args.out}/smpl: {rec['frames']} frames x {len(rec['cameras'])} cameras refined in {rec['seconds']:.1f} s "
           f"({rec['seconds_per_frame']:.2f} s/frame); body silhouette IoU {rec['body_iou_before']:.3f} -> "
@@ -625,10 +626,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_export_capture)
 
     s = sub.add_parser("refine-body", help="refine a sequence's body poses (smpl/) against its label masks")
-    s.add_argument("scene_dir", help="data/<scene> (pinhole cameras: undistort first)")
+    s.add_argument("scene_dir", help="data/<scene>")
     s.add_argument("sequence", help="the sequence name")
     s.add_argument("out", help="folder for smpl/<frame>.json and refine_body.json")
     s.add_argument("--masks", help="label masks <cam>/<frame:06d>.png (default: <scene>/<sequence>/masks)")
+    s.add_argument("--undistorted", help="the sequence undistorted by rule undistort (cameras with distortion)")
     s.add_argument("--chunk", type=int, default=16, help="frames optimised together (default: %(default)s)")
     s.add_argument("--max-frames", type=int, help="only the first N frames")
     s.add_argument("--method", default="adam", choices=["adam", "lm"],

@@ -1,8 +1,9 @@
 """Stage refine_body: a sequence's body poses refined against its label masks (issue 24 item 5).
 
-Reads ``<scene>/<seq>/smpl/`` (EasyMocap), the cameras (pinholes: undistort first) and label
-masks ``<masks_dir>/<cam>/<frame:06d>.png`` (0 background, 1 body, 2 garment; default
-``<scene>/<seq>/masks``, the cue stage's output works too), refines the poses with
+Reads ``<scene>/<seq>/smpl/`` (EasyMocap), the cameras (pinholes, or the sequence undistorted by rule
+undistort) and label masks ``<masks_dir>/<cam>/<frame:06d>.png`` (0 background, 1 body, 2 garment;
+default ``<scene>/<seq>/masks`` or the undistorted copy's; the cue stage's
+``results/<scene>/<seq>/masks`` works too), refines the poses with
 :func:`anidress_core.body.refine.refine_body_poses` in chunks of ``chunk`` frames, and writes
 
     <out>/smpl/<frame:06d>.json   refined poses (EasyMocap json, poses of 72 with a zero root; shapes as read)
@@ -23,7 +24,7 @@ import torch
 from ..body.refine import RefineConfig, refine_body_poses, silhouette_iou
 from ..io import files
 from ..io.motion import write_easymocap_smpl_dir
-from ..io.scene import load_body, load_sequence_motion, scene_cameras
+from ..io.scene import load_body, load_sequence_motion, scene_cameras, sequence_source
 from ..io.scene_info import read_scene
 
 __all__ = ["run_refine_body"]
@@ -34,16 +35,22 @@ def _frame_numbers(smpl_dir: Path) -> list[int]:
 
 
 def run_refine_body(scene_dir: str | os.PathLike, seq: str, out: str | os.PathLike, masks_dir: str | None = None,
-                    chunk: int = 16, max_frames: int | None = None, cfg: RefineConfig = RefineConfig(),
-                    threads: int = 1) -> dict:
-    """Refine the body poses of ``seq``; write ``out``/smpl and ``out``/refine_body.json. Returns the record."""
+                    undistorted_dir: str | os.PathLike | None = None, chunk: int = 16, max_frames: int | None = None,
+                    cfg: RefineConfig = RefineConfig(), threads: int = 1) -> dict:
+    """Refine the body poses of ``seq``; write ``out``/smpl and ``out``/refine_body.json. Returns the record.
+
+    undistorted_dir: the sequence undistorted to pinhole cameras (rule undistort) when the scene's cameras
+    have lens distortion (:func:`anidress_core.io.scene.sequence_source`); its cameras and, by default,
+    its ``masks/`` are read (the body motion is the scene's ``smpl/``).
+    """
     torch.set_num_threads(max(1, int(threads)))
     scene_dir, out = Path(scene_dir), Path(out)
     info = read_scene(scene_dir)
-    cams = scene_cameras(scene_dir, seq, info=info, dtype=torch.float32)
+    src = sequence_source(scene_dir, seq, undistorted_dir, info)
+    cams = scene_cameras(scene_dir, seq, info=info, dtype=torch.float32, seq_dir=src)
     if cams.dist is not None and bool((cams.dist != 0).any()):
-        raise ValueError(f"{scene_dir / seq / 'intri.yml'}: dist_<cam> is not zero; refine_body needs pinhole "
-                         "cameras (run undistort first and point it at the undistorted sequence)")
+        raise ValueError(f"{src / 'intri.yml'}: dist_<cam> is not zero; refine_body needs pinhole cameras "
+                         "(rule undistort)")
     motion = load_sequence_motion(scene_dir, seq, float(info.get("fps", 30.0)))
     frames = _frame_numbers(scene_dir / seq / "smpl")
     if len(frames) != motion.poses.shape[0]:
@@ -51,7 +58,7 @@ def run_refine_body(scene_dir: str | os.PathLike, seq: str, out: str | os.PathLi
                          f"{motion.poses.shape[0]} frames read")
     T = len(frames) if max_frames is None else min(len(frames), int(max_frames))
     body = load_body(scene_dir, info)
-    mdir = scene_dir / seq / "masks" if masks_dir is None else Path(masks_dir)
+    mdir = src / "masks" if masks_dir is None else Path(masks_dir)
     H, W = int(cams.height), int(cams.width)
 
     def read(t: int) -> np.ndarray:

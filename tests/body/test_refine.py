@@ -184,8 +184,13 @@ def test_stage_and_cli_write_refined_smpl(tmp_path, mannequin_cache):
     rec = json.loads((out / "refine_body.json").read_text())
     assert rec["frames"] == len(src["frames"]) and len(rec["chunks"]) == 2
     assert 0 < rec["body_iou_before"] <= 1 and 0 < rec["body_iou_after"] <= 1 and rec["seconds_per_frame"] > 0
-    # distorted cameras are refused, naming the file
+    # distorted cameras: refused without the undistorted copy (naming the file), refined with it
+    from anidress_core.stages.undistort import run_undistort
+
     dcap = tmp_path / "cap" / "d"
     run_export_capture(data, dcap, distort=True, masks="parser", seed=3, normals=False, threads=1)
     with pytest.raises(ValueError, match="intri.yml"):
         run_refine_body(dcap, "walk", tmp_path / "x")
+    run_undistort(dcap, "walk", tmp_path / "u", threads=1, progress=False)
+    rec = run_refine_body(dcap, "walk", tmp_path / "x", undistorted_dir=tmp_path / "u")
+    assert rec["masks_dir"] == str(tmp_path / "u" / "masks") and (tmp_path / "x" / "smpl" / "000002.json").is_file()
