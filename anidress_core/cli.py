@@ -311,10 +311,10 @@ def _cmd_export_capture(args: argparse.Namespace) -> None:
 
 
 def _cmd_refine_body(args: argparse.Namespace) -> None:
-    from .body.refine import LM_SETTINGS, RefineConfig
+    from .body.refine import ADAM_SETTINGS, RefineConfig
     from .stages.refine_body import run_refine_body
 
-    cfg = RefineConfig(**LM_SETTINGS) if args.method == "lm" else RefineConfig()
+    cfg = RefineConfig(**ADAM_SETTINGS) if args.method == "adam" else RefineConfig()
     rec = run_refine_body(args.scene_dir, args.sequence, args.out, masks_dir=args.masks,
                           undistorted_dir=args.undistorted, chunk=args.chunk,
                           max_frames=args.max_frames, cfg=cfg, threads=args.threads)
@@ -633,8 +633,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--undistorted", help="the sequence undistorted by rule undistort (cameras with distortion)")
     s.add_argument("--chunk", type=int, default=16, help="frames optimised together (default: %(default)s)")
     s.add_argument("--max-frames", type=int, help="only the first N frames")
-    s.add_argument("--method", default="adam", choices=["adam", "lm"],
-                   help="optimiser: Adam or Levenberg-Marquardt (default: %(default)s)")
+    s.add_argument("--method", default="lm", choices=["lm", "adam"],
+                   help="optimiser: Levenberg-Marquardt or Adam (default: %(default)s)")
     s.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
     s.set_defaults(func=_cmd_refine_body)
 

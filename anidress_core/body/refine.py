@@ -24,14 +24,16 @@ garment fit. :func:`refine_body_poses` does this for a sequence, all frames at o
   frames, in units of ``sigma_accel`` (the input's jitter is white noise of a few mm).
 
 The unknowns are additive increments of the axis-angle vectors (small next to pi) and of
-Th; they are optimised with Adam (autograd through :meth:`BodyModel.pose`; the default) or with
-Levenberg-Marquardt on the Gauss-Newton system (``method="lm"``, settings :data:`LM_SETTINGS`).
+Th; they are optimised with Levenberg-Marquardt on the Gauss-Newton system (``method="lm"``, the
+default) or with Adam (autograd through :meth:`BodyModel.pose`; settings :data:`ADAM_SETTINGS`).
 Measured on the demo skirt exported as a capture (12 cameras 256 x 256, 6500-vertex mannequin,
 parser-like masks, 2.2 cm start, 16 frames, one CPU thread of a shared 2-core machine): Adam 20 steps
 0.93 cm at 0.65 s/frame, 50 steps 0.84 cm at 1.3 s/frame; LM 3 evaluations 0.94 cm at 1.1 s/frame,
 6 evaluations 0.79 cm at 1.7 s/frame (with the default prior weight 0.05 LM reaches a lower loss but
-1.3 cm: it fits the parser masks' errors, hence w_prior = 2 for LM). On exact masks (the tests' scene)
-LM is faster: 5 evaluations 0.55 cm in 0.85 s against Adam's 0.59 cm in 1.45 s. Views whose
+1.3 cm: it fits the parser masks' errors, hence w_prior = 2 for LM). The whole walk (60 frames, chunks
+of 16, ``anidress refine-body``): 2.00 -> 0.72 cm with LM at 2.05 s/frame, 0.79 cm with Adam at
+2.4 s/frame, joint angles 2.58 -> 2.43 deg with LM, 2.86 deg with Adam. On exact masks (the tests' scene)
+LM is faster too: 5 evaluations 0.55 cm in 0.85 s against Adam's 0.59 cm in 1.45 s. Views whose
 mask holds no subject pixel (the subject is not seen or the mask is missing) give no
 residual. Cameras are pinholes without distortion (undistort the masks first, like the
 garment fit).
@@ -54,26 +56,26 @@ from torch import Tensor
 
 from .model import BodyModel
 
-__all__ = ["LM_SETTINGS", "RefineConfig", "RefineResult", "MaskTargets", "mask_targets", "refine_body_poses",
+__all__ = ["ADAM_SETTINGS", "RefineConfig", "RefineResult", "MaskTargets", "mask_targets", "refine_body_poses",
            "silhouette_iou", "project_points", "project_points_jacobian"]
 
 BODY, GARMENT = 1, 2
 
 
-LM_SETTINGS = {"method": "lm", "lm_iters": 6, "w_prior": 2.0}
-"""RefineConfig fields for Levenberg-Marquardt (``RefineConfig(**LM_SETTINGS)``; see the module doc)."""
+ADAM_SETTINGS = {"method": "adam", "w_prior": 0.05}
+"""RefineConfig fields for Adam (``RefineConfig(**ADAM_SETTINGS)``; the defaults are Levenberg-Marquardt's)."""
 
 
 @dataclass(frozen=True)
 class RefineConfig:
     """Settings of :func:`refine_body_poses` (weights are relative to L_inside's)."""
 
-    method: str = "adam"
+    method: str = "lm"
     """``"adam"`` (first-order, autograd) or ``"lm"`` (Levenberg-Marquardt on the Gauss-Newton system,
     IRLS weights for the robust penalty, :func:`anidress_core.fit.lm.levenberg_marquardt`)."""
     iters: int = 50
     """Adam steps."""
-    lm_iters: int = 12
+    lm_iters: int = 6
     """Levenberg-Marquardt evaluations (accepted + rejected steps)."""
     lm_damping: float = 1e-3
     """Initial LM damping relative to the largest diagonal entry of the system."""
@@ -89,8 +91,9 @@ class RefineConfig:
     """Weight of L_cover."""
     robust_px: float = 3.0
     """Scale of the pseudo-Huber penalty of the silhouette residuals (pixels)."""
-    w_prior: float = 0.05
-    """Weight of L_prior (mean over components of (change / sigma)^2 per frame)."""
+    w_prior: float = 2.0
+    """Weight of L_prior (mean over components of (change / sigma)^2 per frame); 0.05 for Adam, whose few
+    small steps regularise by themselves (:data:`ADAM_SETTINGS`)."""
     sigma_rot: float = 0.05
     """Typical error of the input rotations (rad)."""
     sigma_trans: float = 0.02
