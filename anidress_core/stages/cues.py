@@ -275,7 +275,7 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
         # 2. every frame, all cameras at once
         with atomic_dir(out_dir) as tmp:
             pending = []
-            subject = 0.0
+            subject, empty = 0.0, []
             for f in tqdm(frames, desc=f"masks {seq}", unit="frame", disable=not progress):
                 if f in cache:
                     im, fg, pr = cache.pop(f)
@@ -284,6 +284,7 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
                     pr = prior.labels(f) if has_garment else None
                 lab = cue_masks.estimate_masks(im, plates, pr, params, cam_idx, model, has_garment, fg)
                 subject += float((lab > 0).mean())
+                empty += [f"{cam}/{f:06d}" for c, cam in enumerate(names) if not (lab[c] > 0).any()]
                 for c, cam in enumerate(names):
                     pending.append(pool.submit(files.write_mask, tmp / cam / f"{f:06d}.png", lab[c]))
                 if len(pending) > 64:
@@ -292,9 +293,21 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
                     pending = []
             for p in pending:
                 p.result()
+            n_masks = len(names) * len(frames)
+            if empty:
+                log.warning("masks %s/%s: %d of %d masks have no subject pixel: %s%s", scene_dir.name, seq, len(empty),
+                            n_masks, ", ".join(empty[:5]), " ..." if len(empty) > 5 else "")
+            limit = float(cfg.get("max_empty_fraction", 0.5))
+            if len(empty) > limit * n_masks:  # nothing is written (atomic_dir): no fit or field on empty masks
+                raise ValueError(
+                    f"{seq_dir}: {len(empty)} of {n_masks} estimated masks hold no subject pixel (more than "
+                    f"cues/masks/max_empty_fraction {limit:g}; background {cfg.get('background', 'plate')}): with "
+                    "temporal_median, a subject that hardly moves over the frames is its own median plate; ship "
+                    "masks/ (e.g. from a human parser) or backgrounds/ plates, or use more frames (median_frames)")
     wall = time.perf_counter() - t_start
     stats = {"cameras": len(names), "frames": len(frames), "wall_s": wall,
-             "per_frame_s": wall / max(1, len(frames)), "subject_fraction": subject / max(1, len(frames))}
+             "per_frame_s": wall / max(1, len(frames)), "subject_fraction": subject / max(1, len(frames)),
+             "empty_masks": len(empty)}
     log.info("masks %s/%s: wrote %s in %.1f s (%.3f s per frame of %d cameras)", scene_dir.name, seq, out_dir,
              wall, stats["per_frame_s"], len(names))
     return stats

@@ -174,3 +174,24 @@ def test_temporal_median_background_option(tiny_scene, cues_config, tmp_path):
     with pytest.raises(ValueError, match="background"):
         sc.run_masks(scene_dir, "walk", tmp_path / "m2", {**cfg, "background": "green"}, tpl, progress=False)
     assert not (tmp_path / "m2").exists()
+
+
+def test_masks_that_are_mostly_empty_fail_the_stage(tiny_scene, cues_config, tmp_path):
+    """A subject that does not move is its own temporal-median plate: every mask comes out empty. The
+    stage fails naming the setting (nothing written), unless max_empty_fraction allows it; then
+    the count is in the stats."""
+    scene_dir = _copy_scene(tiny_scene, tmp_path)
+    tpl = tiny_scene[1]
+    images = scene_dir / "walk" / "images"
+    for cam_dir in images.iterdir():
+        first, *rest = sorted(cam_dir.iterdir())
+        for p in rest:
+            shutil.copyfile(first, p)
+    cfg = {**cues_config["masks"], "background": "temporal_median"}
+    out = tmp_path / "m"
+    with pytest.raises(ValueError, match="max_empty_fraction"):
+        sc.run_masks(scene_dir, "walk", out, cfg, tpl, cameras=["01", "02"], progress=False)
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".m")]
+    st = sc.run_masks(scene_dir, "walk", out, {**cfg, "max_empty_fraction": 1.0}, tpl, cameras=["01", "02"],
+                      progress=False)
+    assert st["empty_masks"] == 2 * st["frames"]
