@@ -57,7 +57,7 @@ from torch import Tensor
 from .model import BodyModel
 
 __all__ = ["ADAM_SETTINGS", "RefineConfig", "RefineResult", "MaskTargets", "mask_targets", "refine_body_poses",
-           "silhouette_iou", "project_points", "project_points_jacobian"]
+           "silhouette_iou", "project_points", "project_points_jacobian", "gauss_newton_system"]
 
 BODY, GARMENT = 1, 2
 
@@ -248,29 +248,14 @@ def _nearest_vertex(uv: Tensor, z: Tensor, tgt: MaskTargets, chunk: int = 1 << 2
     return idx[view, k]
 
 
-def refine_body_poses(body_model: BodyModel, K: Tensor, world_to_cam: Tensor, masks: Tensor, poses: Tensor,
-                      Rh: Tensor, Th: Tensor, shapes: Tensor | None = None,
-                      cfg: RefineConfig = RefineConfig()) -> RefineResult:
-    """Refine body poses per frame against label masks (all frames optimised together).
+def _objective(body_model: BodyModel, K: Tensor, world_to_cam: Tensor, masks: Tensor, poses: Tensor, Rh: Tensor,
+               Th: Tensor, shapes: Tensor | None, cfg: RefineConfig):
+    """The loss of :func:`refine_body_poses` as a function of the increments (validated inputs).
 
-    body_model: the body (SMPL or mannequin). K: (C, 3, 3), world_to_cam: (C, 4, 4) pinhole
-    cameras of the masks. masks: (T, C, H, W) integer labels 0 background / 1 body / 2 garment.
-    poses: (T, 72) axis-angle (EasyMocap: root ``poses[:, :3]`` normally zero; it is kept fixed,
-    the global rotation is refined through Rh); Rh, Th: (T, 3); shapes: (S,), (T, S) or None.
-    Returns :class:`RefineResult` with poses (T, 72), Rh, Th (T, 3) float32 (the input's dtype
-    for float64 input). See the module docstring for the loss.
+    Returns (body, P0, R0, T0, shapes, K, world_to_cam, sdf, targets, loss) in the working dtype; loss(d_pose
+    (T, 69), d_rh (T, 3), d_th (T, 3), reassign) -> an evaluation (.loss float, .total Tensor, .terms, .aux).
     """
-    if poses.ndim != 2 or poses.shape[1] != 72:
-        raise ValueError(f"refine_body_poses: poses must be (T, 72), got {tuple(poses.shape)}")
     T = poses.shape[0]
-    if Rh.shape != (T, 3) or Th.shape != (T, 3):
-        raise ValueError(f"refine_body_poses: Rh and Th must be ({T}, 3), got {tuple(Rh.shape)}, {tuple(Th.shape)}")
-    if K.ndim != 3 or K.shape[1:] != (3, 3) or world_to_cam.shape != (K.shape[0], 4, 4):
-        raise ValueError(f"refine_body_poses: K must be (C, 3, 3) and world_to_cam (C, 4, 4), got "
-                         f"{tuple(K.shape)}, {tuple(world_to_cam.shape)}")
-    C = K.shape[0]
-    if masks.ndim != 4 or masks.shape[:2] != (T, C):
-        raise ValueError(f"refine_body_poses: masks must be ({T}, {C}, H, W), got {tuple(masks.shape)}")
     dtype = poses.dtype if poses.dtype == torch.float64 else torch.float32
     body = body_model
     if body.v_template.dtype != dtype:
@@ -331,6 +316,35 @@ def refine_body_poses(body_model: BodyModel, K: Tensor, world_to_cam: Tensor, ma
         aux = {"uv": uv, "z": z, "d_out": d_out, "w": w, "n_in": n_in, "d": d, "vertex_of": vertex_of, "acc": acc}
         return _Eval(float(total.detach()), total, terms, aux)
 
+    return body, P0, R0, T0, sh, Kd, Ed, sdf, tgt, loss
+
+
+def refine_body_poses(body_model: BodyModel, K: Tensor, world_to_cam: Tensor, masks: Tensor, poses: Tensor,
+                      Rh: Tensor, Th: Tensor, shapes: Tensor | None = None,
+                      cfg: RefineConfig = RefineConfig()) -> RefineResult:
+    """Refine body poses per frame against label masks (all frames optimised together).
+
+    body_model: the body (SMPL or mannequin). K: (C, 3, 3), world_to_cam: (C, 4, 4) pinhole
+    cameras of the masks. masks: (T, C, H, W) integer labels 0 background / 1 body / 2 garment.
+    poses: (T, 72) axis-angle (EasyMocap: root ``poses[:, :3]`` normally zero; it is kept fixed,
+    the global rotation is refined through Rh); Rh, Th: (T, 3); shapes: (S,), (T, S) or None.
+    Returns :class:`RefineResult` with poses (T, 72), Rh, Th (T, 3) float32 (the input's dtype
+    for float64 input). See the module docstring for the loss.
+    """
+    if poses.ndim != 2 or poses.shape[1] != 72:
+        raise ValueError(f"refine_body_poses: poses must be (T, 72), got {tuple(poses.shape)}")
+    T = poses.shape[0]
+    if Rh.shape != (T, 3) or Th.shape != (T, 3):
+        raise ValueError(f"refine_body_poses: Rh and Th must be ({T}, 3), got {tuple(Rh.shape)}, {tuple(Th.shape)}")
+    if K.ndim != 3 or K.shape[1:] != (3, 3) or world_to_cam.shape != (K.shape[0], 4, 4):
+        raise ValueError(f"refine_body_poses: K must be (C, 3, 3) and world_to_cam (C, 4, 4), got "
+                         f"{tuple(K.shape)}, {tuple(world_to_cam.shape)}")
+    C = K.shape[0]
+    if masks.ndim != 4 or masks.shape[:2] != (T, C):
+        raise ValueError(f"refine_body_poses: masks must be ({T}, {C}, H, W), got {tuple(masks.shape)}")
+    body, P0, R0, T0, sh, Kd, Ed, sdf, tgt, loss = _objective(body_model, K, world_to_cam, masks, poses, Rh, Th,
+                                                              shapes, cfg)
+    dtype = P0.dtype
     if cfg.method == "lm":
         return _refine_lm(body, P0, R0, T0, sh, Kd, Ed, sdf, tgt, loss, cfg)
     if cfg.method != "adam":
@@ -384,32 +398,30 @@ def project_points_jacobian(uv: Tensor, z: Tensor, K: Tensor, world_to_cam: Tens
     return torch.einsum("tcvij,cjk->tcvik", Jc, world_to_cam[:, :3, :3].to(uv.dtype))
 
 
-def _refine_lm(body: BodyModel, P0: Tensor, R0: Tensor, T0: Tensor, sh: Tensor | None, K: Tensor, E: Tensor,
-               sdf: Tensor, tgt: MaskTargets, loss, cfg: RefineConfig) -> RefineResult:
-    """Levenberg-Marquardt on the increments x (T, 75) = (joint poses 69, Rh 3, Th 3) per frame.
+def _split(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Increments (T, 75) -> joint poses (T, 69), Rh (T, 3), Th (T, 3)."""
+    return x[:, :69], x[:, 69:72], x[:, 72:]
 
-    The system of L ~ L + 2 g.dx + dx.H dx (:func:`anidress_core.fit.lm.levenberg_marquardt`'s convention):
-    each robust residual d of weight c adds c w/2 (dd)(dd)^T to H and c w d / 2 dd to g with the IRLS weight
-    w = 1 / sqrt(1 + d^2 / s^2) (the pseudo-Huber penalty's derivative); dd = (dd/dX) (dX/dx), with dX/dx
-    (T, V, 3, 75) the body's Jacobian by forward-mode autodiff with ONE increment shared by all frames
-    (frame t's vertices depend on frame t's increment only: 75 tangents for every frame at once). The
-    smoothness term couples neighbouring frames, so H is the full (75 T, 75 T) matrix (block-diagonal
-    plus the acceleration terms), solved densely.
+
+def _lm_system(body: BodyModel, P0: Tensor, R0: Tensor, T0: Tensor, sh: Tensor | None, K: Tensor, E: Tensor,
+               sdf: Tensor, tgt: MaskTargets, cfg: RefineConfig):
+    """The Gauss-Newton system (H (75 T, 75 T), g (75 T,)) float64 of the loss at increments x (T, 75) =
+    (joint poses 69, Rh 3, Th 3) per frame, as a function system(evaluation at x, x).
+
+    Convention of :func:`anidress_core.fit.lm.levenberg_marquardt`: L ~ L + 2 g.dx + dx.H dx. Each robust
+    residual d of weight c adds c w/2 (dd)(dd)^T to H and c w d / 2 dd to g with the IRLS weight
+    w = 1 / sqrt(1 + d^2 / s^2) (the pseudo-Huber penalty's derivative), so g is half the exact gradient;
+    dd = (dd/dX) (dX/dx), with dX/dx (T, V, 3, 75) the body's Jacobian by forward-mode autodiff with ONE
+    increment shared by all frames (frame t's vertices depend on frame t's increment only: 75 tangents
+    for every frame at once). The smoothness term couples neighbouring frames, so H is the full
+    (75 T, 75 T) matrix (block-diagonal plus the acceleration terms).
     """
-    from ..fit.lm import levenberg_marquardt
-
     T, dtype = P0.shape[0], P0.dtype
     n = 75
     s2 = cfg.robust_px ** 2
     tc = tgt.outline_tc
     onrm = tgt.outline_normal.to(dtype)
-
-    def split(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        return x[:, :69], x[:, 69:72], x[:, 72:]
-
-    def evaluate(x: Tensor):
-        with torch.no_grad():
-            return loss(*split(x), True)
+    split = _split
 
     def posed_of(x: Tensor):
         def f(delta: Tensor) -> tuple[Tensor, Tensor]:
@@ -468,15 +480,44 @@ def _refine_lm(body: BodyModel, P0: Tensor, R0: Tensor, T0: Tensor, sh: Tensor |
             g = g + c_s * Js.t() @ a["acc"].reshape(-1).double()
         return H, g
 
+    return system
+
+
+def _refine_lm(body: BodyModel, P0: Tensor, R0: Tensor, T0: Tensor, sh: Tensor | None, K: Tensor, E: Tensor,
+               sdf: Tensor, tgt: MaskTargets, loss, cfg: RefineConfig) -> RefineResult:
+    """Levenberg-Marquardt (:func:`anidress_core.fit.lm.levenberg_marquardt`) on the increments (T, 75),
+    the system of :func:`_lm_system`, solved densely."""
+    from ..fit.lm import levenberg_marquardt
+
+    T, dtype, n = P0.shape[0], P0.dtype, 75
+    system = _lm_system(body, P0, R0, T0, sh, K, E, sdf, tgt, cfg)
+
+    def evaluate(x: Tensor):
+        with torch.no_grad():
+            return loss(*_split(x), True)
+
     t0 = time.perf_counter()
     x0 = torch.zeros(T, n, dtype=dtype)
     ev0 = evaluate(x0)
     res = levenberg_marquardt(evaluate, system, lambda x, d: x + d.reshape(T, n).to(dtype), x0,
                               max_iters=cfg.lm_iters, damping=cfg.lm_damping, rel_tol=1e-6, step_tol=1e-7)
-    dp, dr, dt = split(res.x)
+    dp, dr, dt = _split(res.x)
     return RefineResult(torch.cat([P0[:, :3], P0[:, 3:] + dp], 1), R0 + dr, T0 + dt, list(res.curve),
                         {k: float(v) for k, v in ev0.terms.items()},
                         {k: float(v) for k, v in res.evaluation.terms.items()}, time.perf_counter() - t0)
+
+
+def gauss_newton_system(body_model: BodyModel, K: Tensor, world_to_cam: Tensor, masks: Tensor, poses: Tensor,
+                        Rh: Tensor, Th: Tensor, x: Tensor, shapes: Tensor | None = None,
+                        cfg: RefineConfig = RefineConfig()) -> tuple[Tensor, Tensor, Tensor]:
+    """The loss of :func:`refine_body_poses` at increments x (T, 75) (joint poses 69, Rh 3, Th 3 per frame)
+    with its autograd graph to x, and the Levenberg-Marquardt system there: (loss (), H (75 T, 75 T),
+    g (75 T,)), g being half the gradient (for checks; same arguments as :func:`refine_body_poses`)."""
+    ob = _objective(body_model, K, world_to_cam, masks, poses, Rh, Th, shapes, cfg)
+    body, P0, R0, T0, sh, Kd, Ed, sdf, tgt, loss = ob
+    ev = loss(*_split(x.to(P0.dtype)), True)
+    H, g = _lm_system(body, P0, R0, T0, sh, Kd, Ed, sdf, tgt, cfg)(ev, x.detach().to(P0.dtype))
+    return ev.total, H, g
 
 
 def _cast(body: BodyModel, dtype: torch.dtype) -> BodyModel:

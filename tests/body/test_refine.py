@@ -15,8 +15,8 @@ import torch
 from anidress_core import raster
 from anidress_core.body.model import mannequin_model
 from anidress_core.body.motions import make_motion
-from anidress_core.body.refine import (ADAM_SETTINGS, RefineConfig, mask_targets, project_points, project_points_jacobian,
-                                       refine_body_poses, silhouette_iou)
+from anidress_core.body.refine import (ADAM_SETTINGS, RefineConfig, gauss_newton_system, mask_targets, project_points,
+                                       project_points_jacobian, refine_body_poses, silhouette_iou)
 from anidress_core.camera import ring_cameras
 from anidress_core.stages.export_capture import noisy_body, pose_errors
 
@@ -150,6 +150,21 @@ def test_projection_jacobian_matches_autograd_float64():
     diag = ref[t, :, v, :, t, v].permute(0, 2, 1, 3, 4)  # (T, C, V, 2, 3)
     assert torch.allclose(J, diag, atol=1e-10)
     assert torch.autograd.gradcheck(lambda y: project_points(y, K, cams.world_to_cam)[0], (x.requires_grad_(),))
+
+
+def test_lm_gradient_matches_autograd_float64(scene):
+    """The hand-written Gauss-Newton gradient (g = half the gradient) against autograd of the same loss, float64,
+    at a random increment of every unknown of every frame (robust weights, priors and smoothness included)."""
+    body, m, cams, labels, true = scene
+    g0 = torch.Generator().manual_seed(0)
+    x = (torch.randn(T, 75, generator=g0, dtype=torch.float64) * 0.02).requires_grad_()
+    loss, H, g = gauss_newton_system(body, cams.K, cams.world_to_cam, labels, m.poses.double(), m.Rh.double(),
+                                     m.Th.double(), x)
+    assert loss.dtype == torch.float64 and H.shape == (75 * T, 75 * T) and g.shape == (75 * T,)
+    grad, = torch.autograd.grad(loss, x)
+    assert float(grad.abs().max()) > 0
+    assert float((2 * g - grad.reshape(-1)).abs().max()) <= 1e-8 * float(grad.abs().max())
+    assert torch.allclose(H, H.t()) and float(torch.linalg.eigvalsh(H).min()) > 0
 
 
 def test_bad_shapes_are_named(scene):
