@@ -145,7 +145,7 @@ def _cmd_fit(args: argparse.Namespace) -> None:
                                                              if (src / "normals").is_dir() else None))
     run_fit(scene, args.seq, args.rig, args.template, args.masks, args.flows, normals, params, args.out,
             ablation=args.ablation, progress=not args.quiet, cue_source="command line",
-            undistorted_dir=args.undistorted)
+            undistorted_dir=args.undistorted, motions_dir=args.motions)
     print(args.out)
 
 
@@ -447,6 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--out", required=True, help="output garment_poses.npz")
     s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
                                          "cameras have lens distortion)")
+    s.add_argument("--motions", help="the simulated body motions results/<scene>/motions (rule motions): the "
+                                     "proposals' database, needed when fit/proposal_every > 0")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_fit)
 
