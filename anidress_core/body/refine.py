@@ -29,14 +29,18 @@ default) or with Adam (autograd through :meth:`BodyModel.pose`; settings :data:`
 Measured on the demo skirt exported as a capture (12 cameras 256 x 256, 6500-vertex mannequin,
 parser-like masks, 2.2 cm start, 16 frames, one CPU thread of a shared 2-core machine): Adam 20 steps
 0.93 cm at 0.65 s/frame, 50 steps 0.84 cm at 1.3 s/frame; LM 3 evaluations 0.94 cm at 1.1 s/frame,
-6 evaluations 0.79 cm at 1.7 s/frame (with the default prior weight 0.05 LM reaches a lower loss but
+6 evaluations 0.79 cm at 1.7 s/frame (with Adam's prior weight 0.05 LM reaches a lower loss but
 1.3 cm: it fits the parser masks' errors, hence w_prior = 2 for LM). The whole walk (60 frames, chunks
 of 16, ``anidress refine-body``): 2.00 -> 0.72 cm with LM at 2.05 s/frame, 0.79 cm with Adam at
-2.4 s/frame, joint angles 2.58 -> 2.43 deg with LM, 2.86 deg with Adam. On exact masks (the tests' scene)
-LM is faster too: 5 evaluations 0.55 cm in 0.85 s against Adam's 0.59 cm in 1.45 s. Views whose
-mask holds no subject pixel (the subject is not seen or the mask is missing) give no
-residual. Cameras are pinholes without distortion (undistort the masks first, like the
-garment fit).
+2.4 s/frame, joint angles 2.58 -> 2.43 deg with LM, 2.86 deg with Adam; the exact poses against the
+same parser masks move by 0.42 cm (LM, 32 frames). On exact masks (the tests' scene: 4
+cameras, 6 frames, 1500 vertices) LM with w_prior 0.05 reached 0.55 cm in 5 evaluations (0.85 s) against
+Adam's 0.59 cm in 50 steps (1.45 s); with the default w_prior 2 it stops at 0.89 cm (the prior holds it
+back with 4 views) and moves exact poses by 0.14 cm (Adam: 0.33 cm). Timings are of a machine shared with
+other jobs (+-30 %).
+
+Views whose mask holds no subject pixel (the subject is not seen or the mask is missing) give no
+residual. Cameras are pinholes without distortion (undistort the masks first, like the garment fit).
 
 Dimension letters: T frames, C cameras, H, W image size, V body vertices.
 Mask labels (the cue stage's): 0 background, 1 body, 2 garment.
