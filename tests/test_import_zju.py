@@ -325,9 +325,12 @@ def test_converted_scene_runs_validate_masks_fit(tiny, tmp_path):
     # masks estimated without plates (a capture has none): the stage runs on the converted scene, and its
     # shape prior (posed body + skinned garment, from the converted cameras and body parameters) is the
     # original scene's and lands on the subject
-    ms = run_masks(dst, "walk", tmp_path / "est", {"background": "temporal_median", "median_frames": 3},
+    # (3 frames of a slow walk: their median plate is mostly the subject, so most masks come out empty; the
+    # stage would refuse that (tests/cues/test_stage.py), allowed here: only the run and the prior are tested)
+    ms = run_masks(dst, "walk", tmp_path / "est", {"background": "temporal_median", "median_frames": 3,
+                                                     "max_empty_fraction": 1.0},
                    tmp_path / "template.npz", cameras=["Camera_1"], threads=1, progress=False)
-    assert ms["frames"] == 3 and files.read_mask(tmp_path / "est" / "Camera_1" / "000002.png").shape == (H, W)
+    assert ms["frames"] == 3 and 0 <= ms["empty_masks"] <= 3 and files.read_mask(tmp_path / "est" / "Camera_1" / "000002.png").shape == (H, W)
     info_new, info_old = read_scene(dst), read_scene(data)
     new = ShapePrior(dst, "walk", info_new, tmp_path / "template.npz",
                      scene_cameras(dst, "walk", None, info_new, torch.float32), [0, 1, 2]).labels(1)
