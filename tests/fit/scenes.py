@@ -95,5 +95,28 @@ def textured(rig, views, G, colour_of):
     return cues._replace(image=img), x
 
 
+def cone_colour(p):
+    """A smooth non-periodic colour of the cone's rest points p (V, 3) -> (V, 3) in [0, 1]."""
+    th = torch.atan2(p[:, 1], p[:, 0])
+    return torch.stack([0.5 + 0.4 * torch.sin(4 * th), 0.5 + 0.4 * torch.cos(3 * th + 8 * p[:, 2]),
+                        0.5 + 0.3 * torch.sin(2 * th - 12 * p[:, 2])], -1)
+
+
+def textured_sequence(T: int, seed: int = 7):
+    """A textured cone (4 views, 64^2) over T frames of small motion and a frame-0 start 0.5 rad / 10 cm
+    (per bone, random) from the truth. Returns (rig, views, frames [(cues, true verts)] per frame,
+    anchor references from the texture, the true poses, the wrong start, the generator, to go on drawing)."""
+    from anidress_core.fit.images import chromaticity
+
+    rig, views = toy(C=4, H=64, W=64)
+    ref = fit.AnchorRef(chromaticity(cone_colour(rig.rest)), torch.ones(rig.rest.shape[0], dtype=torch.bool))
+    g = torch.Generator().manual_seed(seed)
+    Gs = [pose(rig, g, 0.1, 0.02)]
+    Gs += [pose(rig, g, 0.01, 0.003, Gs[-1]) for _ in range(T - 1)]
+    frames = [textured(rig, views, G, cone_colour) for G in Gs]
+    wrong = pose(rig, g, 0.5, 0.1, Gs[0])
+    return rig, views, frames, ref, Gs, wrong, g
+
+
 def rmse(a, b):
     return float(((a - b) ** 2).sum(-1).mean().sqrt())

@@ -131,23 +131,10 @@ def test_fit_sequence_takes_proposals_at_keyframes():
     """proposal_every = 3 on 6 frames: frames 0 and 3 are keyframes (notes['proposal']), the others
     are not asked; a start far from the truth is replaced at frame 0 by the proposal near it, so the
     whole sequence is near the truth; settings out of range are refused."""
-    from anidress_core.fit.images import chromaticity
-    from tests.fit.scenes import textured
+    from tests.fit.scenes import textured_sequence
 
-    rig, views = toy(C=4, H=64, W=64)
-
-    def colour_of(p):
-        th = torch.atan2(p[:, 1], p[:, 0])
-        return torch.stack([0.5 + 0.4 * torch.sin(4 * th), 0.5 + 0.4 * torch.cos(3 * th + 8 * p[:, 2]),
-                            0.5 + 0.3 * torch.sin(2 * th - 12 * p[:, 2])], -1)
-
-    ref = fit.AnchorRef(chromaticity(colour_of(rig.rest)), torch.ones(rig.rest.shape[0], dtype=torch.bool))
-    g = torch.Generator().manual_seed(7)
     T = 6
-    Gs = [pose(rig, g, 0.1, 0.02)]
-    Gs += [pose(rig, g, 0.01, 0.003, Gs[-1]) for _ in range(T - 1)]
-    frames = [textured(rig, views, G, colour_of) for G in Gs]
-    wrong = pose(rig, g, 0.5, 0.1, Gs[0])
+    rig, views, frames, ref, Gs, wrong, g = textured_sequence(T)
     asked = []
 
     def proposals_of(t):

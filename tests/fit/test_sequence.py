@@ -9,7 +9,7 @@ import torch
 
 from anidress_core import fit, raster
 from anidress_core.geometry import lbs
-from tests.fit.scenes import PAPER, config, pose, render, rmse, textured, toy
+from tests.fit.scenes import PAPER, config, pose, render, rmse, textured, textured_sequence, toy
 
 torch.set_num_threads(1)
 
@@ -202,22 +202,8 @@ def test_backward_pass_recovers_a_sequence_started_from_a_wrong_pose():
     the sequence to find the garment (measured 142 mm at frame 0, 9 mm at frame 9); the backward
     pass carries the late frames' pose back, keeping it wherever its loss is lower, and the early
     frames end near the late frames' error (measured 7-8 mm everywhere)."""
-    from anidress_core.fit.images import chromaticity
-
-    rig, views = toy(C=4, H=64, W=64)
-
-    def colour_of(p):
-        th = torch.atan2(p[:, 1], p[:, 0])
-        return torch.stack([0.5 + 0.4 * torch.sin(4 * th), 0.5 + 0.4 * torch.cos(3 * th + 8 * p[:, 2]),
-                            0.5 + 0.3 * torch.sin(2 * th - 12 * p[:, 2])], -1)
-
-    ref = fit.AnchorRef(chromaticity(colour_of(rig.rest)), torch.ones(rig.rest.shape[0], dtype=torch.bool))
-    g = torch.Generator().manual_seed(7)
     T = 10
-    Gs = [pose(rig, g, 0.1, 0.02)]
-    Gs += [pose(rig, g, 0.01, 0.003, Gs[-1]) for _ in range(T - 1)]
-    frames = [textured(rig, views, G, colour_of) for G in Gs]
-    wrong = pose(rig, g, 0.5, 0.1, Gs[0])
+    rig, views, frames, ref, _, wrong, _ = textured_sequence(T)
     cfg = config(dict(PAPER, normal=300.0, anchor=1e5, flow=0.0), max_iters=2, max_iters_first=2, smooth_passes=0)
     cues_of = lambda t: frames[t][0]  # noqa: E731
     fwd = fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, cfg, progress=False, anchor_init=ref)
