@@ -21,6 +21,7 @@ from anidress_core.stages.import_capture import run_import_zju
 
 from tests.io.test_scene_cameras import build_tiny_skirt
 from tests.test_import_zju import write_zju_capture
+from tests.workflow.tiny import job_counts
 
 REPO = Path(__file__).resolve().parents[1]
 SETTINGS = {"template": {"vertices": 300}, "simulate": {"library": [], "cloth": {"settle_frames": 3}},
@@ -33,16 +34,6 @@ def _snakemake(wd: Path, *args: str) -> subprocess.CompletedProcess:
            "--configfile", str(wd / "cfg.yaml"), "--cores", "1"]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=600,
                           env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})
-
-
-def _jobs(res: subprocess.CompletedProcess) -> dict:
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    jobs = {}
-    for line in (res.stdout + res.stderr).splitlines():
-        parts = line.split()
-        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
-            jobs[parts[0]] = int(parts[1])
-    return jobs
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +72,7 @@ def test_config_entry_is_valid():
 def test_imported_scene_plans_and_runs_in_the_workflow(wd):
     seq = "CoreView_313"
     # 1. the plan up to the fit: one undistort job (Camera_2 is distorted), the shipped masks (no masks job)
-    plan = _jobs(_snakemake(wd, f"results/zju/{seq}/garment_poses.npz", "-n", "--quiet", "rules"))
+    plan = job_counts(_snakemake(wd, f"results/zju/{seq}/garment_poses.npz", "-n", "--quiet", "rules"))
     assert plan.get("undistort") == 1 and "masks" not in plan and "synth" not in plan
     assert plan.get("fit") == 1 and plan.get("flows") == 1 and plan.get("simulate", 0) >= 1
     # 2. the first rules run: the scene check, the undistortion, the template and the flows
@@ -97,4 +88,4 @@ def test_imported_scene_plans_and_runs_in_the_workflow(wd):
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     gp = read_garment_poses(wd / "results" / "zju" / seq / "garment_poses.npz", frames=3, bones=4)
     assert np.isfinite(gp.verts).all() and gp.header["meta"]["cameras"] == ["Camera_1", "Camera_4"]
-    assert _jobs(_snakemake(wd, f"results/zju/{seq}/garment_poses.npz", "-n", "--quiet", "rules")) == {}
+    assert job_counts(_snakemake(wd, f"results/zju/{seq}/garment_poses.npz", "-n", "--quiet", "rules")) == {}

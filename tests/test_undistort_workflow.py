@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from tests.test_undistort_stage import build_distorted_capture
+from tests.workflow.tiny import job_counts
 
 REPO = Path(__file__).resolve().parents[1]
 CFG = {"run_scenes": ["cap"],
@@ -27,16 +28,6 @@ def _snakemake(wd: Path, *args: str) -> subprocess.CompletedProcess:
            str(wd / "cfg.yaml"), "--cores", "2", *args]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=600,
                           env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})
-
-
-def _jobs(res: subprocess.CompletedProcess) -> dict:
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    jobs = {}
-    for line in (res.stdout + res.stderr).splitlines():
-        parts = line.split()
-        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
-            jobs[parts[0]] = int(parts[1])
-    return jobs
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +50,7 @@ def test_the_dag_undistorts_once_and_the_cue_rules_read_it(wd):
     from anidress_core.io.files import read_exr, read_json
 
     # 1. the plan up to the fit: one undistort job; shipped masks, so no masks job
-    plan = _jobs(_snakemake(wd, "results/cap/walk/garment_poses.npz", "-n", "--quiet", "rules"))
+    plan = job_counts(_snakemake(wd, "results/cap/walk/garment_poses.npz", "-n", "--quiet", "rules"))
     assert plan.get("undistort") == 1 and "masks" not in plan and plan.get("flows") == 1 and plan.get("fit") == 1
     # 2. run the cues: undistort, then flows on the undistorted shipped masks, normals recorded from the copy
     res = _snakemake(wd, "results/cap/walk/flows", "results/cap/walk/normals.json")
@@ -70,12 +61,12 @@ def test_the_dag_undistorts_once_and_the_cue_rules_read_it(wd):
     assert read_json(wd / "results" / "cap" / "walk" / "normals.json")["dir"] == "results/cap/walk/undistorted/normals"
     assert read_exr(wd / "results" / "cap" / "walk" / "flows" / "01" / "000001.exr").shape[-1] == 3
     # 3. nothing left to do; a stage's setting does not rerun the undistortion
-    assert _jobs(_snakemake(wd, "results/cap/walk/flows", "results/cap/walk/normals.json", "-n", "--quiet",
+    assert job_counts(_snakemake(wd, "results/cap/walk/flows", "results/cap/walk/normals.json", "-n", "--quiet",
                             "rules")) == {}
     cfg = dict(CFG, cues={"flows": {"margin_px": 6}})
     (wd / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     try:
-        plan = _jobs(_snakemake(wd, "results/cap/walk/flows", "-n", "--quiet", "rules"))
+        plan = job_counts(_snakemake(wd, "results/cap/walk/flows", "-n", "--quiet", "rules"))
     finally:
         (wd / "cfg.yaml").write_text(yaml.safe_dump(CFG))
     assert plan == {"flows": 1}
@@ -89,5 +80,5 @@ def test_a_pinhole_capture_has_no_undistort_job(wd, tmp_path):
     intri = pin / "data" / "cap" / "walk" / "intri.yml"
     raw = easymocap.read_intri(intri)
     easymocap.write_intri(intri, {c: dict(v, dist=v["dist"] * 0) for c, v in raw.items()})
-    plan = _jobs(_snakemake(pin, "results/cap/walk/garment_poses.npz", "-n", "--quiet", "rules"))
+    plan = job_counts(_snakemake(pin, "results/cap/walk/garment_poses.npz", "-n", "--quiet", "rules"))
     assert "undistort" not in plan and plan.get("flows") == 1 and plan.get("fit") == 1

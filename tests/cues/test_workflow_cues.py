@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.workflow.tiny import job_counts
+
 from .conftest import TINY_SKIRT
 
 REPO = Path(__file__).resolve().parents[2]
@@ -43,13 +45,7 @@ def _jobs(wd: Path, cfg: dict, *targets: str) -> dict:
         res = _snakemake(wd, *targets, "-n", "--quiet", "rules")
     finally:
         (wd / "cfg.yaml").write_text(yaml.safe_dump(CFG))
-    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
-    jobs = {}
-    for line in (res.stdout + res.stderr).splitlines():
-        parts = line.split()
-        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
-            jobs[parts[0]] = int(parts[1])
-    return jobs
+    return job_counts(res)
 
 
 @pytest.fixture(scope="module")

@@ -22,6 +22,7 @@ import pytest
 import yaml
 
 from tests.test_undistort_stage import build_distorted_capture
+from tests.workflow.tiny import job_counts
 
 REPO = Path(__file__).resolve().parents[2]
 CFG = {"run_scenes": ["cap"],
@@ -41,14 +42,7 @@ def _snakemake(wd: Path, *args: str) -> subprocess.CompletedProcess:
 
 
 def _jobs(wd: Path) -> dict[str, int]:
-    res = _snakemake(wd, "-n", "--quiet", "rules")
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    jobs = {}
-    for line in (res.stdout + res.stderr).splitlines():
-        parts = line.split()
-        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
-            jobs[parts[0]] = int(parts[1])
-    return jobs
+    return job_counts(_snakemake(wd, "-n", "--quiet", "rules"))
 
 
 def mark_up_to_date(wd: Path) -> None:

@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from tests.workflow.tiny import RERUN_TRIGGERS, TINY, snakemake
+from tests.workflow.tiny import RERUN_TRIGGERS, TINY, job_counts, snakemake
 
 # every job of the garment scene (tinyskirt: one training sequence `walk`, library motion `sway`,
 # variants full + body_only) / of the tight scene (tiny: train `walk`, novel pose `jump`, variant full)
@@ -107,14 +107,7 @@ def _planned(workdir, cfg) -> tuple[dict[str, int], str]:
         res = snakemake(workdir, "-n", "--quiet", "rules", *RERUN_TRIGGERS)
     finally:
         (workdir / "tiny.yaml").write_text(yaml.safe_dump(TINY))
-    out = res.stdout + res.stderr
-    assert res.returncode == 0, out[-3000:]
-    jobs = {}
-    for line in out.splitlines():
-        parts = line.split()
-        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
-            jobs[parts[0]] = int(parts[1])
-    return jobs, out
+    return job_counts(res), res.stdout + res.stderr
 
 
 def test_the_tiny_run_is_up_to_date(tiny_run):

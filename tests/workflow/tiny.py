@@ -67,9 +67,15 @@ def planned_jobs(workdir: Path, cfg: dict | None = None, triggers: tuple[str, ..
         res = snakemake(workdir, "-n", "--quiet", "rules", *triggers)
     finally:
         (workdir / "tiny.yaml").write_text(yaml.safe_dump(TINY))
-    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    return job_counts(res)
+
+
+def job_counts(res: subprocess.CompletedProcess) -> dict[str, int]:
+    """{rule: jobs} from the output of a successful ``snakemake -n --quiet rules`` (its table of job counts)."""
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
     jobs = {}
-    for line in (res.stdout + res.stderr).splitlines():
+    for line in out.splitlines():
         parts = line.split()
         if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
             jobs[parts[0]] = int(parts[1])
