@@ -65,3 +65,32 @@ def test_scaling_quick(tmp_path):
     md = (tmp_path / "scaling.md").read_text()
     assert "CUDA" in md and "## Growth exponents" in md
     assert not (tmp_path / "scaling_work").exists()  # the quick run's scratch folder is removed
+
+
+def test_cuda_quick(tmp_path):
+    """``bench_cuda --quick`` (CPU only, tiny sizes) measures every stage it times on a GPU and writes
+    cuda.md / cuda.csv with finite, positive per-unit seconds; ``--report`` rewrites them from its raw json."""
+    import csv
+    import math
+    import os
+    import subprocess
+    import sys
+
+    from benchmarks.bench_cuda import STAGES
+
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    work, out = tmp_path / "work", tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "benchmarks.bench_cuda", "--quick", "--workdir", str(work), "--out",
+                          str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    rows = list(csv.DictReader(open(out / "cuda.csv")))
+    assert {r["stage"] for r in rows} == set(STAGES)
+    for r in rows:
+        assert math.isfinite(float(r["cpu_s_per_unit"])) and float(r["cpu_s_per_unit"]) > 0, r
+        assert r["cuda_s_per_unit"] == "nan"  # no CUDA run in quick mode: nothing is filled in
+    first = (out / "cuda.md").read_text()
+    (out / "cuda.md").unlink()
+    rep = subprocess.run([sys.executable, "-m", "benchmarks.bench_cuda", "--report", str(work / "raw.json"), "--out",
+                          str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert rep.returncode == 0, rep.stderr[-2000:]
+    assert (out / "cuda.md").read_text() == first
