@@ -14,7 +14,8 @@ the same machine with every core (torch threads = CPU count; the Warp CPU kernel
 and the rasteriser are single-threaded), in a child process forked from this one (which never
 touches CUDA itself). Wall seconds per unit, after the stage's own setup:
 
-- simulate: per simulated frame step (settle frames included);
+- simulate: per simulated frame step (settle frames included); on CUDA also ``simulate_launches``, the
+  same solver with its frame graph off (``graph_capture: false``: every kernel launched from Python);
 - rig: per decomposition of ``RIG_FRAMES`` frames (25 bones, config ``rig``);
 - fit: per frame t > 0 (the fit's own per-frame wall times; frame 0 has its own budget);
 - train_field: per optimisation step (the training loop's wall time, data loading excluded);
@@ -48,12 +49,15 @@ from benchmarks.bench_scaling import Plan, Runner, fork_call, w_template
 from benchmarks.benchutil import cpu_model, git_rev
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGES = ("simulate", "rig", "fit", "train_field", "render")
-UNIT = {"simulate": "simulated frame", "rig": "decomposition", "fit": "frame (t > 0)",
+STAGES = ("simulate", "simulate_launches", "rig", "fit", "train_field", "render")
+#: simulate_launches: the cloth solver on CUDA with graph capture off (kernel by kernel), the path before it
+UNIT = {"simulate": "simulated frame", "simulate_launches": "simulated frame", "rig": "decomposition", "fit": "frame (t > 0)",
         "train_field": "optimisation step", "render": "image"}
 #: the paper's scale, units per stage (low, high): 10K simulated frames; 400-800 frames; 600 steps
 #: (config field/train/steps); 8 views x 400-800 frames rendered
-PAPER_UNITS = {"simulate": (10000, 10000), "fit": (400, 800), "render": (3200, 6400)}
+#: the output compared between the devices, per stage
+CHECK = {"simulate": "max stretch", "simulate_launches": "max stretch", "rig": "RMSE mm"}
+PAPER_UNITS = {"simulate": (10000, 10000), "simulate_launches": (10000, 10000), "fit": (400, 800), "render": (3200, 6400)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -275,7 +279,13 @@ class CudaRun:
                 args = (str(inp["template"]), str(inp["motion"]), str(inp["scene"]), cloth)
                 if i == 0:  # Warp compiles the solver's kernels for this device on the first call
                     self.measure("simulate", p, dev, w_simulate, *args, str(o / "sim_first.npz"), first=True)
-                if self.measure("simulate", p, dev, w_simulate, *args, str(sim)) is None:
+                ok = self.measure("simulate", p, dev, w_simulate, *args, str(sim)) is not None
+                if dev == "cuda":
+                    eager = (str(inp["template"]), str(inp["motion"]), str(inp["scene"]),
+                             dict(cloth, graph_capture=False))
+                    ok = self.measure("simulate_launches", p, dev, w_simulate, *eager,
+                                      str(sim if not ok else o / "sim_launches.npz")) is not None or ok
+                if not ok:
                     continue
                 reps = max(1, self.s.rig_frames // self.s.sim_frames)  # copies: the rig keys sequences by name
                 sims = [str(sim)] + [str(shutil.copy(sim, o / f"sim_copy{k}.npz")) for k in range(1, reps)]
@@ -334,24 +344,46 @@ def table(raw: dict) -> list[dict]:
                    "cuda_first_call_s": first["cuda"]["wall_s"] if first["cuda"] else float("nan"),
                    "cuda_peak_mb_torch": gpu.get("gpu_peak_mb", float("nan")) if gpu else float("nan")}
             row["speedup"] = row["cpu_s_per_unit"] / row["cuda_s_per_unit"]
+            # the same result on both devices? (float atomics and summation order differ)
+            key = {"simulate": "max_stretch", "simulate_launches": "max_stretch", "rig": "rmse_mm"}.get(st)
+            row["check"] = (f"{CHECK[st]} {_fmt(cpu[key]) if cpu else '-'} / {_fmt(gpu[key]) if gpu else '-'}"
+                            if key else "")
             if st == "train_field":
                 lo = hi = int(raw.get("train_steps_config", 600))
-            elif st == "rig":
-                lo = hi = 1
+            elif st == "rig":  # measured at RIG_FRAMES frames, not at the paper's 10K: no total
+                lo = hi = float("nan")
             else:
                 lo, hi = PAPER_UNITS[st]
-            row["units_paper"] = f"{lo}" if lo == hi else f"{lo}-{hi}"
+            row["units_paper"] = "-" if lo != lo else (f"{lo}" if lo == hi else f"{lo}-{hi}")
             row["cuda_total_paper_s_low"] = row["cuda_s_per_unit"] * lo
             row["cuda_total_paper_s_high"] = row["cuda_s_per_unit"] * hi
             out.append(row)
     return out
 
 
+def growth(rows: list[dict]) -> dict:
+    """stage -> {device: per-unit time at the paper point / at the demo point} where both were measured."""
+    by = {(r["stage"], r["point"]): r for r in rows}
+    out = {}
+    for st in STAGES:
+        d, p = by.get((st, "demo")), by.get((st, "paper"))
+        if d and p:
+            out[st] = {dev: p[f"{dev}_s_per_unit"] / d[f"{dev}_s_per_unit"] for dev in ("cpu", "cuda")}
+    return out
+
+
+def summary(csv_path: Path) -> str:
+    """One line for benchmarks/scaling.md: the CUDA speed-ups at the paper point, from cuda.csv."""
+    rows = [r for r in csv.DictReader(open(csv_path)) if r["point"] == "paper"]
+    parts = [f"{r['stage']} {float(r['speedup']):.2g}x" for r in rows if np.isfinite(float(r["speedup"]))]
+    return ", ".join(parts)
+
+
 def report(raw: dict, out: Path) -> None:
     rows = table(raw)
     out.mkdir(parents=True, exist_ok=True)
     cols = ["stage", "point", "unit", "units_measured", "cpu_s_per_unit", "cuda_s_per_unit", "speedup",
-            "cpu_first_call_s", "cuda_first_call_s", "cuda_peak_mb_torch", "units_paper", "cuda_total_paper_s_low",
+            "cpu_first_call_s", "cuda_first_call_s", "cuda_peak_mb_torch", "check", "units_paper", "cuda_total_paper_s_low",
             "cuda_total_paper_s_high"]
     with open(out / "cuda.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols)
@@ -372,19 +404,25 @@ def report(raw: dict, out: Path) -> None:
          f"- CPU: every core (torch threads = {info['cpus']}); the Warp CPU kernels of the cloth solver and the "
          "rasteriser run on one thread. Wall seconds per unit after the stage's setup; first call: the whole "
          "first call on that device, Warp kernel compilation included. One run per point.",
-         f"- the run took {raw.get('wall_s', float('nan')) / 60:.1f} min (inputs {raw.get('prepare_s', float('nan')):.0f} s,"
-         " not timed per stage).", "",
+         f"- the run took {raw.get('wall_s', float('nan')) / 60:.1f} min (cues of the inputs "
+         f"{raw.get('prepare_s', float('nan')):.0f} s, not timed per stage)"
+         + ("; the scenes, templates and motion were made beforehand by `--prepare` (ground truth and the test "
+            "cameras' images left out) on a machine with pymeshlab." if "--inputs" in raw["cmd"] else "."), "",
          "| stage | point | unit | CPU s per unit | CUDA s per unit | CUDA speed-up | first call CPU / CUDA (s) | "
-         "CUDA peak MB (torch) | paper-scale units | paper-scale CUDA total |",
-         "| --- | --- | --- | ---: | ---: | ---: | --- | ---: | --- | --- |"]
+         "CUDA peak MB (torch) | result CPU / CUDA | paper-scale units | paper-scale CUDA total |",
+         "| --- | --- | --- | ---: | ---: | ---: | --- | ---: | --- | --- | --- |"]
     for r in rows:
-        tot = (_hms(r["cuda_total_paper_s_low"]) if r["units_paper"].count("-") == 0 else
-               f"{_hms(r['cuda_total_paper_s_low'])} - {_hms(r['cuda_total_paper_s_high'])}")
+        lo, hi = r["cuda_total_paper_s_low"], r["cuda_total_paper_s_high"]
+        tot = "-" if not np.isfinite(lo) else (_hms(lo) if lo == hi else f"{_hms(lo)} - {_hms(hi)}")
         paper = r["point"] == "paper"
         L.append(f"| {r['stage']} | {r['point']} | {r['unit']} | {_fmt(r['cpu_s_per_unit'])} | "
                  f"{_fmt(r['cuda_s_per_unit'])} | {_fmt(r['speedup'])}x | {_fmt(r['cpu_first_call_s'])} / "
-                 f"{_fmt(r['cuda_first_call_s'])} | {_fmt(r['cuda_peak_mb_torch'])} | "
+                 f"{_fmt(r['cuda_first_call_s'])} | {_fmt(r['cuda_peak_mb_torch'])} | {r['check'] or '-'} | "
                  f"{r['units_paper'] if paper else '-'} | {tot if paper else '-'} |")
+    grow = growth(rows)
+    if grow:
+        L += ["", "Per-unit time at the paper point over the demo point (3x the garment vertices, 4x the pixels):", ""]
+        L += [f"- {st}: CPU {g['cpu']:.2f}x, CUDA {g['cuda']:.2f}x" for st, g in grow.items()]
     if raw["errors"]:
         L += ["", "## Failed", ""] + [f"- {e['stage']} / {e['point']} / {e['device']}: "
                                       f"`{e['error'].strip().splitlines()[-1][:300]}`" for e in raw["errors"]]

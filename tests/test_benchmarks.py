@@ -84,7 +84,7 @@ def test_cuda_quick(tmp_path):
                           str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     rows = list(csv.DictReader(open(out / "cuda.csv")))
-    assert {r["stage"] for r in rows} == set(STAGES)
+    assert {r["stage"] for r in rows} == set(STAGES) - {"simulate_launches"}  # that one is CUDA only
     for r in rows:
         assert math.isfinite(float(r["cpu_s_per_unit"])) and float(r["cpu_s_per_unit"]) > 0, r
         assert r["cuda_s_per_unit"] == "nan"  # no CUDA run in quick mode: nothing is filled in

@@ -99,6 +99,11 @@ class ClothParams:
     recorded launches (same Gauss–Seidel order and results as the per-colour launches,
     ~3 host calls per substep instead of ~40). None: on whenever the device is the CPU;
     False: the per-colour launch path (the one used on CUDA)."""
+    graph_capture: bool = True
+    """Per-kernel path (CUDA, or the CPU with fused_cpu False): capture a frame's launches once per
+    substep count as a Warp graph (a CUDA graph on the GPU) and replay it, one launch per frame
+    instead of ~30 per substep whose host-side cost bounds that path (benchmarks/cuda.md).
+    False: launch kernel by kernel. Same kernels in the same order either way."""
     device: str | None = None
     """Warp device ("cpu", "cuda", "cuda:0"); None: CUDA when available, else CPU."""
 
@@ -213,6 +218,7 @@ class _Solver:
         self.gravity = wp.vec3(*[float(g) for g in params.gravity])
         is_cpu = wp.get_device(d).is_cpu
         self.serial = is_cpu if params.fused_cpu is None else (bool(params.fused_cpu) and is_cpu)
+        self.graphs = bool(params.graph_capture) and not self.serial
         self._plans: dict = {}
         # Contact-query skipping (fused CPU path, see kernels.substep_serial).
         self.max_move = wp.zeros(1, dtype=f32, device=d)
@@ -289,7 +295,31 @@ class _Solver:
                 refit()
                 step[s].launch()
             return
-        Tarr = wp.array(Ms, dtype=wp.mat44, device=d)
+        if self.graphs:
+            Tarr, graph = self._graph(n, frame_time)
+            Tarr.assign(Ms)
+            wp.capture_launch(graph)
+            return
+        self._substeps(wp.array(Ms, dtype=wp.mat44, device=d), n, frame_time)
+
+    def _graph(self, n: int, frame_time: float):
+        """(bone transforms array, graph) of a frame with ``n`` substeps, captured once per (n, frame
+        time); the graph holds the mesh id and the array, so set_body clears it with the recorded launches."""
+        key = ("graph", n, frame_time)
+        plan = self._plans.get(key)
+        if plan is None:
+            wp = self.wp
+            wp.load_module(self.K, device=self.device)  # compile before the capture, and only this module
+            Tarr = wp.zeros(n * 24, dtype=wp.mat44, device=self.device)
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                self._substeps(Tarr, n, frame_time)
+            plan = self._plans[key] = (Tarr, cap.graph)
+        return plan
+
+    def _substeps(self, Tarr, n: int, frame_time: float) -> None:
+        """The per-kernel launches of ``n`` substeps (bone transforms ``Tarr``: n x 24 mat44)."""
+        wp, K, p, d = self.wp, self.K, self.p, self.device
+        dt = frame_time / n
         damp = math.exp(-p.damping * dt)
         inv_dt2 = 1.0 / (dt * dt)
         V = self.V

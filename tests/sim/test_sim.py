@@ -202,12 +202,26 @@ def test_bad_shapes_raise():
 
 def test_fused_cpu_path_matches_per_colour_launches(body):
     # The fused serial substep (recorded launches, contact queries skipped where a clearance
-    # bound proves them empty) must reproduce the per-colour launch path exactly on the CPU.
+    # bound proves them empty) must reproduce the per-colour launch path exactly on the CPU, and
+    # that path (the one CUDA runs) gives the same frames replayed from a captured graph (default)
+    # as launched kernel by kernel.
     a = _skirt_on(body, "twirl", 6, around=20, rows=10, params=ClothParams(settle_frames=4, device="cpu"))[0]
     b = _skirt_on(body, "twirl", 6, around=20, rows=10,
                   params=ClothParams(settle_frames=4, device="cpu", fused_cpu=False))[0]
+    c = _skirt_on(body, "twirl", 6, around=20, rows=10,
+                  params=ClothParams(settle_frames=4, device="cpu", fused_cpu=False, graph_capture=False))[0]
     np.testing.assert_array_equal(a.frames, b.frames)
     np.testing.assert_array_equal(a.stats.max_penetration_m, b.stats.max_penetration_m)
+    np.testing.assert_array_equal(b.frames, c.frames)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_graph_matches_kernel_launches(body):
+    # On the GPU: the frame graph replays the per-kernel launches (same kernels, same order).
+    a = _skirt_on(body, "twirl", 6, around=20, rows=10, params=ClothParams(settle_frames=4, device="cuda"))[0]
+    b = _skirt_on(body, "twirl", 6, around=20, rows=10,
+                  params=ClothParams(settle_frames=4, device="cuda", graph_capture=False))[0]
+    np.testing.assert_allclose(a.frames, b.frames, atol=1e-6)
 
 
 def test_pinned_sheet_settles_to_the_analytic_rest():
