@@ -404,6 +404,7 @@ def report(raw: dict, out: Path) -> None:
          f"- CPU: every core (torch threads = {info['cpus']}); the Warp CPU kernels of the cloth solver and the "
          "rasteriser run on one thread. Wall seconds per unit after the stage's setup; first call: the whole "
          "first call on that device, Warp kernel compilation included. One run per point.",
+         *([f"- tests: {raw['tests']}"] if raw.get("tests") else []),
          f"- the run took {raw.get('wall_s', float('nan')) / 60:.1f} min (cues of the inputs "
          f"{raw.get('prepare_s', float('nan')):.0f} s, not timed per stage)"
          + ("; the scenes, templates and motion were made beforehand by `--prepare` (ground truth and the test "
@@ -416,13 +417,25 @@ def report(raw: dict, out: Path) -> None:
         tot = "-" if not np.isfinite(lo) else (_hms(lo) if lo == hi else f"{_hms(lo)} - {_hms(hi)}")
         paper = r["point"] == "paper"
         L.append(f"| {r['stage']} | {r['point']} | {r['unit']} | {_fmt(r['cpu_s_per_unit'])} | "
-                 f"{_fmt(r['cuda_s_per_unit'])} | {_fmt(r['speedup'])}x | {_fmt(r['cpu_first_call_s'])} / "
+                 f"{_fmt(r['cuda_s_per_unit'])} | {_fmt(r['speedup']) + 'x' if np.isfinite(r['speedup']) else '-'} | {_fmt(r['cpu_first_call_s'])} / "
                  f"{_fmt(r['cuda_first_call_s'])} | {_fmt(r['cuda_peak_mb_torch'])} | {r['check'] or '-'} | "
                  f"{r['units_paper'] if paper else '-'} | {tot if paper else '-'} |")
     grow = growth(rows)
     if grow:
         L += ["", "Per-unit time at the paper point over the demo point (3x the garment vertices, 4x the pixels):", ""]
-        L += [f"- {st}: CPU {g['cpu']:.2f}x, CUDA {g['cuda']:.2f}x" for st, g in grow.items()]
+        L += [f"- {st}: " + ", ".join(f"{dev.upper() if dev == 'cpu' else 'CUDA'} {v:.2f}x" for dev, v in g.items()
+                                      if np.isfinite(v)) for st, g in grow.items()]
+        flat = [st for st, g in grow.items() if g["cuda"] < 1.2]
+        if flat:
+            L += ["", f"- CUDA time per unit grows by less than 1.2x with the work for {', '.join(flat)}: bound by "
+                      "per-call work on the host (launches, copies, Python), not by the GPU."]
+    by = {(r["stage"], r["point"]): r for r in rows}
+    for p in raw["sizes"]["points"]:
+        g, e = by.get(("simulate", p)), by.get(("simulate_launches", p))
+        if g and e:
+            L.append(f"- cloth solver, {p} point: the frame graph (default) against kernel-by-kernel launches: "
+                     f"{e['cuda_s_per_unit']:.3g} -> {g['cuda_s_per_unit']:.3g} s per frame "
+                     f"({e['cuda_s_per_unit'] / g['cuda_s_per_unit']:.2f}x).")
     if raw["errors"]:
         L += ["", "## Failed", ""] + [f"- {e['stage']} / {e['point']} / {e['device']}: "
                                       f"`{e['error'].strip().splitlines()[-1][:300]}`" for e in raw["errors"]]

@@ -709,6 +709,20 @@ def write(out: Path, runner: Runner, fits: dict, paper: list[dict], args, wall_s
 
     cmd = runner.cmd
     cuda = torch.cuda.is_available()
+    cuda_csv = ROOT / "benchmarks" / "cuda.csv"
+    if cuda_csv.is_file():
+        from benchmarks.bench_cuda import summary
+
+        cuda_line = ("every figure here is a CPU run (device cpu). The GPU paths are timed apart, against the CPU of "
+                     "the GPU machine, in [cuda.md](cuda.md) (`python -m benchmarks.bench_cuda`); CUDA speed-up per "
+                     f"unit at the paper point there: {summary(cuda_csv)}.")
+    elif cuda:
+        cuda_line = ("a CUDA device is visible, but every figure here is a CPU run (device cpu); no CUDA time is "
+                     "measured by this benchmark.")
+    else:
+        cuda_line = (f"untested. torch.cuda.is_available() is False here (torch {torch.__version__}) and no GPU "
+                     "device was lent to the session that ran this benchmark (issue 22 item 5), so the GPU paths "
+                     "of the field, the cloth solver, the rig and the rasteriser have no measured times.")
     L = [
         "# Scaling of every stage with the work (CPU)", "",
         f"- date: {runner.date}; git {runner.git}" + (f" (tables regenerated from the run's raw results with "
@@ -720,11 +734,7 @@ def write(out: Path, runner: Runner, fits: dict, paper: list[dict], args, wall_s
         f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs; Python {platform.python_version()}, torch "
         f"{torch.__version__}, numpy {np.__version__}; every stage on one thread (torch, OpenMP, OpenCV), device cpu",
         f"- load average (1/5/15 min) during the run: {'; '.join(runner.loads)}",
-        "- CUDA: " + ("a CUDA device is visible, but every figure here is a CPU run (device cpu); no CUDA time is "
-                      "measured by this benchmark." if cuda else
-                      f"untested. torch.cuda.is_available() is False here (torch {torch.__version__}) and no GPU "
-                      "device was lent to the session that ran this benchmark (issue 22 item 5), so the GPU paths "
-                      "of the field, the cloth solver, the rig and the rasteriser have no measured times."),
+        "- CUDA: " + cuda_line,
         f"- each point: a child process forked after the imports; peak RSS from os.wait4 includes the imported "
         f"modules: a child doing nothing peaks at {baseline:.0f} MB (baseline). CPU s = user + system time of the "
         f"stage call, per unit (see the table). Scenes: `scenes/skirt` of config/config.yaml with one sequence "
