@@ -58,7 +58,9 @@ class FitConfig:
     """The loss variant these settings are of (:data:`anidress_core.fit.variants.VARIANTS`):
     ``pipeline`` (the section as written), ``paper``, or a variant of either."""
     method: str
-    """'rig' (bone transforms, Levenberg-Marquardt) or 'vertex' (ablation a, Adam on vertices)."""
+    """'rig' (bone transforms, Levenberg-Marquardt), 'vertex' (ablation a, Adam on vertices) or
+    'nearest' (a baseline, no optimisation: per frame the simulated pose of the proposals'
+    database with the lowest loss, :func:`anidress_core.fit.sequence.fit_sequence`)."""
     weights: LossWeights
     """Weight of each loss term, as used (dimensionless multipliers of the unweighted terms)."""
     max_iters: int
@@ -125,8 +127,8 @@ class FitConfig:
 
         if self.loss not in VARIANTS:
             raise ValueError(f"FitConfig.loss must be one of {sorted(VARIANTS)}, got {self.loss!r}")
-        if self.method not in ("rig", "vertex"):
-            raise ValueError(f"FitConfig.method must be 'rig' or 'vertex', got {self.method!r}")
+        if self.method not in ("rig", "vertex", "nearest"):
+            raise ValueError(f"FitConfig.method must be 'rig', 'vertex' or 'nearest', got {self.method!r}")
         if self.anchor_reference not in ("images", "texture"):
             raise ValueError(f"FitConfig.anchor_reference must be 'images' or 'texture', got {self.anchor_reference!r}")
         for k, v in dataclasses.asdict(self.weights).items():

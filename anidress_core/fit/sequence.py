@@ -242,12 +242,13 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     if cfg.method == "vertex":
         x_start = lbs(rig.rest, rig.weights, init) if init_verts is None else init_verts.double()
     else:
-        if flow is not None and cfg.weights.flow > 0 and cfg.flow_align_iters > 0 and flow.cam.numel():
+        if (cfg.method == "rig" and flow is not None and cfg.weights.flow > 0 and cfg.flow_align_iters > 0
+                and flow.cam.numel()):
             G = flow_align(rig, views, flow, G, cfg.flow_align_iters)
         x_start = lbs(rig.rest, rig.weights, G)
     prior = lbs(rig.rest, rig.weights, init) if first and cfg.method == "rig" else (x_start if first else None)
     contacts = None
-    if cfg.weights.collision > 0 and cfg.method == "rig":
+    if cfg.weights.collision > 0 and cfg.method in ("rig", "nearest"):
         if cues.occluder_mesh is None:
             raise ValueError("fit: weights.collision > 0 needs the body mesh (FrameCues.occluder_mesh)")
         contacts = body_contacts(x_start, *cues.occluder_mesh, cfg.collision_radius)
@@ -261,9 +262,10 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         pb = make_problem(rig, views, cues, flow, cfg, prior)
     else:
         pb = make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts)
-    if notes.get("no_mask"):  # no view has a mask: keep the start, not converged
+    if notes.get("no_mask") or cfg.method == "nearest":  # the start evaluated, not optimised
         ev = evaluate(pb, x_start)
-        res = FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, 0, False, [ev.loss], ev.fragments)
+        res = FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, 0, not notes.get("no_mask"), [ev.loss],
+                       ev.fragments)
     elif cfg.method == "vertex":
         res = vertex_adam(pb, cues, x_start, init, cfg.vertex.max_iters * (3 if first else 1))
     else:
@@ -358,7 +360,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     (:func:`anidress_core.fit.proposals.best_of`; ``notes['proposal']``: the label kept and the
     losses). ``cfg.backward``: then :func:`backward_pass`. The temporal filter comes last.
     """
-    from .proposals import best_of, data_loss
+    from .proposals import best_of, data_loss, score_poses
     from tqdm import tqdm
 
     cfg = FitConfig.from_config({}) if cfg is None else cfg
@@ -381,7 +383,17 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                 prev = out[-1]
                 targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.visibility_depth_tol,
                                        cfg.flow_margin_px)
+        picked = None
+        if cfg.method == "nearest":  # the baseline: the database pose with the lowest loss, not optimised
+            if proposals_of is None:
+                raise ValueError("fit_sequence: method 'nearest' needs proposals_of (the simulation database)")
+            props = proposals_of(t)
+            scores = score_poses(rig, views, cues, props.transforms, cfg, targets, anchor)
+            i = int(torch.argmin(torch.nan_to_num(scores, nan=float("inf"))))
+            G, picked = props.transforms[i].double(), {"kept": props.labels[i], "candidates": len(props.labels)}
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor)
+        if picked is not None:
+            res.notes = {**res.notes, "nearest": picked}
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
         if res.notes and log is not None:

@@ -42,6 +42,12 @@ VARIANTS: dict[str, Variant] = {
                                  lambda c: c.replace(weights={"prior": 0.0})),
     "pipeline_no_smooth": Variant("the pipeline's loss without the temporal filter of the bone transforms",
                                   lambda c: c.replace(smooth_passes=0)),
+    "pipeline_image_anchor": Variant("the pipeline's loss with L_anchor's references from the images, not the garment "
+                                     "texture (which a capture does not have)",
+                                     lambda c: c.replace(anchor_reference="images")),
+    "nearest": Variant("baseline, no fitting: per frame the simulated pose (nearest simulated frames by body pose and "
+                       "velocity, the simulation of the observed motion at t +- offsets) with the lowest pipeline loss "
+                       "on the frame's cues", lambda c: c.replace(method="nearest", smooth_passes=0, backward=False)),
     "paper": Variant("the paper's loss: 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow, rig, no temporal filter", _paper),
     "paper_vertex": Variant("paper (a): direct vertex fitting without the rig (Adam on vertex positions), "
                             "the paper's loss", lambda c: _paper(c).replace(method="vertex")),

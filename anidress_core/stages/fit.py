@@ -324,12 +324,12 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         log.info("fit: L_anchor references from the garment texture: %s", anchor_note)
     # 6. proposals from the simulation database (keyframes), if on
     proposals_of, db_note = None, None
-    if cfg.proposal_every > 0 and cfg.method == "rig":
+    if (cfg.proposal_every > 0 and cfg.method == "rig") or cfg.method == "nearest":
         from ..fit.proposals import body_features, frame_proposals
 
         if motions_dir is None:
-            raise ValueError("fit/proposal_every > 0 needs the simulated body motions (motions_dir: "
-                             "results/<scene>/motions, rule motions)")
+            raise ValueError(f"fit/proposal_every > 0 and the method {cfg.method!r} need the simulated body motions "
+                             "(motions_dir: results/<scene>/motions, rule motions)")
         db = proposal_database(art, motions_dir, body)
         query = body_features(posed.transforms.double().cpu(), float(info["fps"]))
         own = sim_name if (cfg.proposal_offsets >= 0 and sim_name in art.sequences) else None
@@ -340,7 +340,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             return p._replace(transforms=p.transforms.to(device))
 
         db_note = f"{db.transforms.shape[0]} simulated frames of {list(db.names)}"
-        log.info("fit: proposals every %d frames from %s", cfg.proposal_every, db_note)
+        log.info("fit: proposals %s from %s", "every frame (method nearest)" if cfg.method == "nearest" else
+                 f"every {cfg.proposal_every} frames", db_note)
     # 7. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()

@@ -158,3 +158,21 @@ def test_fit_sequence_takes_proposals_at_keyframes():
     for bad in ({"proposal_every": -1}, {"proposal_offsets": -2}, {"proposal_velocity_weight": float("nan")}):
         with pytest.raises(ValueError):
             config(**bad)
+
+
+def test_nearest_method_picks_the_database_pose_and_does_not_optimise():
+    """method 'nearest' (the baseline): every frame is the candidate with the lowest loss, as given
+    (no iteration); without a database it refuses."""
+    from tests.fit.scenes import textured_sequence
+
+    T = 3
+    rig, views, frames, ref, Gs, wrong, g = textured_sequence(T)
+    cands = {t: torch.stack([pose(rig, g, 0.4, 0.08, Gs[t]), Gs[t], pose(rig, g, 0.2, 0.05, Gs[t])]) for t in range(T)}
+    cfg = fit.apply_variant(config(dict(PAPER, normal=300.0, anchor=1e5, flow=0.0)), "nearest")
+    res = fit.fit_sequence(rig, views, T, lambda t: frames[t][0], lambda t: None, wrong, cfg, progress=False,
+                           anchor_init=ref, proposals_of=lambda t: P.Proposals(cands[t], ["far", "true", "mid"]))
+    for t, r in enumerate(res):
+        assert r.notes["nearest"] == {"kept": "true", "candidates": 3}
+        assert r.iterations == 0 and torch.equal(r.transforms, Gs[t].double())
+    with pytest.raises(ValueError, match="proposals_of"):
+        fit.fit_sequence(rig, views, 1, lambda t: frames[t][0], lambda t: None, wrong, cfg, progress=False)

@@ -25,3 +25,16 @@ def test_proposals_take_the_motions_and_run_in_the_workflow(tiny_run, tmp_path):
     assert set(kept) == {"0", "2"}, notes  # keyframes 0 and 2 of 4 frames
     dry = snakemake(wd, target, "-n", *RERUN_TRIGGERS)
     assert dry.returncode == 0 and "Nothing to be done" in dry.stdout + dry.stderr
+
+
+def test_nearest_baseline_runs_as_an_ablation(tiny_run, tmp_path):
+    """Variant `nearest` (the database pose with the lowest loss, no fitting) through rule
+    fit_ablation: the motions become its inputs; every frame records the candidate it kept."""
+    wd = copy_run(tiny_run, tmp_path / "run")
+    target = "results/tinyskirt/walk/fit_ablations/nearest/garment_poses.npz"
+    res = snakemake(wd, target, cores=1)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    a, header = load_garment_poses(wd / target)
+    notes = header["meta"]["frame_notes"]
+    assert len(notes) == len(a["transforms"]) and all("nearest" in n for n in notes.values()), notes
+    assert (a["iterations"] == 0).all()

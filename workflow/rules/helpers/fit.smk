@@ -60,7 +60,9 @@ def fit_inputs(wildcards):
         inp["undistorted"] = undistorted_input(scene, seq)  # undistort.smk: images, cameras, shipped cues
         inp["flows"] = d["flows"]
         inp["normals"] = normals_record(scene, seq)
-    if scene_section(config, "fit", scene)["proposal_every"] > 0:  # the proposals' database: the rig's motions
+    fit = scene_section(config, "fit", scene)
+    variant = getattr(wildcards, "ablation", None) or fit["loss"]
+    if fit["proposal_every"] > 0 or variant == "nearest":  # the proposals' database: the rig's motions
         inp["motions"] = [f"results/{scene}/motions/{m}.npz" for m in sim_motion_names(scene)]
     return inp
 
