@@ -392,12 +392,12 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
             i = int(torch.argmin(torch.nan_to_num(scores, nan=float("inf"))))
             G, picked = props.transforms[i].double(), {"kept": props.labels[i], "candidates": len(props.labels)}
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor)
-        if picked is not None:
-            res.notes = {**res.notes, "nearest": picked}
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
         if res.notes and log is not None:
             log.warning("fit: frame %d: %s", t, res.notes)
+        if picked is not None:  # the baseline's pick: a record, not a defect
+            res.notes = {**res.notes, "nearest": picked}
         if (cfg.proposal_every > 0 and t % cfg.proposal_every == 0 and proposals_of is not None
                 and cfg.method == "rig" and not res.notes.get("no_mask")):
             props = proposals_of(t)
