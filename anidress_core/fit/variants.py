@@ -3,7 +3,10 @@ rules ``fit`` and ``fit_ablation``, the CLI).
 
 * ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
 * ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, or no
-  temporal filter).
+  temporal filter); ``pipeline_proposals``, ``pipeline_backward``: the pipeline with a part that is
+  off by default turned on; ``pipeline_image_anchor``: without the garment texture.
+* ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
+  lowest pipeline loss.
 * ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress, supplementary), none
   of our terms and no temporal filter; the solver settings are the section's.
 * ``paper_vertex``, ``paper_no_normal_flow``, ``paper_no_flow``: the paper's ablations (Fig. 9)
@@ -42,6 +45,10 @@ VARIANTS: dict[str, Variant] = {
                                  lambda c: c.replace(weights={"prior": 0.0})),
     "pipeline_no_smooth": Variant("the pipeline's loss without the temporal filter of the bone transforms",
                                   lambda c: c.replace(smooth_passes=0)),
+    "pipeline_proposals": Variant("the pipeline with proposals from the simulation database every 10 frames "
+                                  "(fit/proposal_every 10)", lambda c: c.replace(proposal_every=10)),
+    "pipeline_backward": Variant("the pipeline with the backward pass after the forward one (fit/backward)",
+                                 lambda c: c.replace(backward=True)),
     "pipeline_image_anchor": Variant("the pipeline's loss with L_anchor's references from the images, not the garment "
                                      "texture (which a capture does not have)",
                                      lambda c: c.replace(anchor_reference="images")),

@@ -62,7 +62,9 @@ def fit_inputs(wildcards):
         inp["normals"] = normals_record(scene, seq)
     fit = scene_section(config, "fit", scene)
     variant = getattr(wildcards, "ablation", None) or fit["loss"]
-    if fit["proposal_every"] > 0 or variant == "nearest":  # the proposals' database: the rig's motions
+    # the proposals' database (the rig's motions): proposals on, or a variant that turns them on or picks from them
+    # (anidress_core/fit/variants.py; not imported here: parsing the workflow loads no torch)
+    if fit["proposal_every"] > 0 or variant in ("nearest", "pipeline_proposals"):
         inp["motions"] = [f"results/{scene}/motions/{m}.npz" for m in sim_motion_names(scene)]
     return inp
 
