@@ -45,8 +45,8 @@ VARIANTS: dict[str, Variant] = {
                                  lambda c: c.replace(weights={"prior": 0.0})),
     "pipeline_no_smooth": Variant("the pipeline's loss without the temporal filter of the bone transforms",
                                   lambda c: c.replace(smooth_passes=0)),
-    "pipeline_proposals": Variant("the pipeline with proposals from the simulation database every 10 frames "
-                                  "(fit/proposal_every 10)", lambda c: c.replace(proposal_every=10)),
+    "pipeline_proposals": Variant("the pipeline with proposals from the simulation database every 5 frames "
+                                  "(fit/proposal_every 5)", lambda c: c.replace(proposal_every=5)),
     "pipeline_backward": Variant("the pipeline with the backward pass after the forward one (fit/backward)",
                                  lambda c: c.replace(backward=True)),
     "pipeline_image_anchor": Variant("the pipeline's loss with L_anchor's references from the images, not the garment "
