@@ -121,6 +121,11 @@ class FitConfig:
     next frame's kept pose, the lower loss kept). Off by default: about twice the fit time for no
     measured gain (demo skirt with proposals every 10 frames: 14.61 -> 14.59 mm; 128x128 skirt:
     18.79 -> 18.95 mm alone)."""
+    start: str
+    """Start of frame t > 0: ``previous`` (frame t-1's result) or ``sim_delta`` (frame t-1's result
+    moved by the simulation's own change of every bone from t-1 to t, G_sim[t] G_sim[t-1]^-1
+    G_fit[t-1], from the rig's simulated sequence of the observed motion: the cloth's motion as
+    the simulator predicts it, which the images then correct)."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -129,6 +134,8 @@ class FitConfig:
             raise ValueError(f"FitConfig.loss must be one of {sorted(VARIANTS)}, got {self.loss!r}")
         if self.method not in ("rig", "vertex", "nearest"):
             raise ValueError(f"FitConfig.method must be 'rig', 'vertex' or 'nearest', got {self.method!r}")
+        if self.start not in ("previous", "sim_delta"):
+            raise ValueError(f"FitConfig.start must be 'previous' or 'sim_delta', got {self.start!r}")
         if self.anchor_reference not in ("images", "texture"):
             raise ValueError(f"FitConfig.anchor_reference must be 'images' or 'texture', got {self.anchor_reference!r}")
         for k, v in dataclasses.asdict(self.weights).items():

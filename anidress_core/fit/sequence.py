@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from .. import raster
-from ..geometry import lbs, nearest_rotation
+from ..geometry import invert_transform, lbs, nearest_rotation
 from .config import FitConfig
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import levenberg_marquardt
@@ -342,8 +342,8 @@ def backward_pass(rig: RigParts, views: Views, fits: list[FrameFit], cues_of: Ca
 def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
                  cfg: FitConfig | None = None, progress: bool = True, log=None,
-                 anchor_init: AnchorRef | None = None, proposals_of: Callable[[int], "Proposals"] | None = None
-                 ) -> list[FrameFit]:
+                 anchor_init: AnchorRef | None = None, proposals_of: Callable[[int], "Proposals"] | None = None,
+                 sim_transforms: Tensor | None = None) -> list[FrameFit]:
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
 
     cues_of(t) -> :class:`FrameCues` (with ``image`` for L_anchor); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
@@ -359,11 +359,21 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     e.g. :func:`anidress_core.fit.proposals.frame_proposals`) compete with the chained fit
     (:func:`anidress_core.fit.proposals.best_of`; ``notes['proposal']``: the label kept and the
     losses). ``cfg.backward``: then :func:`backward_pass`. The temporal filter comes last.
+
+    ``cfg.start == 'sim_delta'``: frame t > 0 starts from frame t-1's result moved by the simulated
+    change of every bone, ``sim_transforms[t] @ sim_transforms[t-1]^-1 @ G[t-1]`` (sim_transforms:
+    (>= T, B, 4, 4), the rig's transforms of the simulation of the observed motion).
     """
     from .proposals import best_of, data_loss, score_poses
     from tqdm import tqdm
 
     cfg = FitConfig.from_config({}) if cfg is None else cfg
+    if cfg.start == "sim_delta":
+        if sim_transforms is None or sim_transforms.shape[0] < num_frames:
+            raise ValueError(f"fit_sequence: start 'sim_delta' needs the simulated transforms of all {num_frames} "
+                             f"frames, got {None if sim_transforms is None else tuple(sim_transforms.shape)}")
+        S = torch.as_tensor(sim_transforms, device=rig.rest.device).double()
+        delta = S[1:num_frames] @ invert_transform(S[:num_frames - 1])  # (T - 1, B, 4, 4): t-1 -> t
 
     out: list[FrameFit] = []
     G = torch.as_tensor(init, device=rig.rest.device).double()
@@ -383,6 +393,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                 prev = out[-1]
                 targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.visibility_depth_tol,
                                        cfg.flow_margin_px)
+        if t > 0 and cfg.start == "sim_delta":
+            G = delta[t - 1] @ G
         picked = None
         if cfg.method == "nearest":  # the baseline: the database pose with the lowest loss, not optimised
             if proposals_of is None:

@@ -342,12 +342,18 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         db_note = f"{db.transforms.shape[0]} simulated frames of {list(db.names)}"
         log.info("fit: proposals %s from %s", "every frame (method nearest)" if cfg.method == "nearest" else
                  f"every {cfg.proposal_every} frames", db_note)
+    sim_transforms = None
+    if cfg.start == "sim_delta":  # frames t > 0 start from the previous fit moved as the simulation moves
+        if sim_name not in art.sequences:
+            raise ValueError(f"{rig_npz}: fit/start is 'sim_delta' but the rig has no simulated sequence {sim_name!r} "
+                             f"(it has {sorted(art.sequences)})")
+        sim_transforms = art.transforms_of(sim_name).double().to(device)
     # 7. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
     try:
         res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
-                               anchor_init=anchor_init, proposals_of=proposals_of)
+                               anchor_init=anchor_init, proposals_of=proposals_of, sim_transforms=sim_transforms)
     finally:
         reader.close()
     wall_fit = time.perf_counter() - t_fit
