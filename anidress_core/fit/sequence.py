@@ -287,7 +287,7 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
     vertices are the same filter of the fitted vertices; the projection changes them only by
     the spread of the three rotations (second order). A rotation at constant angular velocity
     and a translation at constant velocity pass unchanged. Cuts the frame-to-frame jitter of
-    per-frame fits (benchmarks/fit.md, variant anchor_smooth).
+    per-frame fits (benchmarks/fit_demo.md, variant anchor_smooth).
     """
     G = torch.as_tensor(transforms).clone()
     if G.ndim != 4 or G.shape[-2:] != (4, 4):
