@@ -33,8 +33,8 @@ FABRICS = ("plain", "floral", "plaid", "denim")
 FRAMES = 40
 
 
-def draw(count: int = 10, seed: int = 23) -> dict:
-    """``count`` scene sections ``suite_00`` ..: every library motion at least once (for count >= 7),
+def draw(count: int = 10, seed: int = 23, prefix: str = "suite") -> dict:
+    """``count`` scene sections ``<prefix>_00`` ..: every library motion at least once (for count >= 7),
     garments alternating, plain fabric on every third scene, the rest drawn."""
     rng = random.Random(seed)
     motions = list(MOTIONS) + [rng.choice(MOTIONS) for _ in range(max(0, count - len(MOTIONS)))]
@@ -43,7 +43,7 @@ def draw(count: int = 10, seed: int = 23) -> dict:
     for i in range(count):
         fabric = "plain" if i % 3 == 0 else rng.choice(FABRICS[1:])
         bend = math.exp(rng.uniform(math.log(3e-4), math.log(1e-2)))
-        scenes[f"suite_{i:02d}"] = {
+        scenes[f"{prefix}_{i:02d}"] = {
             "synthetic": True,
             "kind": ("skirt", "dress")[i % 2],
             "seed": 1000 + seed * 100 + i,
@@ -56,8 +56,9 @@ def draw(count: int = 10, seed: int = 23) -> dict:
     return scenes
 
 
-def overlay(scenes: dict, seed: int) -> str:
-    head = (f"# The fit's evaluation suite: {len(scenes)} generated scenes (benchmarks/fit_suite.py, --seed {seed}).\n"
+def overlay(scenes: dict, seed: int, prefix: str = "suite") -> str:
+    head = (f"# The fit's evaluation suite: {len(scenes)} generated scenes (benchmarks/fit_suite.py, --seed {seed} "
+            f"--prefix {prefix}).\n"
             "# Written by that script; no fit setting was chosen on these scenes and none has a fit section.\n"
             "# Use: snakemake --configfile config/fit_suite.yaml (on top of config/config.yaml).\n")
     return head + yaml.safe_dump({"run_scenes": list(scenes), "scenes": scenes}, sort_keys=False)
@@ -76,14 +77,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=10)
     ap.add_argument("--seed", type=int, default=23)
+    ap.add_argument("--prefix", default="suite", help="scene names <prefix>_00 .. (default: %(default)s)")
     ap.add_argument("--out", default=str(DEFAULT_OUT), help="the overlay written (default: %(default)s)")
     ap.add_argument("--targets", action="store_true", help="print the Snakemake targets of the suite instead")
     args = ap.parse_args()
-    scenes = draw(args.count, args.seed)
+    scenes = draw(args.count, args.seed, args.prefix)
     if args.targets:
         print(" ".join(targets(scenes)))
         return
-    Path(args.out).write_text(overlay(scenes, args.seed))
+    Path(args.out).write_text(overlay(scenes, args.seed, args.prefix))
     print(f"wrote {args.out}: {', '.join(scenes)}")
 
 
