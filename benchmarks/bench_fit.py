@@ -170,9 +170,13 @@ def reusable(path: Path, method: str, params: dict) -> bool:
     """Whether ``path`` holds a fit of variant ``method`` made with exactly ``params``."""
     if not path.is_file():
         return False
+    from anidress_core.config import section_defaults
+
     meta = load_garment_poses(path)[1].get("meta", {})
     key = functools.partial(json.dumps, sort_keys=True, default=str)
-    return meta.get("loss") == method and key(meta.get("params")) == key(params)
+    # compared with the schema's defaults filled in: a key added since (at its default) changes nothing
+    full = lambda p: key(section_defaults("fit", dict(p or {})))  # noqa: E731
+    return meta.get("loss") == method and full(meta.get("params")) == full(params)
 
 
 @functools.lru_cache(maxsize=None)
