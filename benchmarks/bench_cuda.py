@@ -235,11 +235,10 @@ class CudaRun:
         sd = root / "scenes" / f"v{views}_s{image}_g{vertices}"
         if not sd.is_dir():
             sd = r.scene(views, image, vertices, None)  # synth into the work folder (= root when preparing)
-        r._scenes[(views, image, vertices)] = sd
         tpl = root / "templates" / f"{point}.npz"
         if not tpl.is_file():
             fork_call(w_template, self.work / "logs" / f"template_{point}.log", str(sd), vertices, str(tpl))
-        r._templates[vertices] = tpl
+        r.use_inputs(views, image, vertices, sd, tpl)
         mot = root / "motions" / f"lib-walk{self.s.sim_frames}.npz"
         if not mot.is_file():
             from benchmarks.bench_scaling import w_motion

@@ -341,6 +341,12 @@ class Runner:
             self._synth_res[key] = res
         return self._scenes[key]
 
+    def use_inputs(self, views: int, image: int, vertices: int, scene: Path, template: Path | None = None) -> None:
+        """Use an existing scene (and garment template) for this point instead of making them."""
+        self._scenes[(views, image, vertices)] = Path(scene)
+        if template is not None:
+            self._templates[vertices] = Path(template)
+
     def template(self, vertices: int) -> Path:
         if vertices not in self._templates:
             sd = self.scene(self.base["views"], self.base["image"], vertices, None)

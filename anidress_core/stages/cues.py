@@ -22,6 +22,7 @@ half-written.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import logging
@@ -122,6 +123,21 @@ def atomic_dir(out_dir: str | os.PathLike) -> Iterator[Path]:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _drained(pool: ThreadPoolExecutor) -> Iterator[list]:
+    """A list for the futures of writes into an :func:`atomic_dir` on ``pool`` (a pool that outlives
+    it): on an exception, the writes not started are cancelled and the running ones waited for, so
+    that none recreates the temporary folder after atomic_dir has removed it."""
+    pending: list = []
+    try:
+        yield pending
+    except BaseException:
+        for p in pending:
+            p.cancel()
+        concurrent.futures.wait(pending)
+        raise
 
 
 def _cameras(seq_dir: Path, names: Sequence[str], info: dict):
@@ -273,8 +289,7 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
                 len(names), params)
             log.info("colour model: %d frames, %d bins per channel", len(pick), params.hist_bins)
         # 2. every frame, all cameras at once
-        with atomic_dir(out_dir) as tmp:
-            pending = []
+        with atomic_dir(out_dir) as tmp, _drained(pool) as pending:
             subject, empty = 0.0, []
             for f in tqdm(frames, desc=f"masks {seq}", unit="frame", disable=not progress):
                 if f in cache:
@@ -290,7 +305,7 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
                 if len(pending) > 64:
                     for p in pending:
                         p.result()
-                    pending = []
+                    pending.clear()
             for p in pending:
                 p.result()
             n_masks = len(names) * len(frames)
