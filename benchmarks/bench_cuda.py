@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_scaling import Plan, Runner, fork_call, w_template
+from benchmarks.bench_scaling import Plan, Runner, fork_call, hms, w_template
 from benchmarks.benchutil import cpu_model, git_rev
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -280,8 +280,7 @@ class CudaRun:
                     self.measure("simulate", p, dev, w_simulate, *args, str(o / "sim_first.npz"), first=True)
                 ok = self.measure("simulate", p, dev, w_simulate, *args, str(sim)) is not None
                 if dev == "cuda":
-                    eager = (str(inp["template"]), str(inp["motion"]), str(inp["scene"]),
-                             dict(cloth, graph_capture=False))
+                    eager = (*args[:3], dict(cloth, graph_capture=False))  # the same call, graph off
                     ok = self.measure("simulate_launches", p, dev, w_simulate, *eager,
                                       str(sim if not ok else o / "sim_launches.npz")) is not None or ok
                 if not ok:
@@ -321,10 +320,6 @@ def _fmt(x: float) -> str:
     return f"{x:.3g}" if abs(x) < 1000 else f"{x:,.0f}"
 
 
-def _hms(s: float) -> str:
-    return f"{s:.0f} s" if s < 120 else (f"{s / 60:.1f} min" if s < 7200 else f"{s / 3600:.1f} h")
-
-
 def table(raw: dict) -> list[dict]:
     """One row per (stage, point): per-unit seconds on each device, the speed-up, first-call seconds."""
     by = {(r["stage"], r["point"], r["device"], r["first_call"]): r for r in raw["rows"]}
@@ -353,7 +348,7 @@ def table(raw: dict) -> list[dict]:
                 lo = hi = float("nan")
             else:
                 lo, hi = PAPER_UNITS[st]
-            row["units_paper"] = "-" if lo != lo else (f"{lo}" if lo == hi else f"{lo}-{hi}")
+            row["units_paper"] = "-" if np.isnan(lo) else (f"{lo}" if lo == hi else f"{lo}-{hi}")
             row["cuda_total_paper_s_low"] = row["cuda_s_per_unit"] * lo
             row["cuda_total_paper_s_high"] = row["cuda_s_per_unit"] * hi
             out.append(row)
@@ -413,7 +408,7 @@ def report(raw: dict, out: Path) -> None:
          "| --- | --- | --- | ---: | ---: | ---: | --- | ---: | --- | --- | --- |"]
     for r in rows:
         lo, hi = r["cuda_total_paper_s_low"], r["cuda_total_paper_s_high"]
-        tot = "-" if not np.isfinite(lo) else (_hms(lo) if lo == hi else f"{_hms(lo)} - {_hms(hi)}")
+        tot = "-" if not np.isfinite(lo) else (hms(lo) if lo == hi else f"{hms(lo)} - {hms(hi)}")
         paper = r["point"] == "paper"
         L.append(f"| {r['stage']} | {r['point']} | {r['unit']} | {_fmt(r['cpu_s_per_unit'])} | "
                  f"{_fmt(r['cuda_s_per_unit'])} | {_fmt(r['speedup']) + 'x' if np.isfinite(r['speedup']) else '-'} | {_fmt(r['cpu_first_call_s'])} / "
