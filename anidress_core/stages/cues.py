@@ -126,10 +126,10 @@ def atomic_dir(out_dir: str | os.PathLike) -> Iterator[Path]:
 
 
 @contextlib.contextmanager
-def _drained(pool: ThreadPoolExecutor) -> Iterator[list]:
-    """A list for the futures of writes into an :func:`atomic_dir` on ``pool`` (a pool that outlives
-    it): on an exception, the writes not started are cancelled and the running ones waited for, so
-    that none recreates the temporary folder after atomic_dir has removed it."""
+def _drained() -> Iterator[list]:
+    """A list for the futures of writes into an :func:`atomic_dir` made on a pool that outlives it:
+    on an exception, the writes not started are cancelled and the running ones waited for, so that
+    none recreates the temporary folder after atomic_dir has removed it."""
     pending: list = []
     try:
         yield pending
@@ -289,7 +289,7 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
                 len(names), params)
             log.info("colour model: %d frames, %d bins per channel", len(pick), params.hist_bins)
         # 2. every frame, all cameras at once
-        with atomic_dir(out_dir) as tmp, _drained(pool) as pending:
+        with atomic_dir(out_dir) as tmp, _drained() as pending:
             subject, empty = 0.0, []
             for f in tqdm(frames, desc=f"masks {seq}", unit="frame", disable=not progress):
                 if f in cache:
