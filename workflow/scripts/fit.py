@@ -12,7 +12,7 @@ try:
             cues["masks"], cues["flows"], cues["normals"], params, snakemake.output[0],
             ablation=None if snakemake.params.ablation == "full" else snakemake.params.ablation,
             cue_source=cues["source"], undistorted_dir=snakemake.input.get("undistorted") or None,
-            motions_dir=Path(snakemake.input.motions[0]).parent if "motions" in snakemake.input.keys() else None)
+            motions_dir=Path(snakemake.input.motions[0]).parent if snakemake.input.get("motions") else None)
 except Exception:
     log.exception("fit failed")
     raise

@@ -45,7 +45,7 @@ def fit_cue_dirs(scene, seq):
 
 
 def fit_inputs(wildcards):
-    """Rig, template, scene and (pipeline cues) the cue rule outputs of one sequence."""
+    """Rig, template, scene, the rig's simulated motions and (pipeline cues) the cue rule outputs of one sequence."""
     scene, seq = wildcards.scene, wildcards.seq
     if not has_garment(scene):
         raise ValueError(f"scene {scene!r} has no garment (kind tight): nothing to fit")
@@ -60,12 +60,10 @@ def fit_inputs(wildcards):
         inp["undistorted"] = undistorted_input(scene, seq)  # undistort.smk: images, cameras, shipped cues
         inp["flows"] = d["flows"]
         inp["normals"] = normals_record(scene, seq)
-    fit = scene_section(config, "fit", scene)
-    variant = getattr(wildcards, "ablation", None) or fit["loss"]
-    # the proposals' database (the rig's motions): proposals on, or a variant that turns them on or picks from them
-    # (anidress_core/fit/variants.py; not imported here: parsing the workflow loads no torch)
-    if fit["proposal_every"] > 0 or variant in ("nearest", "pipeline_proposals"):
-        inp["motions"] = [f"results/{scene}/motions/{m}.npz" for m in sim_motion_names(scene)]
+    # the body motions of the rig's simulations: the database of the proposals and of the `nearest` baseline, read
+    # by the stage only when the settings or the variant ask for it (the rig depends on them already, so a change
+    # of them reruns the fit either way)
+    inp["motions"] = [f"results/{scene}/motions/{m}.npz" for m in sim_motion_names(scene)]
     return inp
 
 
