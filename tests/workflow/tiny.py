@@ -28,6 +28,7 @@ TINY = {
             "synthetic": True,
             "kind": "skirt",
             "image_size": [48, 48],
+            "cameras": {"count": 6, "train": 4},  # half the default ring: the fit, cues, fields run on 4 views
             "sequences": [{"name": "walk", "motion": "walk", "frames": 4, "role": "train"}],
             "garment": {"vertices": 600, "cloth": {"settle_frames": 5}},
             "render": {"texture_size": 128},
