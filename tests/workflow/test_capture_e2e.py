@@ -46,8 +46,10 @@ SETTINGS = {"template": {"vertices": 300},
 
 
 def _snakemake(wd: Path, *args: str) -> subprocess.CompletedProcess:
+    # two jobs side by side on the 2 cores of `make test` (pytest waits for the run), each on the one thread it
+    # has with --cores 1: the jobs of a serial run (the two fields, their renders, the cues of walk and jump)
     cmd = [sys.executable, "-m", "snakemake", *args, "-s", str(REPO / "Snakefile"), "--directory", str(wd),
-           "--configfile", str(wd / "cfg.yaml"), "--cores", "1"]
+           "--configfile", str(wd / "cfg.yaml"), "--cores", "2", "--max-threads", "1"]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=600,
                           env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})
 
