@@ -37,7 +37,7 @@ class TrainConfig:
     """Random rays per step, spread over ``images_per_step`` (frame, camera) images."""
     images_per_step: int = 8
     """Images the rays of one step come from."""
-    step_m: float = 0.01
+    step_m: float = 0.02
     """Ray-marching step (metres)."""
     lr: float = 3e-2
     """Adam learning rate of the canonical field (hash table and MLPs). instant-ngp uses
