@@ -22,6 +22,7 @@ rule masks:
         masks=config["cues"]["masks"],
         cameras=config["cues"]["cameras"],
     threads: 2
+    priority: 1  # masks gate the field trainings
     resources:
         mem_mb=2000,
         runtime=20,

@@ -25,6 +25,7 @@ rule train_field:
         lpips=field_lpips_params(),
         masks=lambda wc: field_masks(wc.scene, wc.seq),
     threads: 1
+    priority: 1  # the trainings before the renders and scores of another scene
     resources:
         mem_mb=6000,
         runtime=30,

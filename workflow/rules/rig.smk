@@ -16,6 +16,7 @@ rule rig:
     params:
         rig=config["rig"],
     threads: 2
+    priority: 2  # the garment chain motions -> simulate -> rig -> fit -> full field is the longest: it goes first
     resources:
         mem_mb=4000,
         runtime=30,
