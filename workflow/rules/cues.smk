@@ -22,7 +22,7 @@ rule masks:
         masks=config["cues"]["masks"],
         cameras=config["cues"]["cameras"],
     threads: 2
-    priority: 1  # masks gate the field trainings
+    priority: 2  # inputs of the garment fit (the demo's longest chain, see rule simulate)
     resources:
         mem_mb=2000,
         runtime=20,
@@ -53,6 +53,7 @@ rule flows:
         flows=config["cues"]["flows"],
         cameras=config["cues"]["cameras"],
     threads: 2
+    priority: 2  # inputs of the garment fit (the demo's longest chain, see rule simulate)
     resources:
         mem_mb=2000,
         runtime=20,
@@ -79,6 +80,7 @@ rule normals:
         reason=lambda wc: _normals_skip_reason(wc.scene, wc.seq),
         cameras=config["cues"]["cameras"],
     threads: 1
+    priority: 2  # inputs of the garment fit (the demo's longest chain, see rule simulate)
     resources:
         mem_mb=1000,
         runtime=5,

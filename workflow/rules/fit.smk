@@ -21,7 +21,7 @@ rule fit:
         cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
         ablation="full",
     threads: 2
-    priority: 2  # the garment chain motions -> simulate -> rig -> fit -> full field is the longest: it goes first
+    priority: 2  # the garment chain (cues, motions, simulate, rig, fit, then the full field) is the demo's longest: first
     resources:
         mem_mb=4000,
         runtime=30,

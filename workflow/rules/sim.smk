@@ -41,7 +41,7 @@ rule motions:
     params:
         sim=motion_params,
     threads: 1
-    priority: 2  # the garment chain motions -> simulate -> rig -> fit -> full field is the longest: it goes first
+    priority: 2  # the garment chain (cues, motions, simulate, rig, fit, then the full field) is the demo's longest: first
     resources:
         mem_mb=1000,
         runtime=5,
@@ -66,7 +66,7 @@ rule simulate:
     params:
         cloth=config["simulate"]["cloth"],
     threads: 1
-    priority: 2  # the garment chain motions -> simulate -> rig -> fit -> full field is the longest: it goes first
+    priority: 2  # the garment chain (cues, motions, simulate, rig, fit, then the full field) is the demo's longest: first
     resources:
         mem_mb=2000,
         runtime=60,
