@@ -76,7 +76,7 @@ def train_config_from_params(p: dict) -> TrainConfig:
     """``field/train`` (+ ``field/sampler/step_m``, ``field/render/background``) -> TrainConfig."""
     t = dict(p.get("train", {}))
     t.pop("frame_stride", None)
-    t["step_m"] = float(p.get("sampler", {}).get("step_m", 0.02))
+    t["step_m"] = float(p.get("sampler", {}).get("step_m", TrainConfig.step_m))
     t["background"] = tuple(float(c) for c in p.get("render", {}).get("background", (0.0, 0.0, 0.0)))
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(t) - known)
@@ -152,7 +152,7 @@ def _sampler_params(p: dict) -> dict:
     return {"res": int(s.get("occupancy_res", 64)), "dilate_m": float(s.get("dilate_m", 0.03)),
             "body_only_garment_dilate_m": float(s.get("body_only_garment_dilate_m", 0.12)),
             "max_joints": int(s.get("max_joints", 8)), "min_weight": float(s.get("min_joint_weight", 0.01)),
-            "mask_dilate_px": int(s.get("mask_dilate_px", 8)), "step_m": float(s.get("step_m", 0.02))}
+            "mask_dilate_px": int(s.get("mask_dilate_px", 8)), "step_m": float(s.get("step_m", TrainConfig.step_m))}
 
 
 # --------------------------------------------------------------------------- train
