@@ -315,9 +315,11 @@ def _cmd_refine_body(args: argparse.Namespace) -> None:
     from .stages.refine_body import run_refine_body
 
     cfg = RefineConfig(**ADAM_SETTINGS) if args.method == "adam" else RefineConfig()
+    if args.cameras not in ("all", "train"):
+        args.cameras = [c.strip() for c in args.cameras.split(",") if c.strip()]
     rec = run_refine_body(args.scene_dir, args.sequence, args.out, masks_dir=args.masks,
                           undistorted_dir=args.undistorted, chunk=args.chunk,
-                          max_frames=args.max_frames, cfg=cfg, threads=args.threads)
+                          max_frames=args.max_frames, cfg=cfg, threads=args.threads, cameras=args.cameras)
     print(f"{args.out}/smpl: {rec['frames']} frames x {len(rec['cameras'])} cameras refined in {rec['seconds']:.1f} s "
           f"({rec['seconds_per_frame']:.2f} s/frame); body silhouette IoU {rec['body_iou_before']:.3f} -> "
           f"{rec['body_iou_after']:.3f}")
@@ -637,6 +639,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-frames", type=int, help="only the first N frames")
     s.add_argument("--method", default="lm", choices=["lm", "adam"],
                    help="optimiser: Levenberg-Marquardt or Adam (default: %(default)s)")
+    s.add_argument("--cameras", default="all", help="views refined against: all, train or a comma-separated list "
+                   "(the workflow: cues/cameras; default: %(default)s)")
     s.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
     s.set_defaults(func=_cmd_refine_body)
 

@@ -17,7 +17,9 @@ Variants (``--variants``, in order; each a separate Snakemake run in ``WORK/<var
 * ``image_anchor``: the synthetic run (copied with its Snakemake records) with fit/anchor_reference: images:
   the garment texture unused (the one crutch an export cannot drop alone);
 * ``parser_pose_noise``: parser + 2 cm body noise (the noise with good masks);
-* ``capture_parser``: capture with parser-like masks shipped (a user who runs a human parser).
+* ``capture_parser``: capture with parser-like masks shipped (a user who runs a human parser);
+* ``*_refined``: ``pose_noise``, ``parser_pose_noise``, ``capture_parser`` with rule refine_body on (the
+  noisy body poses refined against the masks before motions, fit and field).
 
 Scores (held-back truth, the pipeline's own scorers): the fit of walk by
 :func:`anidress_core.stages.fit.run_fit_eval` (vertex RMSE and its ratio to the run's rig floor), the
@@ -56,17 +58,25 @@ VARIANTS = {
     "image_anchor": None,
     "parser_pose_noise": {"distort": False, "pose_noise_cm": 2.0, "masks": "parser", "image_size": "256x256"},
     "capture_parser": {"distort": True, "pose_noise_cm": 2.0, "masks": "parser", "image_size": None},
+    "pose_noise_refined": {"distort": False, "pose_noise_cm": 2.0, "masks": "none", "image_size": "256x256",
+                           "refine_body": True},
+    "parser_pose_noise_refined": {"distort": False, "pose_noise_cm": 2.0, "masks": "parser", "image_size": "256x256",
+                                  "refine_body": True},
+    "capture_parser_refined": {"distort": True, "pose_noise_cm": 2.0, "masks": "parser", "image_size": None,
+                               "refine_body": True},
 }
 """Export options of each variant; None: the synthetic scene itself (``image_anchor``: a copy of the
-synthetic run with fit/anchor_reference: images, i.e. the garment texture unused: its cost alone)."""
-COLUMNS = ["variant", "distort", "image_size", "pose_noise_cm", "masks", "plates", "texture",
-           "body_joint_error_cm", "body_joint_angle_deg", "body_jitter_cm", "mask_images", "mask_iou_person",
+synthetic run with fit/anchor_reference: images, i.e. the garment texture unused: its cost alone).
+``refine_body``: the run has rule refine_body on (the body poses refined against the masks)."""
+COLUMNS = ["variant", "distort", "image_size", "pose_noise_cm", "refine_body", "masks", "plates", "texture",
+           "body_joint_error_cm", "body_joint_angle_deg", "body_jitter_cm", "refined_joint_error_cm",
+           "refined_joint_angle_deg", "refined_jitter_cm", "mask_images", "mask_iou_person",
            "mask_iou_garment", "fit_frames", "fit_vertex_rmse_mm", "rig_floor_mm", "fit_ratio_to_floor",
            "novel_pose_images", "novel_pose_psnr_db", "novel_pose_iou", "jobs", "jobs_wall_s", "jobs_cpu_s",
            "status"]
 
 
-def _config(args, scene: str, entry: dict, exported: bool) -> dict:
+def _config(args, scene: str, entry: dict, exported: bool, refine: bool = False) -> dict:
     cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     cfg["run_scenes"] = [scene]
     cfg["scenes"] = {scene: entry}
@@ -79,6 +89,7 @@ def _config(args, scene: str, entry: dict, exported: bool) -> dict:
     cfg["field"]["render"]["library"] = []
     if exported:
         cfg.setdefault("cues", {}).setdefault("masks", {})["background"] = "temporal_median"
+    cfg["refine_body"] = dict(cfg.get("refine_body") or {}, enabled=bool(refine))
     return cfg
 
 
@@ -161,6 +172,23 @@ def _score(work: Path, scene_name: str, scene: Path, truth: Path | None) -> dict
     return {"fit": fit, "eval": ev, "masks": masks}
 
 
+def _refined_body_errors(scene: Path, truth: Path, body_dir: Path) -> dict:
+    """The exporter's body-noise measure (export_capture.pose_errors) of rule refine_body's walk poses."""
+    import numpy as np
+
+    from anidress_core.io.motion import read_easymocap_smpl_dir
+    from anidress_core.io.scene import load_body
+    from anidress_core.stages.export_capture import pose_errors
+
+    def rd(d: Path) -> dict:
+        x = read_easymocap_smpl_dir(d)
+        return {k: np.asarray(x[k], np.float64) for k in ("poses", "Rh", "Th")}
+
+    e = pose_errors(load_body(scene), rd(truth / "walk" / "smpl"), rd(body_dir / "smpl"))
+    return {"refined_joint_error_cm": round(e["joint_error_cm"], 3),
+            "refined_joint_angle_deg": round(e["joint_angle_deg"], 3), "refined_jitter_cm": round(e["jitter_cm"], 3)}
+
+
 def _job_costs(work: Path, scene: str) -> dict:
     """Jobs, summed wall and CPU seconds of the last run of each job (Snakemake's benchmark files)."""
     rows = []
@@ -186,10 +214,12 @@ def run_variant(args, name: str, work_root: Path) -> dict:
     from anidress_core.io.scene_info import scene_config_entry
 
     opts = VARIANTS[name]
+    refine = bool((opts or {}).get("refine_body"))
+    opts = None if opts is None else {k: v for k, v in opts.items() if k != "refine_body"}
     work = work_root / name
     work.mkdir(parents=True, exist_ok=True)
     row = {"variant": name, "status": "ok", "command": " ".join(sys.argv[1:]), "git": git_rev(),
-           "date": dt.datetime.now().isoformat(timespec="seconds")}
+           "date": dt.datetime.now().isoformat(timespec="seconds"), "refine_body": refine}
     if opts is None:
         scene_name, entry, truth = "skirt", _synthetic_entry(args), None
         row.update(distort=False, image_size="256x256", pose_noise_cm=0.0, masks="plate background", plates=True,
@@ -220,7 +250,8 @@ def run_variant(args, name: str, work_root: Path) -> dict:
                    plates=False, texture=False, body_joint_error_cm=round(b["joint_error_cm"], 3),
                    body_joint_angle_deg=round(b["joint_angle_deg"], 3), body_jitter_cm=round(b["jitter_cm"], 3))
     exported = opts is not None
-    (work / "config.yaml").write_text(yaml.safe_dump(_config(args, scene_name, entry, exported), sort_keys=False))
+    (work / "config.yaml").write_text(yaml.safe_dump(_config(args, scene_name, entry, exported, refine),
+                                                     sort_keys=False))
     targets = [f"results/{scene_name}/walk/garment_poses.npz", f"results/{scene_name}/rig.npz",
                f"results/{scene_name}/walk/full/renders/novel_pose/dance"]
     if name == "synthetic":
@@ -231,6 +262,9 @@ def run_variant(args, name: str, work_root: Path) -> dict:
         row["status"] = f"workflow failed (rc {rc}, {work / 'snakemake.log'})"
         return row
     scene = work / "data" / scene_name
+    if refine:
+        row.update(_refined_body_errors(scene, work / "data" / f"{scene_name}.truth",
+                                        work / "results" / scene_name / "walk" / "body"))
     s = _score(work, scene_name, scene, None if not exported else work / "data" / f"{scene_name}.truth")
     f = s["fit"]
     row.update(fit_frames=args.frames, fit_vertex_rmse_mm=round(1e3 * f["vertex_rmse_m"], 2),
@@ -280,20 +314,25 @@ def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None
         "- one run per variant, one export seed: runs are deterministic on one machine (README), so the differences "
         "are not run-to-run noise, but the spread over seeds and scenes is not measured",
         "- body noise: the exporter's own measure on walk (mean joint position error; mean local joint angle "
-        "error; mean frame-to-frame change of the joint error, i.e. jitter), in export.json",
+        "error; mean frame-to-frame change of the joint error, i.e. jitter), in export.json; with refine_body on, "
+        "`given -> refined` (the same measure of results/<scene>/walk/body against the held-back truth)",
         "",
-        "| variant | distortion | image | body joint error (cm) / angle (deg) / jitter (cm) | masks | plates | texture "
+        "| variant | distortion | image | body joint error (cm) / angle (deg) / jitter (cm) | refine_body "
+        "| masks | plates | texture "
         "| walk mask IoU subject / garment | fit RMSE (mm) "
         "| rig floor (mm) | fit / floor | novel-pose PSNR (dB) | IoU | images | jobs | jobs wall (s) | jobs CPU (s) "
         "| status |",
-        "|" + " --- |" * 7 + " ---: |" * 10 + " --- |",
+        "|" + " --- |" * 8 + " ---: |" * 10 + " --- |",
     ]
     for r in rows:
-        r = dict(r, body_noise=f"{r.get('body_joint_error_cm', '')} / {r.get('body_joint_angle_deg', '')} / "
-                               f"{r.get('body_jitter_cm', '')}",
+        ref = {k: (f" -> {r[f'refined_{k}']}" if r.get(f"refined_{k}") not in (None, "") else "")
+               for k in ("joint_error_cm", "joint_angle_deg", "jitter_cm")}
+        r = dict(r, body_noise=f"{r.get('body_joint_error_cm', '')}{ref['joint_error_cm']} / "
+                               f"{r.get('body_joint_angle_deg', '')}{ref['joint_angle_deg']} / "
+                               f"{r.get('body_jitter_cm', '')}{ref['jitter_cm']}",
                  mask_iou=f"{r.get('mask_iou_person', '')} / {r.get('mask_iou_garment', '')}")
         lines.append("| " + " | ".join(str(r.get(k, "")) for k in (
-            "variant", "distort", "image_size", "body_noise", "masks", "plates", "texture", "mask_iou",
+            "variant", "distort", "image_size", "body_noise", "refine_body", "masks", "plates", "texture", "mask_iou",
             "fit_vertex_rmse_mm", "rig_floor_mm", "fit_ratio_to_floor", "novel_pose_psnr_db", "novel_pose_iou",
             "novel_pose_images", "jobs", "jobs_wall_s", "jobs_cpu_s", "status")) + " |")
     ok = {r["variant"]: r for r in rows if r["status"] == "ok"}
@@ -304,6 +343,10 @@ def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None
               ("body-pose noise", "pose_noise", "crutchless"),
               ("parser-like masks shipped instead of the temporal-median masks", "parser", "crutchless"),
               ("body-pose noise, with the parser-like masks", "parser_pose_noise", "parser"),
+              ("body-pose refinement (rule refine_body), temporal-median masks", "pose_noise_refined", "pose_noise"),
+              ("body-pose refinement, parser-like masks", "parser_pose_noise_refined", "parser_pose_noise"),
+              ("body-pose refinement, every degradation with parser-like masks", "capture_parser_refined",
+               "capture_parser"),
               ("all degradations of `capture`", "capture", "synthetic"),
               ("all degradations, parser-like masks shipped (`capture_parser`)", "capture_parser", "synthetic")]
     att = [(what, a, b) for what, a, b in causes if a in ok and b in ok]

@@ -56,12 +56,22 @@ def load_body(scene_dir: str | os.PathLike, info: dict | None = None) -> BodyMod
                               f"got {spec.get('type')!r}")
 
 
-def load_sequence_motion(scene_dir: str | os.PathLike, seq: str, fps: float) -> Motion:
+def load_sequence_motion(scene_dir: str | os.PathLike, seq: str, fps: float,
+                         body_dir: str | os.PathLike | None = None) -> Motion:
     """The body motion of a captured sequence from its EasyMocap ``smpl/`` folder (the person
-    and the frames without them as scene.yaml's person_id / max_missing_frames say)."""
-    yml = Path(scene_dir) / "scene.yaml"
-    sel = smpl_selection(read_scene(scene_dir), seq, yml) if yml.is_file() else {}
-    d = read_easymocap_smpl_dir(Path(scene_dir) / seq / "smpl", **sel)
+    and the frames without them as scene.yaml's person_id / max_missing_frames say).
+
+    ``body_dir``: the sequence's poses refined by rule refine_body
+    (:func:`anidress_core.stages.refine_body.run_refine_body`, in the pipeline
+    ``results/<scene>/<seq>/body``): its ``smpl/`` (one person per frame, already selected) is
+    read instead of the scene's.
+    """
+    if body_dir is not None:
+        d = read_easymocap_smpl_dir(Path(body_dir) / "smpl")
+    else:
+        yml = Path(scene_dir) / "scene.yaml"
+        sel = smpl_selection(read_scene(scene_dir), seq, yml) if yml.is_file() else {}
+        d = read_easymocap_smpl_dir(Path(scene_dir) / seq / "smpl", **sel)
     shapes = np.asarray(d["shapes"], np.float32)
     return Motion(
         name=seq, fps=float(fps), poses=torch.as_tensor(np.asarray(d["poses"], np.float32)),

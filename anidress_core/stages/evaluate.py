@@ -59,7 +59,8 @@ MASK_SOURCES = ("gt/masks", "pipeline", "none", "empty")
 mask of the pipeline."""
 
 
-def _subject_points(scene_dir: Path, seq: str, info: dict, frames: Sequence[int]) -> tuple[dict, str]:
+def _subject_points(scene_dir: Path, seq: str, info: dict, frames: Sequence[int],
+                    body_dir: str | os.PathLike | None = None) -> tuple[dict, str]:
     """World points of the subject per frame: GT meshes when shipped, else the posed body."""
     gt = scene_dir / seq / "gt" / "meshes.npz"
     if gt.is_file():
@@ -72,7 +73,7 @@ def _subject_points(scene_dir: Path, seq: str, info: dict, frames: Sequence[int]
             pts[f] = torch.from_numpy(np.concatenate(p)).float()
         return pts, "gt/meshes.npz"
     body = load_body(scene_dir, info)
-    m = load_sequence_motion(scene_dir, seq, info["fps"])
+    m = load_sequence_motion(scene_dir, seq, info["fps"], body_dir)
     idx = torch.tensor(list(frames))
     v = body.pose(m.poses[idx], m.Rh[idx], m.Th[idx], m.shapes).vertices
     return {f: v[i] for i, f in enumerate(frames)}, "posed body"
@@ -86,7 +87,8 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
                  out_csv: str | os.PathLike, out_summary: str | os.PathLike, params: dict,
                  lpips=None, dists=None, progress: bool = True,
                  undistorted: Mapping[str, str | os.PathLike] | None = None,
-                 masks: Mapping[str, str | os.PathLike] | None = None) -> dict:
+                 masks: Mapping[str, str | os.PathLike] | None = None,
+                 bodies: Mapping[str, str | os.PathLike] | None = None) -> dict:
     """Evaluate render folders ``renders``: (kind, sequence, folder) each.
 
     undistorted: {sequence: folder of rule undistort} for sequences whose cameras have lens
@@ -94,6 +96,8 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
     masks: {sequence: folder ``<cam>/<frame:06d>.png``} of the pipeline's masks, used for a sequence
     without ``gt/masks`` (in the working cameras: for a distorted sequence, masks of its undistorted
     images). A sequence with neither is evaluated on no image (every row NaN, mask_source "none").
+    bodies: {sequence: body poses refined by rule refine_body}, posed for the scoring box of a sequence
+    without ``gt/meshes.npz`` (as the renders posed them).
 
     params: the ``metrics`` config section (``box_pad_m``). lpips / dists: loaded
     models or :class:`anidress_core.metrics.image.Unavailable` (or None: not requested).
@@ -113,7 +117,7 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
         src = sequence_source(scene_dir, seq, (undistorted or {}).get(seq), info)
         cams = scene_cameras(scene_dir, seq, cams_names, info, seq_dir=src)
         bg = torch.tensor(rj.get("background", [0.0, 0.0, 0.0]), dtype=torch.float32)
-        pts, box_source = _subject_points(scene_dir, seq, info, frames)
+        pts, box_source = _subject_points(scene_dir, seq, info, frames, (bodies or {}).get(seq))
         mask_dir, mask_source = src / "gt" / "masks", "gt/masks"
         if not mask_dir.is_dir():
             pipe = (masks or {}).get(seq)

@@ -161,7 +161,8 @@ def _sampler_params(p: dict) -> dict:
 def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: str | os.PathLike, out_pt: str | os.PathLike,
               params: dict, template_npz: str | os.PathLike | None = None, rig_npz: str | os.PathLike | None = None,
               garment_poses_npz: str | os.PathLike | None = None, lpips=None, device: str | None = None,
-              progress: bool = True, max_steps: int | None = None, undistorted_dir: str | os.PathLike | None = None) -> dict:
+              progress: bool = True, max_steps: int | None = None, undistorted_dir: str | os.PathLike | None = None,
+              body_dir: str | os.PathLike | None = None) -> dict:
     """Train the field of ``variant`` on the training cameras of sequence ``seq``.
 
     masks_dir: ``<dir>/<cam>/<frame:06d>.png`` labels (0 background, else subject) of the
@@ -171,6 +172,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     ``max_steps``: stop after this many steps *leaving the checkpoint* (to test resuming).
     ``undistorted_dir``: the sequence undistorted by rule undistort, read instead of the scene's
     images and cameras when they have lens distortion (:func:`anidress_core.io.scene.sequence_source`).
+    ``body_dir``: the sequence's body poses refined by rule refine_body, read instead of its smpl/.
     Returns the saved dict (without the state_dict).
     """
     t_start = time.perf_counter()
@@ -184,7 +186,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     tcfg = train_config_from_params(params)
     fcfg = field_config_from_params(params)
     stride = int(params.get("train", {}).get("frame_stride", 1))
-    motion = load_sequence_motion(scene_dir, seq, info["fps"])
+    motion = load_sequence_motion(scene_dir, seq, info["fps"], body_dir)
     T_all = motion.poses.shape[0]
     frames = list(range(0, T_all, stride))
     cams = info["cameras"]["train"]
@@ -375,10 +377,12 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
                seq: str | None = None, cameras: Sequence[str] | None = None, template_npz=None, rig_npz=None,
                garment_poses_npz=None, library_motion_npz=None, library_name: str | None = None,
                frame_stride: int = 1, device: str | None = None, progress: bool = True,
-               use_occupancy: bool = True, cull_joints: bool = True, undistorted_dir: str | os.PathLike | None = None) -> dict:
+               use_occupancy: bool = True, cull_joints: bool = True, undistorted_dir: str | os.PathLike | None = None,
+               body_dir: str | os.PathLike | None = None) -> dict:
     """Render a sequence with a trained field into ``out_dir`` (layout in the module doc).
 
-    Body motion: the EasyMocap ``smpl/`` of ``seq`` (captured) or ``library_motion_npz``
+    Body motion: the EasyMocap ``smpl/`` of ``seq`` (captured; refined by rule refine_body when
+    ``body_dir`` is given) or ``library_motion_npz``
     (a motion of the library; then garment poses are ``rig.transforms_of(library_name)``).
     Garment poses (variant ``full``): ``garment_poses_npz`` for a captured sequence.
     Cameras: ``cameras`` of ``seq`` (or of the training sequence for a library motion); the pinhole
@@ -399,7 +403,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
         motion = read_motion(library_motion_npz)
         source = f"rig.transforms_of({library_name!r})"
     else:
-        motion = load_sequence_motion(scene_dir, seq, info["fps"])
+        motion = load_sequence_motion(scene_dir, seq, info["fps"], body_dir)
         source = str(garment_poses_npz) if garment_poses_npz else "none"
     T_all = motion.poses.shape[0]
     frames = list(range(0, T_all, max(1, int(frame_stride))))

@@ -238,13 +238,15 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             masks_dir: str | os.PathLike, flows_dir: str | os.PathLike | None,
             normals_dir: str | os.PathLike | None, params: Mapping, out_npz: str | os.PathLike,
             ablation: str | None = None, progress: bool = True, cue_source: str = "",
-            undistorted_dir: str | os.PathLike | None = None, motions_dir: str | os.PathLike | None = None) -> dict:
+            undistorted_dir: str | os.PathLike | None = None, motions_dir: str | os.PathLike | None = None,
+            body_dir: str | os.PathLike | None = None) -> dict:
     """Fit the garment poses of sequence ``seq`` and write ``out_npz`` (see the module docstring).
 
     params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
     None/'full' (the section's ``loss``) or a loss variant (:data:`anidress_core.fit.VARIANTS`) to
     run instead. motions_dir: the simulated body motions (``results/<scene>/motions``, rule motions),
     read when ``fit/proposal_every`` > 0 (the proposals' database, :func:`proposal_database`).
+    body_dir: the sequence's body poses refined by rule refine_body, read instead of its smpl/.
     Returns the header metadata written.
     """
     t_start = time.perf_counter()
@@ -273,7 +275,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
                             torch.as_tensor(art.faces, device=device))
     # 3. body (occluder) per frame
     body = load_body(scene_dir, info)
-    motion = load_sequence_motion(scene_dir, seq, info["fps"])
+    motion = load_sequence_motion(scene_dir, seq, info["fps"], body_dir)
     posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
     T = int(posed.vertices.shape[0])
     if T == 0:

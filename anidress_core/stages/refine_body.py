@@ -15,8 +15,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
+import tempfile
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -26,6 +29,7 @@ from ..io import files
 from ..io.motion import write_easymocap_smpl_dir
 from ..io.scene import load_body, load_sequence_motion, scene_cameras, sequence_source
 from ..io.scene_info import read_scene
+from .cues import select_cameras
 
 __all__ = ["run_refine_body"]
 
@@ -36,18 +40,22 @@ def _frame_numbers(smpl_dir: Path) -> list[int]:
 
 def run_refine_body(scene_dir: str | os.PathLike, seq: str, out: str | os.PathLike, masks_dir: str | None = None,
                     undistorted_dir: str | os.PathLike | None = None, chunk: int = 16, max_frames: int | None = None,
-                    cfg: RefineConfig = RefineConfig(), threads: int = 1) -> dict:
+                    cfg: RefineConfig = RefineConfig(), threads: int = 1,
+                    cameras: str | Sequence[str] = "all") -> dict:
     """Refine the body poses of ``seq``; write ``out``/smpl and ``out``/refine_body.json. Returns the record.
 
     undistorted_dir: the sequence undistorted to pinhole cameras (rule undistort) when the scene's cameras
     have lens distortion (:func:`anidress_core.io.scene.sequence_source`); its cameras and, by default,
-    its ``masks/`` are read (the body motion is the scene's ``smpl/``).
+    its ``masks/`` are read (the body motion is the scene's ``smpl/``). cameras: the views refined
+    against, ``all``, ``train`` (the scene's training cameras; the pipeline passes cues/cameras, the
+    cameras its masks cover) or a list of names.
     """
     torch.set_num_threads(max(1, int(threads)))
     scene_dir, out = Path(scene_dir), Path(out)
     info = read_scene(scene_dir)
     src = sequence_source(scene_dir, seq, undistorted_dir, info)
-    cams = scene_cameras(scene_dir, seq, info=info, dtype=torch.float32, seq_dir=src)
+    cams = scene_cameras(scene_dir, seq, select_cameras(info, cameras, scene_dir), info=info, dtype=torch.float32,
+                         seq_dir=src)
     if cams.dist is not None and bool((cams.dist != 0).any()):
         raise ValueError(f"{src / 'intri.yml'}: dist_<cam> is not zero; refine_body needs pinhole cameras "
                          "(rule undistort)")
@@ -83,18 +91,29 @@ def run_refine_body(scene_dir: str | os.PathLike, seq: str, out: str | os.PathLi
     Pn, Rn, Tn = torch.cat(outP), torch.cat(outR), torch.cat(outT)
     iou_before = silhouette_iou(body, K, E, masks, P, R, Th, motion.shapes)
     iou_after = silhouette_iou(body, K, E, masks, Pn, Rn, Tn, motion.shapes)
-    write_easymocap_smpl_dir(out / "smpl", Pn, Rn, Tn, motion.shapes.double(), start_frame=0)
-    # frame numbers as read (write_easymocap_smpl_dir numbers from start_frame; rename when they are not 0..T-1)
-    if frames[:T] != list(range(T)):
-        for i in reversed(range(T)):
-            (out / "smpl" / f"{i:06d}.json").rename(out / "smpl" / f"{frames[i]:06d}.json.tmp")
-        for p in (out / "smpl").glob("*.json.tmp"):
-            p.rename(p.with_suffix(""))
     rec = {
         "scene_dir": str(scene_dir), "sequence": seq, "method": cfg.method, "masks_dir": str(mdir), "frames": T,
         "cameras": list(cams.names),
         "config": dataclasses.asdict(cfg), "chunk": chunk, "seconds": seconds, "seconds_per_frame": seconds / max(T, 1),
         "body_iou_before": iou_before, "body_iou_after": iou_after, "chunks": chunks,
     }
-    files.write_text(out / "refine_body.json", json.dumps(rec, indent=1) + "\n")
+    # written into a temporary sibling and renamed into place: a failure leaves nothing half-written
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        write_easymocap_smpl_dir(tmp / "smpl", Pn, Rn, Tn, motion.shapes.double(), start_frame=0)
+        # frame numbers as read (write_easymocap_smpl_dir numbers from start_frame; rename when not 0..T-1)
+        if frames[:T] != list(range(T)):
+            for i in reversed(range(T)):
+                (tmp / "smpl" / f"{i:06d}.json").rename(tmp / "smpl" / f"{frames[i]:06d}.json.tmp")
+            for p in (tmp / "smpl").glob("*.json.tmp"):
+                p.rename(p.with_suffix(""))
+        files.write_text(tmp / "refine_body.json", json.dumps(rec, indent=1) + "\n")
+        os.chmod(tmp, 0o777 & ~files._UMASK)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
     return rec

@@ -41,11 +41,16 @@ def motion_names(scene_info: dict, sim_cfg: dict) -> list[str]:
     return names
 
 
-def run_motion(name: str, scene_dir: str | os.PathLike, sim_cfg: dict, out_npz: str | os.PathLike) -> Motion:
-    """Write one body motion to simulate (see :func:`motion_names` for the naming)."""
+def run_motion(name: str, scene_dir: str | os.PathLike, sim_cfg: dict, out_npz: str | os.PathLike,
+               body_dir: str | os.PathLike | None = None) -> Motion:
+    """Write one body motion to simulate (see :func:`motion_names` for the naming).
+
+    body_dir: a captured sequence's poses refined by rule refine_body, read instead of its smpl/
+    (:func:`anidress_core.io.scene.load_sequence_motion`).
+    """
     info = read_scene(scene_dir)
     if name.startswith(CAPTURED):
-        m = load_sequence_motion(scene_dir, name[len(CAPTURED):], info["fps"])
+        m = load_sequence_motion(scene_dir, name[len(CAPTURED):], info["fps"], body_dir)
     elif name.startswith(LIBRARY):
         m = make_motion(name[len(LIBRARY):], sim_cfg["library_frames"], sim_cfg["library_fps"], seed=0,
                         body=load_body(scene_dir, info))

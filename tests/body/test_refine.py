@@ -200,6 +200,14 @@ def test_stage_and_cli_write_refined_smpl(tmp_path, mannequin_cache):
     assert np.allclose(d["shapes"], src["shapes"]) and not np.allclose(d["poses"], src["poses"])
     rec = json.loads((out / "refine_body.json").read_text())
     assert rec["frames"] == len(src["frames"]) and len(rec["chunks"]) == 2
+    # the workflow refines against the cameras its masks cover (cues/cameras: train)
+    from anidress_core.io.scene_info import read_scene
+
+    train = read_scene(cap)["cameras"]["train"]
+    assert rec["cameras"] == read_scene(cap)["cameras"]["train"] + read_scene(cap)["cameras"]["test"]
+    assert main(["refine-body", str(cap), "walk", str(tmp_path / "tr"), "--cameras", "train"]) in (0, None)
+    assert json.loads((tmp_path / "tr" / "refine_body.json").read_text())["cameras"] == train
+    assert not list(tmp_path.glob(".tr.partial-*"))  # the temporary folder renamed into place
     assert 0 < rec["body_iou_before"] <= 1 and 0 < rec["body_iou_after"] <= 1 and rec["seconds_per_frame"] > 0
     # distorted cameras: refused without the undistorted copy (naming the file), refined with it
     from anidress_core.stages.undistort import run_undistort

@@ -108,7 +108,7 @@ def test_missing_plates_are_named_by_validate_scene(plates_run):
 def ran(capture, plates_run):
     """The capture's workdir after `snakemake` (default target) with temporal-median plates."""
     wd, entry = capture
-    _write_cfg(wd, entry, cues={"masks": {"background": "temporal_median"}})
+    _write_cfg(wd, entry, cues={"masks": {"background": "temporal_median"}}, refine_body={"enabled": True})
     res = _snakemake(wd)
     assert res.returncode == 0, _tail(res)
     return wd
@@ -146,6 +146,28 @@ def test_capture_runs_end_to_end_without_ground_truth(ran):
     assert res.returncode == 0 and "Nothing to be done" in res.stdout + res.stderr, _tail(res)
 
 
+def test_refined_body_poses_are_what_the_stages_pose(ran):
+    """refine_body on: each sequence's poses refined against rule masks' masks (training cameras), and the
+    stages that pose the body read those: the simulated motion of walk is the refined one, not data/'s."""
+    import numpy as np
+
+    from anidress_core.io.motion import read_easymocap_smpl_dir
+    from anidress_core.io.scene_info import read_scene
+
+    wd = ran
+    out, data = wd / "results" / "cap", wd / "data" / "cap"
+    train = read_scene(data)["cameras"]["train"]
+    for seq in ("walk", "jump"):
+        rec = json.loads((out / seq / "body" / "refine_body.json").read_text())
+        assert rec["cameras"] == train and rec["masks_dir"] == f"results/cap/{seq}/masks"
+        assert 0 < rec["body_iou_after"] <= 1
+    refined = read_easymocap_smpl_dir(out / "walk" / "body" / "smpl")
+    given = read_easymocap_smpl_dir(data / "walk" / "smpl")
+    assert refined["frames"] == given["frames"] and not np.allclose(refined["Th"], given["Th"])
+    with np.load(out / "motions" / "seq-walk.npz") as m:
+        assert np.allclose(m["Th"], refined["Th"], atol=1e-5) and np.allclose(m["Rh"], refined["Rh"], atol=1e-5)
+
+
 def test_empty_pipeline_masks_are_not_scored(ran, tmp_path):
     """run_evaluate on the run's jump renders with the pipeline's masks, one of them emptied: that image is not
     scored (mask_source 'empty', NaN), not an IoU of 1 for an empty render; the others score as in the run."""
@@ -166,7 +188,7 @@ def test_empty_pipeline_masks_are_not_scored(ran, tmp_path):
     try:
         summ = run_evaluate("data/cap", renders, tmp_path / "m.csv", tmp_path / "s.json", {"box_pad_m": 0.05},
                             undistorted={"jump": "results/cap/jump/undistorted"}, masks={"jump": str(masks)},
-                            progress=False)
+                            bodies={"jump": "results/cap/jump/body"}, progress=False)
     finally:
         os.chdir(cwd)
     rows = {(r["camera"], r["frame"]): r for r in read_metrics_csv(tmp_path / "m.csv")}

@@ -15,6 +15,7 @@ rule evaluate_field:
                                      sorted({r[1] for r in field_eval_renders(wc.scene, wc.seq, wc.variant)})),
         renders=lambda wc: [r[2] for r in field_eval_renders(wc.scene, wc.seq, wc.variant)],
         undistorted=lambda wc: list(field_eval_undistorted(wc.scene, wc.seq, wc.variant).values()),
+        body=lambda wc: list(field_eval_bodies(wc.scene, wc.seq, wc.variant).values()),
         masks=lambda wc: [rule_input(m) for m in field_eval_masks(wc.scene, wc.seq, wc.variant).values()
                           if m.startswith("results/")],  # estimated by rule masks (shipped: the `files` manifests)
     output:
@@ -29,6 +30,7 @@ rule evaluate_field:
         renders=lambda wc: field_eval_renders(wc.scene, wc.seq, wc.variant),
         undistorted=lambda wc: field_eval_undistorted(wc.scene, wc.seq, wc.variant),
         masks=lambda wc: field_eval_masks(wc.scene, wc.seq, wc.variant),
+        bodies=lambda wc: field_eval_bodies(wc.scene, wc.seq, wc.variant),
     threads: 1
     resources:
         mem_mb=3000,

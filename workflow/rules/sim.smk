@@ -34,6 +34,7 @@ rule motions:
         check=ancient("results/{scene}/scene_check.json"),
         files=lambda wc: scene_inputs(wc.scene, ("scene", "body", "smpl"), motion_sequences(wc.motion)),
         amass=lambda wc: motion_params(wc).get("amass", []),  # the AMASS file(s) of an amass-<stem> motion
+        body=lambda wc: body_input(wc.scene, motion_sequences(wc.motion)[0]) if motion_sequences(wc.motion) else [],
     output:
         "results/{scene}/motions/{motion}.npz",
     log:

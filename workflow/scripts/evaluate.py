@@ -14,7 +14,7 @@ try:
     run_evaluate(snakemake.input.scene, snakemake.params.renders, snakemake.output.csv, snakemake.output.summary, m,
                  lpips=load_lpips(**m["lpips"]), dists=load_dists(**m["dists"]), progress=False,
                  undistorted=snakemake.params.undistorted,
-                 masks=snakemake.params.masks)
+                 masks=snakemake.params.masks, bodies=snakemake.params.bodies)
 except Exception:
     log.exception("evaluate failed")
     raise

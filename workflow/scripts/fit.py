@@ -12,7 +12,8 @@ try:
             cues["masks"], cues["flows"], cues["normals"], params, snakemake.output[0],
             ablation=None if snakemake.params.ablation == "full" else snakemake.params.ablation,
             cue_source=cues["source"], undistorted_dir=snakemake.input.get("undistorted") or None,
-            motions_dir=Path(snakemake.input.motions[0]).parent if snakemake.input.get("motions") else None)
+            motions_dir=Path(snakemake.input.motions[0]).parent if snakemake.input.get("motions") else None,
+            body_dir=snakemake.input.get("body") or None)
 except Exception:
     log.exception("fit failed")
     raise

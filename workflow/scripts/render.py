@@ -13,7 +13,8 @@ try:
     info = read_scene(inp.scene)
     common = dict(template_npz=inp.get("template"), rig_npz=inp.get("rig"),
                   frame_stride=p.field["render"]["library_frame_stride" if p.kind == "library" else "frame_stride"],
-                  device=p.field["device"], progress=False, undistorted_dir=inp.get("undistorted") or None)
+                  device=p.field["device"], progress=False, undistorted_dir=inp.get("undistorted") or None,
+                  body_dir=inp.get("body") or None)
     if p.kind == "novel_view":
         run_render(inp.field, inp.scene, snakemake.output[0], p.field, seq=wc.seq, cameras=info["cameras"]["test"],
                    garment_poses_npz=inp.get("poses"), **common)

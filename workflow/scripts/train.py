@@ -15,7 +15,8 @@ try:
     field = dict(p.field, train=dict(p.field["train"], checkpoint_every=snakemake.config["field"]["train"]["checkpoint_every"]))
     run_train(inp.scene, wc.seq, wc.variant, p.masks, snakemake.output[0], field,
               template_npz=inp.get("template"), rig_npz=inp.get("rig"), garment_poses_npz=inp.get("poses"),
-              lpips=lpips, device=p.field["device"], progress=False, undistorted_dir=inp.get("undistorted") or None)
+              lpips=lpips, device=p.field["device"], progress=False, undistorted_dir=inp.get("undistorted") or None,
+              body_dir=inp.get("body") or None)
 except Exception:
     log.exception("train_field failed")
     raise

@@ -15,6 +15,12 @@ def field_eval_undistorted(scene, seq, variant):
     return {s: undistorted_dir(scene, s) for s in sorted(seqs) if undistorted_dir(scene, s)}
 
 
+def field_eval_bodies(scene, seq, variant):
+    """{sequence: refined body poses} of the evaluated sequences (rule refine_body; {} when it is off)."""
+    seqs = {r[1] for r in field_eval_renders(scene, seq, variant)}
+    return {s: body_dir(scene, s) for s in sorted(seqs) if body_dir(scene, s)}
+
+
 def field_eval_masks(scene, seq, variant):
     """{sequence: masks folder} of the evaluated sequences without ground-truth masks (a captured scene's
     gt/masks): the masks the pipeline has, masks_dir() of helpers/cues.smk (shipped, or estimated by rule

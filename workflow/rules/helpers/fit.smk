@@ -64,6 +64,7 @@ def fit_inputs(wildcards):
     # by the stage only when the settings or the variant ask for it (the rig depends on them already, so a change
     # of them reruns the fit either way)
     inp["motions"] = [f"results/{scene}/motions/{m}.npz" for m in sim_motion_names(scene)]
+    inp["body"] = body_input(scene, seq)  # refined body poses (helpers/body.smk), or none
     return inp
 
 
