@@ -28,7 +28,7 @@ working cameras of rule undistort for a distorted variant (truth masks undistort
 
     .venv/bin/python -m benchmarks.bench_capture --work /tmp/capbench [--variants synthetic,capture]
 
-writes benchmarks/capture.md and .csv.
+writes benchmarks/capture.md and .csv (``--name``: benchmarks/<name>.md, .csv).
 """
 from __future__ import annotations
 
@@ -277,8 +277,15 @@ def run_variant(args, name: str, work_root: Path) -> dict:
     return row
 
 
+def scale_word(args) -> str:
+    """DEMO where the runs have the demo's frames, training steps and render stride (config/config.yaml), else
+    REDUCED (the simulation library and the field variants are reduced either way: see the line)."""
+    demo = args.frames == 60 and args.steps == 600 and args.render_stride == 12
+    return "the demo's frames, training steps and render stride (library and variants reduced)" if demo else "REDUCED"
+
+
 def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None:
-    out_csv, out_md = REPO / "benchmarks" / "capture.csv", REPO / "benchmarks" / "capture.md"
+    out_csv, out_md = REPO / "benchmarks" / f"{args.name}.csv", REPO / "benchmarks" / f"{args.name}.md"
     with open(out_csv, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
         w.writeheader()
@@ -293,7 +300,7 @@ def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None
         "- commands (rows kept in WORK/rows.json between invocations): "
         + "; ".join(f"`.venv/bin/python -m benchmarks.bench_capture {c}`"
                     for c in dict.fromkeys(r.get("command", " ".join(argv)) for r in rows)),
-        f"- REDUCED scale: the demo skirt scene (12 cameras, 8 train, 256x256, 3K-vertex garment) with {args.frames} "
+        f"- scale: {scale_word(args)}. The demo skirt scene (12 cameras, 8 train, 256x256, 3K-vertex garment) with {args.frames} "
         f"frames of walk (train) and {args.frames} of dance (novel pose); simulate library [sway] x 60 frames; field "
         f"variant full only, {args.steps} training steps (demo: 600); novel-pose renders of every "
         f"{args.render_stride}th dance frame x 12 cameras. Each variant: one Snakemake run (--cores {args.cores}) of "
@@ -385,8 +392,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--render-stride", type=int, default=4, help="render every n-th dance frame")
     p.add_argument("--cores", type=int, default=2)
     p.add_argument("--seed", type=int, default=0, help="export-capture seed")
+    p.add_argument("--name", default="capture", help="output stem: benchmarks/<name>.md, .csv (default: %(default)s)")
     p.add_argument("--report-only", action="store_true",
-                   help="only rewrite capture.md / .csv from WORK/rows.json (the rows of earlier invocations)")
+                   help="only rewrite <name>.md / .csv from WORK/rows.json (the rows of earlier invocations)")
     args = p.parse_args(argv)
     names = [v.strip() for v in args.variants.split(",") if v.strip()]
     bad = [v for v in names if v not in VARIANTS]
