@@ -46,7 +46,7 @@ def _cmd_motion(args: argparse.Namespace) -> None:
     from .config import load_config
     from .stages.simulate import run_motion
 
-    run_motion(args.name, args.scene_dir, load_config(args.config)["simulate"], args.out)
+    run_motion(args.name, args.scene_dir, load_config(args.config)["simulate"], args.out, body_dir=args.body)
     print(args.out)
 
 
@@ -145,7 +145,7 @@ def _cmd_fit(args: argparse.Namespace) -> None:
                                                              if (src / "normals").is_dir() else None))
     run_fit(scene, args.seq, args.rig, args.template, args.masks, args.flows, normals, params, args.out,
             ablation=args.ablation, progress=not args.quiet, cue_source="command line",
-            undistorted_dir=args.undistorted, motions_dir=args.motions)
+            undistorted_dir=args.undistorted, motions_dir=args.motions, body_dir=args.body)
     print(args.out)
 
 
@@ -181,7 +181,7 @@ def _cmd_train(args: argparse.Namespace) -> None:
     lpips = load_lpips(**cfg["metrics"]["lpips"]) if params["train"]["lpips_weight"] > 0 else None
     run_train(args.scene_dir, args.seq, args.variant, args.masks, args.out, params, template_npz=args.template,
               rig_npz=args.rig, garment_poses_npz=args.poses, lpips=lpips, device=args.device or cfg["field"]["device"],
-              progress=not args.quiet, undistorted_dir=args.undistorted)
+              progress=not args.quiet, undistorted_dir=args.undistorted, body_dir=args.body)
     print(args.out)
 
 
@@ -214,7 +214,7 @@ def _cmd_render(args: argparse.Namespace) -> None:
                    template_npz=args.template, rig_npz=args.rig, garment_poses_npz=args.poses, frame_stride=stride,
                    device=args.device or cfg["field"]["device"], progress=not args.quiet,
                    use_occupancy=not args.no_occupancy, cull_joints=not args.no_joint_culling,
-                   undistorted_dir=args.undistorted)
+                   undistorted_dir=args.undistorted, body_dir=args.body)
     print(args.out)
 
 
@@ -233,8 +233,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> None:
     summary = args.summary or str(Path(args.out).with_name("metrics_summary.json"))
     undistorted = dict(item.split("=", 1) for item in args.undistorted or [])
     masks = dict(item.split("=", 1) for item in args.masks or [])
+    bodies = dict(item.split("=", 1) for item in args.body or [])
     run_evaluate(args.scene_dir, renders, args.out, summary, m, lpips=load_lpips(**m["lpips"]),
-                 dists=load_dists(**m["dists"]), progress=not args.quiet, undistorted=undistorted, masks=masks)
+                 dists=load_dists(**m["dists"]), progress=not args.quiet, undistorted=undistorted, masks=masks,
+                 bodies=bodies)
     print(args.out)
 
 
@@ -365,6 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scene_dir")
     s.add_argument("--config", default="config/config.yaml")
     s.add_argument("-o", "--out", required=True, help="output .npz")
+    s.add_argument("--body", help="seq-<sequence>: its body poses refined by `anidress refine-body`, read instead "
+                                  "of its smpl/")
     s.set_defaults(func=_cmd_motion)
 
     s = sub.add_parser("simulate", help="simulate the garment template on a body motion (sim/<motion>.npz)")
@@ -451,6 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "cameras have lens distortion)")
     s.add_argument("--motions", help="the simulated body motions results/<scene>/motions (rule motions): the "
                                      "proposals' database, needed when fit/proposal_every > 0")
+    s.add_argument("--body", help="the sequence's body poses refined by `anidress refine-body` (OUT of it), read instead of its smpl/")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_fit)
 
@@ -478,6 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--out", required=True, help="output field.pt (field.pt.ckpt beside it while training)")
     s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
                                          "cameras have lens distortion)")
+    s.add_argument("--body", help="the sequence's body poses refined by `anidress refine-body` (OUT of it), read instead of its smpl/")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_train)
 
@@ -500,6 +506,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--out", required=True, help="output folder (rgb/, alpha/, depth/, render.json)")
     s.add_argument("--undistorted", help="--seq's (or the training sequence's) folder by `anidress undistort` (needed when its "
                                          "cameras have lens distortion)")
+    s.add_argument("--body", help="--seq's body poses refined by `anidress refine-body`, read instead of its smpl/")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_render)
 
@@ -515,6 +522,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--masks", action="append", metavar="SEQ=DIR",
                    help="the pipeline's masks of a sequence without gt/masks (a capture): images are compared under "
                         "them (mask_source pipeline); without either an image is not scored")
+    s.add_argument("--body", action="append", metavar="SEQ=DIR",
+                   help="a sequence's body poses refined by `anidress refine-body` (the scoring box of a sequence "
+                        "without gt/meshes.npz)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_evaluate)
     s = sub.add_parser("rig", help="garment rigging model from a scene's simulations (rig.npz)")

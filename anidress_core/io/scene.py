@@ -142,7 +142,8 @@ def sequence_source(scene_dir: str | os.PathLike, seq: str, undistorted_dir: str
     sequence undistorted to pinhole working cameras by rule ``undistort``
     (:func:`anidress_core.stages.undistort.run_undistort`, in the pipeline
     ``results/<scene>/<seq>/undistorted``), same layout (``images/``, ``masks/``, ``normals/``,
-    ``gt/masks``, ``intri.yml``, ``extri.yml``). The body motion (``smpl/``) is always the scene's.
+    ``gt/masks``, ``intri.yml``, ``extri.yml``). The body motion is not in it: the scene's ``smpl/``,
+    or its refinement by rule refine_body (:func:`load_sequence_motion`).
     """
     scene_dir = Path(scene_dir)
     bad = distorted_cameras(scene_dir, seq, info)

@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import yaml
 
 from . import easymocap, files
 
-__all__ = ["DIST_EPS", "read_scene", "garment_texture_path", "distorted_cameras", "scene_config_entry"]
+__all__ = ["DIST_EPS", "read_scene", "garment_texture_path", "distorted_cameras", "scene_config_entry",
+           "select_cameras"]
 
 DIST_EPS = 1e-9
 """A distortion coefficient of magnitude at most this counts as zero (a pinhole camera)."""
@@ -71,3 +73,20 @@ def scene_config_entry(info: dict) -> dict:
     if info.get("garment_template") and not info.get("garment_texture"):
         entry["fit"] = {"anchor_reference": "images"}
     return entry
+
+
+def select_cameras(info: dict, which: str | Sequence[str], scene_dir: str | os.PathLike = "") -> list[str]:
+    """Camera names of a scene: ``train`` (its training cameras), ``all`` or an explicit list."""
+    cams = info.get("cameras") or {}
+    if isinstance(which, str):
+        if which == "train":
+            names = list(cams.get("train") or [])
+        elif which == "all":
+            names = list(cams.get("train") or []) + list(cams.get("test") or [])
+        else:
+            raise ValueError(f"cameras must be 'train', 'all' or a list of names, got {which!r}")
+    else:
+        names = list(which)
+    if not names:
+        raise ValueError(f"{Path(scene_dir) / 'scene.yaml'}: no cameras for selection {which!r}")
+    return names

@@ -47,6 +47,7 @@ from ..geometry import lbs
 from ..io import files
 from ..io.scene import (IMAGE_EXTS, image_path, load_body, load_sequence_motion, read_scene, scene_cameras,
                         sequence_source)
+from ..io.scene_info import select_cameras
 from ..io.template import read_template
 from ..synth import LABEL_GARMENT
 
@@ -67,23 +68,6 @@ log = logging.getLogger("anidress.cues")
 
 
 # --------------------------------------------------------------------------- scene helpers
-
-
-def select_cameras(info: dict, which: str | Sequence[str], scene_dir: str | os.PathLike = "") -> list[str]:
-    """Camera names of a scene: ``train`` (its training cameras), ``all`` or an explicit list."""
-    cams = info.get("cameras") or {}
-    if isinstance(which, str):
-        if which == "train":
-            names = list(cams.get("train") or [])
-        elif which == "all":
-            names = list(cams.get("train") or []) + list(cams.get("test") or [])
-        else:
-            raise ValueError(f"cameras must be 'train', 'all' or a list of names, got {which!r}")
-    else:
-        names = list(which)
-    if not names:
-        raise ValueError(f"{Path(scene_dir) / 'scene.yaml'}: no cameras for selection {which!r}")
-    return names
 
 
 def sequence_frames(seq_dir: str | os.PathLike, cams: Sequence[str]) -> list[int]:

@@ -28,8 +28,7 @@ from ..body.refine import RefineConfig, refine_body_poses, silhouette_iou
 from ..io import files
 from ..io.motion import write_easymocap_smpl_dir
 from ..io.scene import load_body, load_sequence_motion, scene_cameras, sequence_source
-from ..io.scene_info import read_scene
-from .cues import select_cameras
+from ..io.scene_info import read_scene, select_cameras
 
 __all__ = ["run_refine_body"]
 

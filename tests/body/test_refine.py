@@ -208,6 +208,14 @@ def test_stage_and_cli_write_refined_smpl(tmp_path, mannequin_cache):
     assert main(["refine-body", str(cap), "walk", str(tmp_path / "tr"), "--cameras", "train"]) in (0, None)
     assert json.loads((tmp_path / "tr" / "refine_body.json").read_text())["cameras"] == train
     assert not list(tmp_path.glob(".tr.partial-*"))  # the temporary folder renamed into place
+    # the stages read the refined poses when given them (here: the motion of seq-walk)
+    from pathlib import Path
+
+    cfg = str(Path(__file__).resolve().parents[2] / "config" / "config.yaml")
+    assert main(["motion", "seq-walk", str(cap), "--config", cfg, "--body", str(out), "-o",
+                 str(tmp_path / "m.npz")]) in (0, None)
+    with np.load(tmp_path / "m.npz") as m:
+        assert np.allclose(m["Th"], d["Th"], atol=1e-5) and not np.allclose(m["Th"], src["Th"], atol=1e-5)
     assert 0 < rec["body_iou_before"] <= 1 and 0 < rec["body_iou_after"] <= 1 and rec["seconds_per_frame"] > 0
     # distorted cameras: refused without the undistorted copy (naming the file), refined with it
     from anidress_core.stages.undistort import run_undistort
