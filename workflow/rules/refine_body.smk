@@ -13,7 +13,7 @@ rule refine_body:
         scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
         files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "masks")),
-        masks=lambda wc: rule_input(masks_dir(wc.scene, wc.seq)) if masks_dir(wc.scene, wc.seq).startswith("results/") else [],
+        masks=lambda wc: refine_body_masks_input(wc.scene, wc.seq),
         undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
         directory("results/{scene}/{seq}/body"),

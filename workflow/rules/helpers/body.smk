@@ -9,6 +9,13 @@ def refine_body_params(scene):
     return {"method": s["method"], "chunk": s["chunk"], "cameras": config["cues"]["cameras"]}
 
 
+def refine_body_masks_input(scene, seq):
+    """The masks refine_body reads, as an input where another job writes them (rule masks; else []). Shipped
+    masks count through the scene's file manifests (helpers/scene_files.smk), as for the fit."""
+    m = masks_dir(scene, seq)
+    return rule_input(m) if m.startswith("results/") else []
+
+
 def body_dir(scene, seq):
     """results/<scene>/<seq>/body (rule refine_body) when refine_body is enabled for the scene, else
     None: the stages that pose the body (motions, fit, train_field, render_*, evaluate_field) read the

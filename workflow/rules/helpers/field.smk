@@ -45,11 +45,11 @@ def field_render_inputs(wildcards):
     pose_seq = getattr(wildcards, "pose_seq", wildcards.seq)
     inp["files"] = scene_inputs(scene, ("scene", "body", "cameras", "smpl"), [pose_seq])  # cameras and body motion
     inp["undistorted"] = undistorted_input(scene, pose_seq)  # the cameras rendered (library: the training seq's)
-    if getattr(wildcards, "motion", None) is None:
-        inp["body"] = body_input(scene, pose_seq)  # refined body poses (helpers/body.smk), or none
     motion = getattr(wildcards, "motion", None)
     if motion is not None:
         inp["motion"] = f"results/{scene}/motions/{motion}.npz"
+    else:
+        inp["body"] = body_input(scene, pose_seq)  # refined body poses (helpers/body.smk), or none
     if has_garment(scene):
         inp["template"] = f"results/{scene}/template.npz"
         if variant == "full":
