@@ -27,8 +27,6 @@ import contextlib
 import dataclasses
 import logging
 import os
-import shutil
-import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -54,7 +52,6 @@ from ..synth import LABEL_GARMENT
 __all__ = [
     "select_cameras",
     "sequence_frames",
-    "atomic_dir",
     "mask_params",
     "ShapePrior",
     "run_masks",
@@ -90,28 +87,9 @@ def sequence_frames(seq_dir: str | os.PathLike, cams: Sequence[str]) -> list[int
 
 
 @contextlib.contextmanager
-def atomic_dir(out_dir: str | os.PathLike) -> Iterator[Path]:
-    """Yield a hidden temporary sibling of ``out_dir``; on success it replaces ``out_dir``.
-
-    On any exception the temporary folder is removed and ``out_dir`` is left as it was.
-    """
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
-    try:
-        yield tmp
-        os.chmod(tmp, 0o777 & ~files._UMASK)
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-
-
-@contextlib.contextmanager
 def _drained() -> Iterator[list]:
-    """A list for the futures of writes into an :func:`atomic_dir` made on a pool that outlives it:
+    """A list for the futures of writes into a :func:`~anidress_core.io.files.atomic_dir` made on a pool that
+    outlives it:
     on an exception, the writes not started are cancelled and the running ones waited for, so that
     none recreates the temporary folder after atomic_dir has removed it."""
     pending: list = []
@@ -273,7 +251,7 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
                 len(names), params)
             log.info("colour model: %d frames, %d bins per channel", len(pick), params.hist_bins)
         # 2. every frame, all cameras at once
-        with atomic_dir(out_dir) as tmp, _drained() as pending:
+        with files.atomic_dir(out_dir) as tmp, _drained() as pending:
             subject, empty = 0.0, []
             for f in tqdm(frames, desc=f"masks {seq}", unit="frame", disable=not progress):
                 if f in cache:
@@ -410,7 +388,7 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
     if use_prior:
         prior = ShapePrior(scene_dir, seq, info, template_npz, _cameras(seq_dir, names, info), frames)
     prior_s = 0.0
-    with atomic_dir(out_dir) as tmp, _cv2_threads(1), ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+    with files.atomic_dir(out_dir) as tmp, _cv2_threads(1), ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         cams = [_CameraFlow(seq_dir, masks_dir, cam, method, margin, shape, tmp, refine_window) for cam in names]
         for i, f in enumerate(tqdm(frames, desc=f"flows {seq}", unit="frame", disable=not progress)):
             init = None

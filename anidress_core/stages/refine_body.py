@@ -15,8 +15,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import shutil
-import tempfile
 import time
 from pathlib import Path
 from typing import Sequence
@@ -96,10 +94,7 @@ def run_refine_body(scene_dir: str | os.PathLike, seq: str, out: str | os.PathLi
         "config": dataclasses.asdict(cfg), "chunk": chunk, "seconds": seconds, "seconds_per_frame": seconds / max(T, 1),
         "body_iou_before": iou_before, "body_iou_after": iou_after, "chunks": chunks,
     }
-    # written into a temporary sibling and renamed into place: a failure leaves nothing half-written
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    try:
+    with files.atomic_dir(out) as tmp:  # a failure leaves nothing half-written
         write_easymocap_smpl_dir(tmp / "smpl", Pn, Rn, Tn, motion.shapes.double(), start_frame=0)
         # frame numbers as read (write_easymocap_smpl_dir numbers from start_frame; rename when not 0..T-1)
         if frames[:T] != list(range(T)):
@@ -108,11 +103,4 @@ def run_refine_body(scene_dir: str | os.PathLike, seq: str, out: str | os.PathLi
             for p in (tmp / "smpl").glob("*.json.tmp"):
                 p.rename(p.with_suffix(""))
         files.write_text(tmp / "refine_body.json", json.dumps(rec, indent=1) + "\n")
-        os.chmod(tmp, 0o777 & ~files._UMASK)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return rec

@@ -24,7 +24,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -112,10 +111,8 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
              scene_dir.name, seq, len(names), ", ".join(bad) or "none", n_frames, W, H,
              "yes" if have["masks"] else "no", "yes" if have["normals"] else "no", "yes" if have["gt/masks"] else "no")
     distorted = {names.index(c) for c in bad if c in names}
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
 
-    def one(job) -> None:
+    def one(job, tmp: Path) -> None:
         kind, ci, src, rel = job
         dst = tmp / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -139,10 +136,10 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
             raise files.ArtifactError(f"{src}: image is {img.shape[1]}x{img.shape[0]}, expected {W}x{H}")
         _write_raw(dst, undistort_image(img, maps, ci) if ci in distorted else img)
 
-    try:
+    with files.atomic_dir(out_dir) as tmp:
         # 3. remap every file (OpenCV releases the GIL: threads share the work)
         with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-            it = pool.map(one, jobs)
+            it = pool.map(lambda job: one(job, tmp), jobs)
             if progress:
                 from tqdm import tqdm
                 it = tqdm(it, total=len(jobs), desc=f"undistort {seq}", unit="file")
@@ -158,12 +155,5 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
                "undistorted": ["images"] + [k for k in ("masks", "normals", "gt/masks", "backgrounds") if have[k]],
                "files": len(jobs), "wall_s": round(time.perf_counter() - t0, 3), "code_version": __version__}
         files.write_json(tmp / UNDISTORT_RECORD, rec)
-        os.chmod(tmp, 0o777 & ~files._UMASK)
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     log.info("undistort %s/%s: %d files -> %s in %.1f s", scene_dir.name, seq, len(jobs), out_dir, rec["wall_s"])
     return rec
