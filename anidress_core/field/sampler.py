@@ -11,8 +11,10 @@
    reach it (after dilation); the backward warp evaluates only those.
 
 Ray marching (:func:`march`) places samples every ``step`` metres between the ray's
-entry and exit of the frame's grid (stratified jitter when training) and keeps those
-in occupied voxels. Samples come out sorted by ray, then depth, as a flat list
+entry and exit of the frame's grid and keeps those in occupied voxels. When training, each
+ray's samples are shifted by one random fraction of a step (the random ray offset of
+instant-ngp, Müller et al. 2022), so every sample still stands for an interval of exactly one
+step; rendering uses the interval midpoints. Samples come out sorted by ray, then depth, as a flat list
 (``ray``, ``t``, ``x``) ready for :func:`anidress_core.field.render.composite`.
 """
 from __future__ import annotations
@@ -297,8 +299,9 @@ def march(origins: Tensor, dirs: Tensor, frame: Tensor, grid: OccupancyGrid, ste
           cull_joints: bool = True, chunk: int = 4096) -> Samples:
     """Samples every ``step`` metres inside each ray's frame grid, kept where occupied.
 
-    origins, dirs (R, 3) (unit directions), frame (R,) long. With ``jitter`` the
-    sample positions are stratified (uniform in each step, from ``generator``).
+    origins, dirs (R, 3) (unit directions), frame (R,) long. With ``jitter`` each ray's
+    samples are shifted by one offset, uniform in [0, step) from ``generator`` (without it:
+    the midpoints of the steps).
     Ablations (what the skipping saves is measured against them):
     ``use_occupancy=False`` keeps every sample inside the grid box, with all K joints
     as candidates where the grid has none; ``cull_joints=False`` makes every joint a
@@ -318,8 +321,10 @@ def march(origins: Tensor, dirs: Tensor, frame: Tensor, grid: OccupancyGrid, ste
             continue
         i = torch.arange(nmax, device=dev, dtype=dt)
         shape = (n[sl].shape[0], nmax)
-        # jitter from the (CPU) generator, then moved: one random stream on any device
-        u = torch.rand(shape, generator=generator, dtype=dt).to(dev) if jitter \
+        # one offset per ray (the whole grid of its samples shifted): samples stay exactly a step
+        # apart, as the compositing assumes (each stands for an interval of ``step``). Drawn from
+        # the (CPU) generator, then moved: one random stream on any device
+        u = torch.rand((shape[0], 1), generator=generator, dtype=dt).to(dev).expand(shape) if jitter \
             else torch.full(shape, 0.5, device=dev, dtype=dt)
         t = tmin[sl, None] + (i[None] + u) * step  # (r, nmax)
         keep = (i[None] < n[sl, None]) & (t < tmax[sl, None])

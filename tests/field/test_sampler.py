@@ -63,11 +63,20 @@ def test_march_keeps_occupied_samples_sorted_by_ray_and_depth():
     s_all = march(o, d, fr, grid, 0.01, use_occupancy=False)
     assert s_all.ray.numel() > s.ray.numel() and s_all.considered == s.considered
     assert s_all.cand.shape[1] == grid.num_joints
-    # jittered samples stay inside their step and come from the generator
+    # jittered samples come from the generator; one offset per ray, so a ray's samples stay
+    # on a grid of exactly one step (shifted from the midpoints by less than a step)
     g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
     a = march(o, d, fr, grid, 0.01, generator=g1, jitter=True)
     b = march(o, d, fr, grid, 0.01, generator=g2, jitter=True)
     assert torch.equal(a.t, b.t)
+    offsets = []
+    for r in (0, 1):
+        t_mid, t_jit = s.t[s.ray == r].double(), a.t[a.ray == r].double()
+        frac = (t_jit - t_jit[0]) / 0.01
+        assert torch.allclose(frac, frac.round(), atol=1e-3)  # the gaps are whole steps
+        shift = (t_jit[0] - t_mid[0]) / 0.01 + 0.5  # the offset in [0, 1) of the step
+        offsets.append(float(shift - shift.floor()))
+    assert offsets[0] != offsets[1]  # two identical rays, two offsets
 
 
 def test_wide_margin_path_covers_the_margin_with_candidates():
