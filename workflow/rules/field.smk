@@ -72,6 +72,7 @@ rule render_novel_pose:
         field=lambda wc: field_render_params("novel_pose", wc.variant),
         kind="novel_pose",
     threads: 1
+    priority: 1  # the longest renders (every camera of the held-out sequence) before the shorter ones
     resources:
         mem_mb=4000,
         runtime=30,
