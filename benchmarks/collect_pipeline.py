@@ -1,7 +1,7 @@
-"""What one pipeline run of a scene cost and measured, from its own files (no recomputation).
+"""What one pipeline run cost and measured, per scene, from its own files (no recomputation).
 
 Run after `make demo` (or `snakemake --workflow-profile profiles/default`):
-    .venv/bin/python -m benchmarks.collect_pipeline [--scene skirt] [--wall-s SECONDS]
+    .venv/bin/python -m benchmarks.collect_pipeline [--scene skirt [--scene tight]] [--wall-s SECONDS]
 Writes benchmarks/pipeline.md and benchmarks/pipeline.csv. Not a test.
 
 Sources: Snakemake's `benchmark:` files (benchmarks/runs/<scene>/**.tsv: wall and CPU
@@ -56,14 +56,8 @@ def _rule_of(rel: Path) -> tuple[str, str]:
     return name, "/".join(parts[:-1])
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", default="skirt")
-    ap.add_argument("--wall-s", type=float, default=None, help="measured wall time of the whole run")
-    ap.add_argument("--note", default="", help="how the run was made (added to the header)")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder of pipeline.md and pipeline.csv")
-    args = ap.parse_args()
-    scene = args.scene
+def _scene_sections(scene: str) -> tuple[list[str], list[dict], int, float, float]:
+    """Markdown lines, CSV rows, job count, summed wall and CPU seconds of one scene's jobs."""
     runs = ROOT / "benchmarks" / "runs" / scene
     jobs = []
     for p in sorted(runs.rglob("*.tsv")):
@@ -78,24 +72,8 @@ def main() -> None:
         d["max_rss_mb"] = max(d["max_rss_mb"], j["max_rss_mb"])
     tot_wall = sum(d["wall_s"] for d in per_rule.values())
     tot_cpu = sum(d["cpu_s"] for d in per_rule.values())
-
-    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
-    lines = [f"# One pipeline run of `{scene}`: cost per stage and what it measured", "",
-             f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}; git {rev.strip()}",
-             f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs; "
-             f"load average now {' / '.join(f'{x:.2f}' for x in os.getloadavg())}",
-             f"- command: `.venv/bin/python -m benchmarks.collect_pipeline --scene {scene}"
-             + (f" --wall-s {args.wall_s:.0f}" if args.wall_s else "") + "` after the run",
-             "- sources: Snakemake `benchmark:` files of the last run of each job "
-             f"(benchmarks/runs/{scene}/), results/{scene}/*/fit_metrics.csv, "
-             f"results/{scene}/*/*/metrics_summary.json"]
-    if args.note:
-        lines.append(f"- run: {args.note}")
-    if args.wall_s:
-        lines.append(f"- whole run wall time: {args.wall_s:.0f} s ({args.wall_s / 60:.1f} min); jobs summed: "
-                     f"{tot_wall:.0f} s wall, {tot_cpu:.0f} CPU s")
-    lines += ["", "## Time and memory per rule (jobs summed)", "",
-              "| rule | jobs | wall s | CPU s | share of CPU | peak RSS (MB) |", "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    lines = ["", f"## `{scene}`: time and memory per rule (jobs summed)", "",
+             "| rule | jobs | wall s | CPU s | share of CPU | peak RSS (MB) |", "| --- | ---: | ---: | ---: | ---: | ---: |"]
     csv_rows = []
     for rule, d in sorted(per_rule.items(), key=lambda kv: -kv[1]["cpu_s"]):
         lines.append(f"| {rule} | {d['jobs']} | {d['wall_s']:.1f} | {d['cpu_s']:.1f} | "
@@ -143,7 +121,7 @@ def main() -> None:
                              "max_rss_mb": "", "value": round(float(vr.mean()), 4), "metric": "vertex_rmse_mm",
                              "reference": f"rig floor {fl.mean():.4f} mm"})
     if fit_lines:
-        lines += ["", "## Garment fit against the ground truth (the pipeline's own cues)", "",
+        lines += ["", f"## `{scene}`: garment fit against the ground truth (the pipeline's own cues)", "",
                   "| sequence | method | loss | frames | vertex RMSE mean (mm) | p95 | worst | rig floor (mm) | ratio to floor | "
                   "Chamfer (mm) | normal consistency | fit fps |", "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | "
                   "---: | ---: | ---: |"] + fit_lines
@@ -167,9 +145,42 @@ def main() -> None:
                                      "cpu_s": "", "max_rss_mb": "", "value": round(float(m[k]), 5), "metric": k,
                                      "reference": "body_only" if variant == "full" else ""})
     if field_lines:
-        lines += ["", "## Radiance field: full vs body_only (pipeline masks and fitted garment poses)", "",
+        lines += ["", f"## `{scene}`: radiance field (pipeline masks; the fitted garment poses where there is a garment)", "",
                   "| trained on | variant | kind | images | PSNR (dB) | SSIM | IoU | train wall s | train CPU s |",
                   "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"] + field_lines
+    return lines, csv_rows, len(jobs), tot_wall, tot_cpu
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", action="append", help="a scene of the run (repeat for several; default: skirt)")
+    ap.add_argument("--wall-s", type=float, default=None, help="measured wall time of the whole run")
+    ap.add_argument("--note", default="", help="how the run was made (added to the header)")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder of pipeline.md and pipeline.csv")
+    args = ap.parse_args()
+    scenes = args.scene or ["skirt"]
+    sections = [_scene_sections(s) for s in scenes]
+    n_jobs = sum(x[2] for x in sections)
+    tot_wall, tot_cpu = sum(x[3] for x in sections), sum(x[4] for x in sections)
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
+    names = ", ".join(f"`{s}`" for s in scenes)
+    lines = [f"# One pipeline run of {names}: cost per stage and what it measured", "",
+             f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}; git {rev.strip()}",
+             f"- machine: {cpu_model()}, {os.cpu_count()} logical CPUs; "
+             f"load average now {' / '.join(f'{x:.2f}' for x in os.getloadavg())}",
+             "- command: `.venv/bin/python -m benchmarks.collect_pipeline " + " ".join(f"--scene {s}" for s in scenes)
+             + (f" --wall-s {args.wall_s:.0f}" if args.wall_s else "") + "` after the run",
+             "- sources: Snakemake `benchmark:` files of the last run of each job (benchmarks/runs/<scene>/), "
+             "results/<scene>/*/fit_metrics.csv, results/<scene>/*/*/metrics_summary.json"]
+    if args.note:
+        lines.append(f"- run: {args.note}")
+    if args.wall_s:
+        lines.append(f"- whole run wall time: {args.wall_s:.0f} s ({args.wall_s / 60:.1f} min); {n_jobs} jobs with "
+                     f"benchmark files, summed: {tot_wall:.0f} s wall, {tot_cpu:.0f} CPU s")
+    csv_rows = []
+    for sec_lines, rows, *_ in sections:
+        lines += sec_lines
+        csv_rows += rows
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "pipeline.md").write_text("\n".join(lines) + "\n")
