@@ -225,6 +225,10 @@ def summary_row(per: list[dict], meta: dict, **key) -> dict:
     row["drift"] = float(np.nanmean(vr[-n:]) / np.nanmean(vr[:n]))
     row["rig_floor_chamfer_m"] = float(col("rig_floor_chamfer_m").mean())
     row["chamfer_over_floor"] = row["chamfer_m_mean"] / row["rig_floor_chamfer_m"]
+    has_px = "reprojection_px" in per[0]  # fit_metrics.csv files from before the 2D column: NaN
+    row["reprojection_px"] = float(np.nanmean(col("reprojection_px"))) if has_px else float("nan")
+    row["rig_floor_reprojection_px"] = float(np.nanmean(col("rig_floor_reprojection_px"))) if has_px else float("nan")
+    row["reprojection_over_floor"] = row["reprojection_px"] / row["rig_floor_reprojection_px"]
     return row
 
 
@@ -480,9 +484,11 @@ def write(rows, notes, args, command, load0, load1, methods_paragraph: list[str]
         *suite,
         *(["## Per scene", ""] if suite else []),
         "| scene/seq | views | method | frames | vertex RMSE mm mean / p95 / worst (frame) | rig floor mm | RMSE / floor "
-        "| Chamfer mm mean / p95 / worst | rig floor Chamfer mm | Chamfer / floor | normal consistency mean / p5 / "
-        "worst | jitter mm (GT) | acceleration error mm | drift | fps | CPU s/frame | iterations/frame |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| Chamfer mm mean / p95 / worst | rig floor Chamfer mm | Chamfer / floor | 2D error px (rig floor) | 2D / floor "
+        "| normal consistency mean / p5 / worst | jitter mm (GT) | acceleration error mm | drift | fps | CPU s/frame "
+        "| iterations/frame |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
+        "| --- |",
     ]
     for r in rows:
         lines.append(
@@ -491,6 +497,7 @@ def write(rows, notes, args, command, load0, load1, methods_paragraph: list[str]
             f"({r['worst_frame']}) | {_mm(r['rig_floor_rmse_m'])} | {r['rmse_over_floor']:.2f} | "
             f"{_mm(r['chamfer_m_mean'])} / {_mm(r['chamfer_m_p95'])} / {_mm(r['chamfer_m_worst'])} | "
             f"{_mm(r['rig_floor_chamfer_m'])} | {r['chamfer_over_floor']:.2f} | "
+            f"{_num(r['reprojection_px'])} ({_num(r['rig_floor_reprojection_px'])}) | {_num(r['reprojection_over_floor'])} | "
             f"{r['normal_consistency_mean']:.4f} / {r['normal_consistency_p5']:.4f} / {r['normal_consistency_worst']:.4f}"
             f" | {_mm(r['jitter_m'])} ({_mm(r['gt_jitter_m'])}) | {_mm(r['accel_error_m'])} | {_num(r['drift'])} | "
             f"{_num(r['fps'])} | "

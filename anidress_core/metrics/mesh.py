@@ -17,6 +17,9 @@ on the CPU with a k-d tree) and return tensors or floats.
   frame (``|x[t+1] - 2 x[t] + x[t-1]|``, metres per frame^2), and
   :func:`acceleration_error`: the same of the difference prediction - ground truth (the
   jitter a fit adds on top of the true motion).
+* :func:`reprojection_error`: per-frame mean pixel distance between the projections of
+  corresponding vertices in a set of cameras (what the images could show of a vertex
+  error; occlusion is not modelled: every vertex in front of a camera counts).
 """
 from __future__ import annotations
 
@@ -25,6 +28,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 from torch import Tensor
+
+from ..camera import Cameras, project
 
 __all__ = [
     "vertex_rmse",
@@ -35,6 +40,7 @@ __all__ = [
     "temporal_jitter",
     "acceleration_error",
     "barycentric_transfer",
+    "reprojection_error",
 ]
 
 
@@ -132,3 +138,23 @@ def chamfer_normal(a: SurfaceSamples, b: SurfaceSamples) -> ChamferNormal:
     cba = np.abs((nb * na[iba]).sum(-1)).mean()
     return ChamferNormal(float(0.5 * (dab.mean() + dba.mean())), float(0.5 * (cab + cba)), float(dab.mean()),
                          float(dba.mean()))
+
+
+def reprojection_error(pred: Tensor, gt: Tensor, cams: Cameras) -> Tensor:
+    """Mean 2D distance (pixels) per frame between projected corresponding vertices.
+
+    pred, gt (T, V, 3) or (V, 3) in correspondence; cams: C cameras (lens distortion applied). A (frame, camera, vertex) counts when both points are in
+    front of the camera. Returns (T,); NaN for a frame where no pair counts.
+    """
+    pred, gt = _check_seq("reprojection_error", pred), _check_seq("reprojection_error", gt)
+    if pred.shape != gt.shape:
+        raise ValueError(f"reprojection_error: shapes differ, {tuple(pred.shape)} vs {tuple(gt.shape)}")
+    cams = cams.to(device=pred.device, dtype=pred.dtype)
+    out = []
+    for t in range(pred.shape[0]):  # a loop over frames; each frame is one batched projection
+        a, b = project(pred[t], cams), project(gt[t], cams)
+        ok = (a.depth > 0) & (b.depth > 0)  # (C, V)
+        d = (a.uv - b.uv).norm(dim=-1)  # (C, V)
+        n = ok.sum()
+        out.append(torch.where(ok, d, torch.zeros_like(d)).sum() / n if n > 0 else d.new_tensor(float("nan")))
+    return torch.stack(out)

@@ -61,7 +61,8 @@ __all__ = ["select_views", "CueReader", "gt_correspondence", "gt_template_vertic
 log = logging.getLogger("anidress.fit")
 
 FIT_METRIC_COLUMNS = (
-    "method", "frame", "vertex_rmse_m", "rig_floor_rmse_m", "chamfer_m", "rig_floor_chamfer_m", "normal_consistency",
+    "method", "frame", "vertex_rmse_m", "rig_floor_rmse_m", "chamfer_m", "rig_floor_chamfer_m", "reprojection_px",
+    "rig_floor_reprojection_px", "normal_consistency",
     "jitter_m", "gt_jitter_m", "accel_error_m", "loss", *(f"loss_{k}" for k in FIT.TERM_NAMES), "iterations", "wall_s",
 )
 
@@ -459,6 +460,9 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
     vertex is tied to its closest point (face, barycentrics) on the ground-truth rest
     mesh, and that point, carried through every ground-truth frame, is the vertex's
     ground truth. The rig floor is the RMSE of ``rig.fit_transforms`` on those meshes.
+    The 2D reprojection error (pixels) is measured in the sequence's training cameras, the
+    views the fit sees (:func:`anidress_core.metrics.mesh.reprojection_error`), for the fit and
+    for the rig floor.
     Returns a summary (per method: mean vertex RMSE etc.).
     """
     from ..metrics import mesh as MM
@@ -472,6 +476,9 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
     floor_M = fit_transforms(art.model, Y)
     floor_X = reconstruct(art.model.rest, art.model.weights, floor_M)
     floor = MM.vertex_rmse(floor_X, Y)
+    info = read_scene(scene_dir)
+    cams = scene_cameras(scene_dir, seq, list(info["cameras"]["train"]), info)
+    floor_px = MM.reprojection_error(floor_X, Y, cams)
     tpl_faces = torch.as_tensor(np.asarray(art.faces))
     gt_cache: dict[int, MM.SurfaceSamples] = {}
     floor_cache: dict[int, float] = {}
@@ -500,6 +507,7 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
         Yt, floor_t, gjit = Y[:T], floor[:T], MM.temporal_jitter(Y[:T])
         faces = torch.as_tensor(f["faces"])
         rm = MM.vertex_rmse(X, Yt)
+        px = MM.reprojection_error(X, Yt, cams)
         jit = MM.temporal_jitter(X)
         acc = MM.acceleration_error(X, Yt)
         cn = [MM.chamfer_normal(MM.surface_samples(X[t], faces, samples,
@@ -510,6 +518,7 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
             rows.append({
                 "method": name, "frame": t, "vertex_rmse_m": float(rm[t]), "rig_floor_rmse_m": float(floor_t[t]),
                 "chamfer_m": cn[t].chamfer, "rig_floor_chamfer_m": floor_chamfer(t),
+                "reprojection_px": float(px[t]), "rig_floor_reprojection_px": float(floor_px[t]),
                 "normal_consistency": cn[t].normal_consistency,
                 "jitter_m": float(jit[t - 1]) if inner else float("nan"),
                 "gt_jitter_m": float(gjit[t - 1]) if inner else float("nan"),
@@ -523,6 +532,8 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
                                     "accel_error_m": float(acc.mean()) if acc.numel() else float("nan"),
                                     "chamfer_m": float(np.mean([c.chamfer for c in cn])),
                                     "rig_floor_chamfer_m": float(np.mean([floor_chamfer(t) for t in range(T)])),
+                                    "reprojection_px": float(px.mean()),
+                                    "rig_floor_reprojection_px": float(floor_px[:T].mean()),
                                     "normal_consistency": float(np.mean([c.normal_consistency for c in cn])),
                                     "fps": h.get("meta", {}).get("fps")}
         log.info("fit_eval %s %s: vertex RMSE %.2f mm (rig floor %.2f mm), Chamfer %.2f mm, NC %.3f, "

@@ -124,11 +124,14 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
         assert 0 <= float(r["vertex_rmse_m"]) < 0.1 and 0 < float(r["normal_consistency"]) <= 1
         assert float(r["rig_floor_rmse_m"]) < 0.05
         assert 0 <= float(r["rig_floor_chamfer_m"]) < 0.1
-    # the floor's Chamfer (with its sampling bias) is one reference per frame, the same for every method
-    per_frame = {}
-    for r in rows:
-        per_frame.setdefault(r["frame"], set()).add(r["rig_floor_chamfer_m"])
-    assert all(len(v) == 1 for v in per_frame.values())
+        assert 0 <= float(r["reprojection_px"]) < 50 and 0 <= float(r["rig_floor_reprojection_px"]) < 50
+    # the floor's Chamfer (with its sampling bias) and reprojection error are one reference per frame,
+    # the same for every method
+    for col in ("rig_floor_chamfer_m", "rig_floor_reprojection_px"):
+        per_frame = {}
+        for r in rows:
+            per_frame.setdefault(r["frame"], set()).add(r[col])
+        assert all(len(v) == 1 for v in per_frame.values())
     # a missing mask is named in the error
     with pytest.raises(FileNotFoundError, match="mask"):
         run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "nope", None, None, params,

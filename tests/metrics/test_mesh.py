@@ -93,3 +93,34 @@ def test_chamfer_and_normal_consistency_against_brute_force():
     assert 0.005 <= dd.chamfer < 0.012 and dd.normal_consistency > 0.999
     same = MM.chamfer_normal(a, a)
     assert same.chamfer == 0 and abs(same.normal_consistency - 1) < 1e-12
+
+
+def test_reprojection_error_matches_a_pinhole_loop_and_skips_points_behind_a_camera():
+    from anidress_core.camera import ring_cameras
+
+    cams = ring_cameras(3, radius=3.0, height=1.0, target=(0.0, 0.0, 1.0), focal_px=200.0, image_height=64,
+                        image_width=48, dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    gt = torch.randn(2, 30, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 1.0],
+                                                                                        dtype=torch.float64)
+    pred = gt + 0.02 * torch.randn(2, 30, 3, generator=g, dtype=torch.float64)
+    pred[1, 0] = cams.centers[0] + 2.0 * (cams.centers[0] - torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    got = MM.reprojection_error(pred, gt, cams)
+
+    def pix(x, c):  # the slow reference: one point, one camera, no distortion
+        xc = cams.R[c] @ x + cams.T[c]
+        return (float(cams.K[c, 0, 0] * xc[0] / xc[2] + cams.K[c, 0, 2]),
+                float(cams.K[c, 1, 1] * xc[1] / xc[2] + cams.K[c, 1, 2]), float(xc[2]))
+
+    for t in range(2):
+        dists = []
+        for c in range(3):
+            for v in range(30):
+                (ua, va, za), (ub, vb, zb) = pix(pred[t, v], c), pix(gt[t, v], c)
+                if za > 0 and zb > 0:
+                    dists.append(math.hypot(ua - ub, va - vb))
+        assert len(dists) == (90 if t == 0 else 89)  # frame 1: vertex 0 is behind camera 0
+        assert float(got[t]) == pytest.approx(sum(dists) / len(dists), rel=1e-9)
+    assert float(MM.reprojection_error(gt, gt, cams).abs().max()) == 0.0
+    with pytest.raises(ValueError, match="shapes differ"):
+        MM.reprojection_error(pred[:, :5], gt, cams)
