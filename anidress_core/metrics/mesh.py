@@ -143,8 +143,9 @@ def chamfer_normal(a: SurfaceSamples, b: SurfaceSamples) -> ChamferNormal:
 def reprojection_error(pred: Tensor, gt: Tensor, cams: Cameras) -> Tensor:
     """Mean 2D distance (pixels) per frame between projected corresponding vertices.
 
-    pred, gt (T, V, 3) or (V, 3) in correspondence; cams: C cameras (lens distortion applied). A (frame, camera, vertex) counts when both points are in
-    front of the camera. Returns (T,); NaN for a frame where no pair counts.
+    pred, gt (T, V, 3) or (V, 3) in correspondence; cams: C cameras (lens distortion applied).
+    A (frame, camera, vertex) counts when both points are in front of the camera.
+    Returns (T,); NaN for a frame where no pair counts.
     """
     pred, gt = _check_seq("reprojection_error", pred), _check_seq("reprojection_error", gt)
     if pred.shape != gt.shape:
