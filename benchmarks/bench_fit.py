@@ -225,9 +225,8 @@ def summary_row(per: list[dict], meta: dict, **key) -> dict:
     row["drift"] = float(np.nanmean(vr[-n:]) / np.nanmean(vr[:n]))
     row["rig_floor_chamfer_m"] = float(col("rig_floor_chamfer_m").mean())
     row["chamfer_over_floor"] = row["chamfer_m_mean"] / row["rig_floor_chamfer_m"]
-    has_px = "reprojection_px" in per[0]  # fit_metrics.csv files from before the 2D column: NaN
-    row["reprojection_px"] = float(np.nanmean(col("reprojection_px"))) if has_px else float("nan")
-    row["rig_floor_reprojection_px"] = float(np.nanmean(col("rig_floor_reprojection_px"))) if has_px else float("nan")
+    row["reprojection_px"] = float(np.nanmean(col("reprojection_px")))
+    row["rig_floor_reprojection_px"] = float(np.nanmean(col("rig_floor_reprojection_px")))
     row["reprojection_over_floor"] = row["reprojection_px"] / row["rig_floor_reprojection_px"]
     return row
 
