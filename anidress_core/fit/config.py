@@ -35,7 +35,7 @@ class LossWeights:
     collision: float
     """L_collision, mean over vertices of the squared clearance shortfall outside the body, m^2 (ours)."""
     prior: float
-    """L_prior, frame 0 only: mean squared vertex offset from the start pose, m^2 (ours)."""
+    """L_prior, mean squared vertex offset from the reference pose (``FitConfig.prior_reference``), m^2 (ours)."""
 
 
 @dataclass(frozen=True)
@@ -127,6 +127,13 @@ class FitConfig:
     G_fit[t-1], from the rig's simulated sequence of the observed motion: the cloth's motion as
     the simulator predicts it, which the images then correct)."""
 
+    prior_reference: str
+    """L_prior's reference: ``start`` (frame 0 only: its start pose) or ``sim`` (every frame: the rig's
+    simulated pose of the observed motion at that frame, :mod:`anidress_core.fit.terms.prior`)."""
+    prior_tangential: bool
+    """L_prior counts only the offset along the reference surface (its tangent plane at each vertex);
+    the images alone place the surface along its normals."""
+
     def __post_init__(self):
         from .variants import VARIANTS
 
@@ -136,6 +143,8 @@ class FitConfig:
             raise ValueError(f"FitConfig.method must be 'rig', 'vertex' or 'nearest', got {self.method!r}")
         if self.start not in ("previous", "sim_delta"):
             raise ValueError(f"FitConfig.start must be 'previous' or 'sim_delta', got {self.start!r}")
+        if self.prior_reference not in ("start", "sim"):
+            raise ValueError(f"FitConfig.prior_reference must be 'start' or 'sim', got {self.prior_reference!r}")
         if self.anchor_reference not in ("images", "texture"):
             raise ValueError(f"FitConfig.anchor_reference must be 'images' or 'texture', got {self.anchor_reference!r}")
         for k, v in dataclasses.asdict(self.weights).items():
@@ -185,6 +194,7 @@ class FitConfig:
                   "collision_clearance", "collision_radius", "proposal_velocity_weight"):
             kw[k] = float(kw[k])
         kw["backward"] = bool(kw["backward"])
+        kw["prior_tangential"] = bool(kw["prior_tangential"])
         kw["loss"] = "pipeline"
         return apply_variant(cls(**kw), loss or p["loss"])
 

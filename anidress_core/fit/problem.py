@@ -24,7 +24,7 @@ import torch.nn.functional as Fnn
 from torch import Tensor
 
 from .. import raster
-from ..geometry import nearest_rotation
+from ..geometry import nearest_rotation, vertex_normals
 from .config import FitConfig
 from .images import chromaticity, eroded, image_features
 
@@ -217,8 +217,9 @@ class Problem(NamedTuple):
     normal_ok: Tensor | None  # (C, H, W) bool: pixels with a normal target
     occluder: Tensor  # (C, H, W) body depth (+inf: none)
     flow: FlowTargets | None  # L_flow's targets, or None (off)
-    prior: Tensor | None = None  # (V, 3) start mesh of the first frame (proximal term), or None
+    prior: Tensor | None = None  # (V, 3) L_prior's reference mesh (frame 0's start, or the simulated pose), or None
     w_prior: float = 0.0  # its weight per vertex: weights.prior / V
+    prior_proj: Tensor | None = None  # (V, 3, 3) I - n n^T at the reference's vertex normals (tangential L_prior), or None
     anchor_feat: Tensor | None = None  # (C, 9, H, W) image_features of the chromaticity, or None (L_anchor off)
     anchor_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
     anchor: "AnchorRef | None" = None
@@ -233,8 +234,10 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
                  prior: Tensor | None = None, anchor: "AnchorRef | None" = None,
                  contacts: "Contacts | None" = None) -> Problem:
     """The :class:`Problem` of one frame: cues checked and sanitised, terms with weight 0 (or without
-    their inputs) switched off. prior: (V, 3) start mesh of the first frame (used when
-    ``cfg.weights.prior`` > 0); anchor: L_anchor's references; contacts: L_collision's planes."""
+    their inputs) switched off. prior: (V, 3) L_prior's reference mesh (used when ``cfg.weights.prior``
+    > 0; with ``cfg.prior_tangential`` only the offset along its surface counts: the projection onto the
+    tangent plane of its area-weighted vertex normals); anchor: L_anchor's references; contacts:
+    L_collision's planes."""
     check_cues(views, cues)
     w = cfg.weights
     soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
@@ -257,11 +260,15 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
     else:
         anchor = None
     n_px = float(max(float(soft.sum()), 1.0))  # the paper's sums over pixels / targets, one common scale
+    prior = None if prior is None or w.prior == 0 else prior.detach().double()
+    proj = None
+    if prior is not None and cfg.prior_tangential:
+        n = vertex_normals(prior, rig.faces)  # (V, 3) unit (zero at isolated vertices: their offset counts whole)
+        proj = torch.eye(3, dtype=prior.dtype, device=prior.device) - n[:, :, None] * n[:, None, :]
     return Problem(
         rig=rig, views=views, cfg=cfg, mask=mask, mask_flat=soft.reshape(-1), n_px=n_px,
         normals=normals, normal_ok=nok, occluder=occ, flow=flow,
-        prior=None if prior is None or w.prior == 0 else prior.detach().double(),
-        w_prior=w.prior / rig.rest.shape[0],
+        prior=prior, w_prior=w.prior / rig.rest.shape[0], prior_proj=proj,
         anchor_feat=anchor_feat, anchor_region=region, anchor=anchor,
         contacts=contacts if w.collision > 0 and contacts is not None and contacts.vert.numel() else None,
         pixel_ok=pixel_ok,

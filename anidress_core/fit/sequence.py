@@ -213,7 +213,7 @@ def cue_notes(cues: FrameCues, flow: FlowTargets | None) -> tuple[FrameCues, Flo
 
 def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: FitConfig | None = None,
               flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None,
-              anchor: AnchorRef | None = None) -> FrameFit:
+              anchor: AnchorRef | None = None, prior_verts: Tensor | None = None) -> FrameFit:
     """Fit one frame.
 
     init: (B, 4, 4) starting bone transforms (frame t-1's result, or the first frame's
@@ -222,6 +222,8 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     ``init_verts`` (V, 3) (default: LBS of ``init``) and ``init`` is returned unchanged.
     anchor: L_anchor's references (:func:`update_anchor`; used when ``cfg.weights.anchor`` > 0 and the cues
     carry images).
+    prior_verts: (V, 3) L_prior's reference at this frame (``cfg.prior_reference`` 'sim'); default: at
+    the first frame the start (LBS of ``init``), none after it.
     Never returns non-finite poses: steps with a non-finite loss are rejected, and defective
     cues are handled as :func:`cue_notes` says (views with an empty mask dropped; no view left:
     the start pose -- ``init`` moved by the flow alignment -- is kept, ``converged`` False;
@@ -246,7 +248,10 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
                 and flow.cam.numel()):
             G = flow_align(rig, views, flow, G, cfg.flow_align_iters)
         x_start = lbs(rig.rest, rig.weights, G)
-    prior = lbs(rig.rest, rig.weights, init) if first and cfg.method == "rig" else (x_start if first else None)
+    if prior_verts is not None:
+        prior = torch.as_tensor(prior_verts, device=rig.rest.device).double()
+    else:
+        prior = lbs(rig.rest, rig.weights, init) if first and cfg.method == "rig" else (x_start if first else None)
     contacts = None
     if cfg.weights.collision > 0 and cfg.method in ("rig", "nearest"):
         if cues.occluder_mesh is None:
@@ -343,7 +348,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
                  cfg: FitConfig | None = None, progress: bool = True, log=None,
                  anchor_init: AnchorRef | None = None, proposals_of: Callable[[int], "Proposals"] | None = None,
-                 sim_transforms: Tensor | None = None) -> list[FrameFit]:
+                 sim_transforms: Tensor | None = None, starts: Tensor | None = None) -> list[FrameFit]:
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
 
     cues_of(t) -> :class:`FrameCues` (with ``image`` for L_anchor); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
@@ -363,15 +368,24 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     ``cfg.start == 'sim_delta'``: frame t > 0 starts from frame t-1's result moved by the simulated
     change of every bone, ``sim_transforms[t] @ sim_transforms[t-1]^-1 @ G[t-1]`` (sim_transforms:
     (>= T, B, 4, 4), the rig's transforms of the simulation of the observed motion).
+    ``cfg.prior_reference == 'sim'`` (method rig): L_prior at every frame t towards the skinned
+    ``sim_transforms[t]``.
+    ``starts`` (>= T, B, 4, 4): every frame t starts from ``starts[t]`` instead (the flow alignment and
+    the rest as usual; ``init`` is then ``starts[0]``): an oracle for benchmarks, e.g. the ground
+    truth's rig floor, to find the loss's own minimum near it.
     """
     from .proposals import best_of, data_loss, score_poses
     from tqdm import tqdm
 
     cfg = FitConfig.from_config({}) if cfg is None else cfg
-    if cfg.start == "sim_delta":
+    if starts is not None and starts.shape[0] < num_frames:
+        raise ValueError(f"fit_sequence: starts must hold all {num_frames} frames, got {tuple(starts.shape)}")
+    sim_prior = cfg.prior_reference == "sim" and cfg.weights.prior > 0 and cfg.method == "rig"
+    if cfg.start == "sim_delta" or sim_prior:
         if sim_transforms is None or sim_transforms.shape[0] < num_frames:
-            raise ValueError(f"fit_sequence: start 'sim_delta' needs the simulated transforms of all {num_frames} "
-                             f"frames, got {None if sim_transforms is None else tuple(sim_transforms.shape)}")
+            raise ValueError(f"fit_sequence: start 'sim_delta' and prior_reference 'sim' need the simulated "
+                             f"transforms of all {num_frames} frames, got "
+                             f"{None if sim_transforms is None else tuple(sim_transforms.shape)}")
         S = torch.as_tensor(sim_transforms, device=rig.rest.device).double()
         delta = S[1:num_frames] @ invert_transform(S[:num_frames - 1])  # (T - 1, B, 4, 4): t-1 -> t
 
@@ -393,7 +407,9 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                 prev = out[-1]
                 targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.visibility_depth_tol,
                                        cfg.flow_margin_px)
-        if t > 0 and cfg.start == "sim_delta":
+        if starts is not None:
+            G = torch.as_tensor(starts[t], device=rig.rest.device).double()
+        elif t > 0 and cfg.start == "sim_delta":
             G = delta[t - 1] @ G
         picked = None
         if cfg.method == "nearest":  # the baseline: the database pose with the lowest loss, not optimised
@@ -403,7 +419,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
             scores = score_poses(rig, views, cues, props.transforms, cfg, targets, anchor)
             i = int(torch.argmin(torch.nan_to_num(scores, nan=float("inf"))))
             G, picked = props.transforms[i].double(), {"kept": props.labels[i], "candidates": len(props.labels)}
-        res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor)
+        res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor,
+                        prior_verts=lbs(rig.rest, rig.weights, S[t]) if sim_prior else None)
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
         if res.notes and log is not None:

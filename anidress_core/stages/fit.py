@@ -240,7 +240,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             normals_dir: str | os.PathLike | None, params: Mapping, out_npz: str | os.PathLike,
             ablation: str | None = None, progress: bool = True, cue_source: str = "",
             undistorted_dir: str | os.PathLike | None = None, motions_dir: str | os.PathLike | None = None,
-            body_dir: str | os.PathLike | None = None) -> dict:
+            body_dir: str | os.PathLike | None = None, starts: torch.Tensor | None = None) -> dict:
     """Fit the garment poses of sequence ``seq`` and write ``out_npz`` (see the module docstring).
 
     params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
@@ -248,6 +248,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     run instead. motions_dir: the simulated body motions (``results/<scene>/motions``, rule motions),
     read when ``fit/proposal_every`` > 0 (the proposals' database, :func:`proposal_database`).
     body_dir: the sequence's body poses refined by rule refine_body, read instead of its smpl/.
+    starts: (T, B, 4, 4) a start for every frame (an oracle for benchmarks, e.g. the rig floor:
+    :func:`anidress_core.fit.fit_sequence`), recorded in the header's ``starts``.
     Returns the header metadata written.
     """
     t_start = time.perf_counter()
@@ -305,6 +307,10 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         if start == "auto":
             log.info("fit: the rig has no simulated sequence %s; frame 0 starts from the body-skinned template",
                      sim_name)
+    if starts is not None:  # an oracle: every frame started from a given pose
+        starts = torch.as_tensor(starts).double().to(device)
+        G0 = starts[0]
+        start_used = "every frame from the given starts (an oracle)"
     if normals_dir is None:
         log.info("fit: no normal maps for %s; the normal loss is off (weight 0)", seq)
         cfg = cfg.replace(weights={"normal": 0.0})
@@ -346,17 +352,19 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         log.info("fit: proposals %s from %s", "every frame (method nearest)" if cfg.method == "nearest" else
                  f"every {cfg.proposal_every} frames", db_note)
     sim_transforms = None
-    if cfg.start == "sim_delta":  # frames t > 0 start from the previous fit moved as the simulation moves
+    # frames t > 0 start from the previous fit moved as the simulation moves, or L_prior pulls towards it
+    if cfg.start == "sim_delta" or (cfg.prior_reference == "sim" and cfg.weights.prior > 0):
         if sim_name not in art.sequences:
-            raise ValueError(f"{rig_npz}: fit/start is 'sim_delta' but the rig has no simulated sequence {sim_name!r} "
-                             f"(it has {sorted(art.sequences)})")
+            raise ValueError(f"{rig_npz}: fit/start 'sim_delta' and fit/prior_reference 'sim' need the rig's simulated "
+                             f"sequence {sim_name!r}; it has {sorted(art.sequences)}")
         sim_transforms = art.transforms_of(sim_name).double().to(device)
     # 7. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
     try:
         res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
-                               anchor_init=anchor_init, proposals_of=proposals_of, sim_transforms=sim_transforms)
+                               anchor_init=anchor_init, proposals_of=proposals_of, sim_transforms=sim_transforms,
+                               starts=starts)
     finally:
         reader.close()
     wall_fit = time.perf_counter() - t_fit
@@ -386,6 +394,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
         "proposal_database": db_note,
+        "starts": None if starts is None else "given per frame (oracle)",
         "frame_notes": {str(t): r.notes for t, r in enumerate(res) if r.notes},  # what was done about bad cues
         # (anidress_core.fit.FrameFit.notes: views dropped, frames kept at their start, NaN pixels, no flow)
         "transforms_note": "vertex ablation: rig transforms fitted to the fitted vertices" if cfg.method == "vertex"

@@ -8,7 +8,7 @@ import torch
 from anidress_core import fit, raster
 from anidress_core.fit.images import pixel_ok, sample
 from anidress_core.fit.terms import collision
-from anidress_core.geometry import lbs
+from anidress_core.geometry import lbs, vertex_normals
 from tests.fit.scenes import PAPER, config, only, pose, render, toy
 
 torch.set_num_threads(1)
@@ -128,7 +128,7 @@ def test_paper_loss_sums_its_terms():
 def test_prior():
     rig, views, g, _, cues, _, G0 = scene(5)
     start = lbs(rig.rest, rig.weights, pose(rig, g, 0.02, 0.01, G0))
-    cfg = only("prior", 10.0)
+    cfg = only("prior", 10.0, prior_tangential=False)
 
     def residuals(d, pb, ev):
         x = moved(rig, G0, d)
@@ -137,6 +137,27 @@ def test_prior():
     assert check_system(rig, views, cues, G0, cfg, residuals, prior=start).terms["prior"] > 0
     # off without a start mesh (frames t > 0)
     assert fit.make_problem(rig, views, cues, None, cfg).prior is None
+
+
+def test_prior_tangential():
+    """Only the offset along the reference surface counts: residual sqrt(w / V) (I - n n^T)(x - x_ref)."""
+    rig, views, g, _, cues, _, G0 = scene(5)
+    ref = lbs(rig.rest, rig.weights, pose(rig, g, 0.02, 0.01, G0))
+    cfg = only("prior", 10.0).replace(prior_tangential=True)
+    n = vertex_normals(ref, rig.faces)
+
+    def residuals(d, pb, ev):
+        off = moved(rig, G0, d) - ref
+        tangential = off - (off * n).sum(-1, keepdim=True) * n
+        return tangential.reshape(-1) * (10.0 / off.shape[0]) ** 0.5
+
+    ev = check_system(rig, views, cues, G0, cfg, residuals, prior=ref)
+    assert 0 < ev.terms["prior"]
+    # a move along the reference's normals costs nothing
+    pb = fit.make_problem(rig, views, cues, None, cfg, prior=ref)
+    assert fit.evaluate(pb, ref + 0.01 * n).terms["prior"] < 1e-20
+    assert fit.evaluate(pb, ref + 0.01 * torch.linalg.cross(n, torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype).expand_as(n))
+                        ).terms["prior"] > 1e-6
 
 
 def test_anchor():
