@@ -45,6 +45,8 @@ from anidress_core.stages.fit import run_fit, run_fit_eval
 from benchmarks.benchutil import git_rev
 
 REPO = Path(__file__).resolve().parents[1]
+#: how the tables' header names the command (a probe that registers variants and calls main sets its own)
+PROG = ".venv/bin/python -m benchmarks.bench_fit"
 
 # the code whose uncommitted changes the git revision of a run's table flags
 CODE_PATHS = ("anidress_core/fit", "anidress_core/raster.py", "anidress_core/stages/fit.py")
@@ -294,7 +296,7 @@ def main() -> None:
     cfg = load_config("config/config.yaml")
     load0 = os.getloadavg()
     rows, notes, scene_params = [], [], {}
-    command = "  ".join([".venv/bin/python -m benchmarks.bench_fit"] + sys.argv[1:])
+    command = "  ".join([PROG] + sys.argv[1:])
     for scene in args.scenes.split(","):
         params = {k: v for k, v in scene_section(cfg, "fit", scene).items() if k not in ("ablations", "eval")}
         params["threads"] = args.threads

@@ -52,6 +52,10 @@ VARIANTS: dict[str, Variant] = {
     "pipeline_sim_delta": Variant("the pipeline with each frame started from the previous fit moved by the "
                                   "simulation's change of every bone (fit/start sim_delta)",
                                   lambda c: c.replace(start="sim_delta")),
+    "pipeline_no_sim_prior": Variant("the pipeline with L_prior on frame 0 only, towards its start, whole offset, weight 10 "
+                                     "(fit/prior_reference start; the pipeline before L_prior followed the simulation)",
+                                     lambda c: c.replace(prior_reference="start", prior_tangential=False,
+                                                         weights={"prior": 10.0})),
     "pipeline_image_anchor": Variant("the pipeline's loss with L_anchor's references from the images, not the garment "
                                      "texture (which a capture does not have)",
                                      lambda c: c.replace(anchor_reference="images")),

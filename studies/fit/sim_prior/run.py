@@ -22,10 +22,11 @@ WEIGHTS = (1e3, 3e3, 1e4, 3e4, 1e5)
 for w in WEIGHTS:
     V.VARIANTS[f"simprior_{w:g}"] = V.Variant(
         f"the pipeline with L_prior towards the simulated pose at every frame, weight {w:g}",
-        lambda c, w=w: c.replace(prior_reference="sim", weights={"prior": w}))
+        lambda c, w=w: c.replace(prior_reference="sim", prior_tangential=False, weights={"prior": w}))
     V.VARIANTS[f"simprior_t_{w:g}"] = V.Variant(
         f"the pipeline with tangential L_prior towards the simulated pose at every frame, weight {w:g}",
         lambda c, w=w: c.replace(prior_reference="sim", prior_tangential=True, weights={"prior": w}))
 
 if __name__ == "__main__":
+    bench_fit.PROG = ".venv/bin/python studies/fit/sim_prior/run.py"
     bench_fit.main()
