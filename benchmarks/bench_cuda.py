@@ -154,7 +154,8 @@ def w_fit(scene_dir: str, rig: str, template: str, masks: str, flows: str, param
     _setup(device)
     t0 = time.perf_counter()
     run_fit(scene_dir, "walk", rig, template, masks, flows, str(Path(scene_dir) / "walk" / "normals"),
-            dict(params, device=device, threads=0), out_npz, progress=False, cue_source="pipeline")
+            dict(params, device=device, threads=0), out_npz, progress=False, cue_source="pipeline",
+            ablation="pipeline_no_sim_prior")  # the rig has no simulation of walk (library motions only)
     _sync(device)
     wall = time.perf_counter() - t0
     a, _ = load_garment_poses(out_npz)

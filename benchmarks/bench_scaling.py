@@ -229,8 +229,10 @@ def w_fit(scene_dir: str, rig: str, template: str, masks: str, flows: str, param
 
     torch.set_num_threads(1)
     normals = str(Path(scene_dir) / "walk" / "normals")
+    # the rig here is decomposed from library motions only, without a simulation of walk for L_prior to
+    # follow: the pipeline's loss with the frame-0 prior (the same cost per frame)
     meta, total = _cpu(run_fit, scene_dir, "walk", rig, template, masks, flows, normals,
-                       params, out_npz, progress=False, cue_source="pipeline")
+                       params, out_npz, ablation="pipeline_no_sim_prior", progress=False, cue_source="pipeline")
     a, _ = load_garment_poses(out_npz)
     wall = np.asarray(a["wall_s"], float)
     T = len(wall)

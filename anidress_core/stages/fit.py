@@ -356,7 +356,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     if cfg.start == "sim_delta" or (cfg.prior_reference == "sim" and cfg.weights.prior > 0):
         if sim_name not in art.sequences:
             raise ValueError(f"{rig_npz}: fit/start 'sim_delta' and fit/prior_reference 'sim' need the rig's simulated "
-                             f"sequence {sim_name!r}; it has {sorted(art.sequences)}")
+                             f"sequence {sim_name!r}; it has {sorted(art.sequences)} (rule motions simulates every captured "
+                             "sequence; or set fit/prior_reference: start, the variant pipeline_no_sim_prior)")
         sim_transforms = art.transforms_of(sim_name).double().to(device)
     # 7. fit
     t_fit = time.perf_counter()
