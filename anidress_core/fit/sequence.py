@@ -387,7 +387,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                              f"transforms of all {num_frames} frames, got "
                              f"{None if sim_transforms is None else tuple(sim_transforms.shape)}")
         S = torch.as_tensor(sim_transforms, device=rig.rest.device).double()
-        delta = S[1:num_frames] @ invert_transform(S[:num_frames - 1])  # (T - 1, B, 4, 4): t-1 -> t
+        if cfg.start == "sim_delta":
+            delta = S[1:num_frames] @ invert_transform(S[:num_frames - 1])  # (T - 1, B, 4, 4): t-1 -> t
 
     out: list[FrameFit] = []
     G = torch.as_tensor(init, device=rig.rest.device).double()
