@@ -16,6 +16,10 @@ noise 0.03-0.08).
     snakemake --workflow-profile profiles/default --configfile config/config.yaml config/fit_heldout.yaml \\
         $(.venv/bin/python -m benchmarks.fit_suite --seed 24 --prefix heldout --targets)  # scenes, rigs, cues
     .venv/bin/python -m benchmarks.bench_fit --suite config/fit_heldout.yaml              # benchmarks/fit.md
+
+The field suite (config/field_suite.yaml: ``--seed 25 --prefix field --count 4 --novel-pose``) adds a
+held-out sequence to each scene and is run through the whole pipeline (its targets include the fit
+evaluation and both field variants' metrics); ``benchmarks/collect_field_suite.py`` tabulates it.
 """
 from __future__ import annotations
 
@@ -37,10 +41,13 @@ FABRICS = ("plain", "floral", "plaid", "denim")
 FRAMES = 40
 
 
-def draw(count: int = 10, seed: int = 23, prefix: str = "suite") -> dict:
+def draw(count: int = 10, seed: int = 23, prefix: str = "suite", novel_pose: bool = False) -> dict:
     """``count`` scene sections ``<prefix>_00`` ..: every library motion at least once (for count >= 7),
-    garments alternating, plain fabric on every third scene, the rest drawn."""
+    garments alternating, plain fabric on every third scene, the rest drawn. ``novel_pose``: each scene
+    also gets a held-out sequence of another library motion (role novel_pose, for the field), drawn
+    from a separate stream so the scenes are otherwise those drawn without it."""
     rng = random.Random(seed)
+    rng_novel = random.Random(seed + 7919)
     motions = list(MOTIONS) + [rng.choice(MOTIONS) for _ in range(max(0, count - len(MOTIONS)))]
     rng.shuffle(motions)
     scenes = {}
@@ -57,6 +64,10 @@ def draw(count: int = 10, seed: int = 23, prefix: str = "suite") -> dict:
             "predicted_normals": {"blur_px": round(rng.uniform(1.0, 3.0), 2),
                                   "noise_std": round(rng.uniform(0.03, 0.08), 3)},
         }
+        if novel_pose:
+            other = rng_novel.choice([m for m in MOTIONS if m != motions[i]])
+            scenes[f"{prefix}_{i:02d}"]["sequences"].append(
+                {"name": other, "motion": other, "frames": FRAMES, "role": "novel_pose"})
     return scenes
 
 
@@ -65,9 +76,9 @@ def tuning_scenes() -> list[str]:
     return [*TUNING, *yaml.safe_load(TUNING_SUITE.read_text())["scenes"]]
 
 
-def overlay(scenes: dict, seed: int, prefix: str = "suite") -> str:
-    head = (f"# The fit's evaluation suite: {len(scenes)} generated scenes (benchmarks/fit_suite.py, --seed {seed} "
-            f"--prefix {prefix}).\n"
+def overlay(scenes: dict, seed: int, prefix: str = "suite", novel_pose: bool = False) -> str:
+    head = (f"# An evaluation suite: {len(scenes)} generated scenes (benchmarks/fit_suite.py, --seed {seed} "
+            f"--prefix {prefix}{' --novel-pose' if novel_pose else ''}).\n"
             "# Written by that script; none has a fit section. The tuning subset (settings chosen on it) is\n"
             "# config/fit_suite.yaml (--seed 23) with the demo scenes; the held-out suite is --seed 24.\n"
             "# Use: snakemake --configfile config/config.yaml <this file> (after config/config.yaml).\n")
@@ -75,11 +86,16 @@ def overlay(scenes: dict, seed: int, prefix: str = "suite") -> str:
 
 
 def targets(scenes: dict) -> list[str]:
-    """What bench_fit reads of each scene: the rig (with the simulation of its sequence) and the cues."""
+    """What bench_fit reads of each scene: the rig (with the simulation of its sequence) and the cues;
+    for a scene with a novel-pose sequence also what benchmarks/collect_field_suite.py reads: the
+    pipeline's fit evaluation of every sequence and the field's metrics of both variants."""
     out = []
     for name, s in scenes.items():
         seq = s["sequences"][0]["name"]
         out += [f"results/{name}/rig.npz", f"results/{name}/{seq}/masks", f"results/{name}/{seq}/flows"]
+        if len(s["sequences"]) > 1:
+            out += [f"results/{name}/{q['name']}/fit_metrics.csv" for q in s["sequences"]]
+            out += [f"results/{name}/{seq}/{v}/metrics_summary.json" for v in ("full", "body_only")]
     return out
 
 
@@ -89,13 +105,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=23)
     ap.add_argument("--prefix", default="suite", help="scene names <prefix>_00 .. (default: %(default)s)")
     ap.add_argument("--out", default=str(DEFAULT_OUT), help="the overlay written (default: %(default)s)")
+    ap.add_argument("--novel-pose", action="store_true",
+                    help="add a held-out sequence of another motion to each scene (the field's novel poses)")
     ap.add_argument("--targets", action="store_true", help="print the Snakemake targets of the suite instead")
     args = ap.parse_args()
-    scenes = draw(args.count, args.seed, args.prefix)
+    scenes = draw(args.count, args.seed, args.prefix, args.novel_pose)
     if args.targets:
         print(" ".join(targets(scenes)))
         return
-    Path(args.out).write_text(overlay(scenes, args.seed, args.prefix))
+    Path(args.out).write_text(overlay(scenes, args.seed, args.prefix, args.novel_pose))
     print(f"wrote {args.out}: {', '.join(scenes)}")
 
 

@@ -4,15 +4,16 @@ next (long) run. The runs themselves are not tests."""
 from __future__ import annotations
 
 import importlib
+import json
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-#: every script with a command line: the per-stage benchmarks and the pipeline collector
-#: (bench_sim_newton is bench_sim's reference, called from it)
+#: every script with a command line: the per-stage benchmarks, the collectors of pipeline runs and the suite
+#: generator (bench_sim_newton is bench_sim's reference, called from it)
 SCRIPTS = sorted(p.stem for p in (ROOT / "benchmarks").glob("*.py")
-                 if p.stem.startswith("bench_") and p.stem != "bench_sim_newton") + ["collect_pipeline"]
+                 if p.stem.startswith(("bench_", "collect_")) and p.stem != "bench_sim_newton") + ["fit_suite"]
 
 
 def test_every_stage_has_a_benchmark():
@@ -94,3 +95,51 @@ def test_cuda_quick(tmp_path):
                           str(out)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert rep.returncode == 0, rep.stderr[-2000:]
     assert (out / "cuda.md").read_text() == first
+
+
+def test_fit_suite_novel_pose_adds_a_held_out_sequence_and_changes_nothing_else():
+    from benchmarks.fit_suite import draw, targets
+
+    plain, novel = draw(5, seed=31), draw(5, seed=31, novel_pose=True)
+    for name, sc in novel.items():
+        train, held = sc["sequences"]
+        assert held["role"] == "novel_pose" and held["motion"] != train["motion"]
+        assert {**sc, "sequences": [train]} == plain[name]
+    out = targets(novel)
+    assert f"results/{name}/{held['name']}/fit_metrics.csv" in out
+    assert f"results/{name}/{train['name']}/body_only/metrics_summary.json" in out
+
+
+def _field_run(root: Path, scene: str, train: str, novel: str, psnr: dict) -> None:
+    for seq, rmse in ((train, [2.0] * 10 + [3.0] * 10), (novel, [4.0] * 20)):
+        d = root / "results" / scene / seq
+        d.mkdir(parents=True)
+        rows = ["method,frame,vertex_rmse_m,rig_floor_rmse_m"]
+        rows += [f"pipeline,{i},{r},1.0" for i, r in enumerate(rmse)] + ["sim,0,9.0,1.0"]
+        (d / "fit_metrics.csv").write_text("\n".join(rows) + "\n")
+    for v, p in psnr.items():
+        d = root / "results" / scene / train / v
+        d.mkdir(parents=True)
+        (d / "metrics_summary.json").write_text(json.dumps({"metrics": [
+            {"kind": k, "scored": 4, "psnr_db": p + dk, "ssim": 0.9, "iou": 0.95 if v == "full" else 0.93}
+            for k, dk in (("novel_pose", 0.0), ("novel_view", 1.0))]}))
+        t = root / "benchmarks" / "runs" / scene / train / v
+        t.mkdir(parents=True)
+        (t / "train.tsv").write_text("s\tcpu_time\n12.5\t10.0\n")
+
+
+def test_collect_field_suite_reads_a_run(tmp_path):
+    from benchmarks.collect_field_suite import collect
+
+    suite = {"scenes": {"a": {"kind": "skirt", "garment": {"texture": "plain", "cloth": {"bend_stiffness": 1e-3}},
+                              "sequences": [{"name": "walk", "role": "train"}, {"name": "run", "role": "novel_pose"}]}}}
+    _field_run(tmp_path, "a", "walk", "run", {"full": 26.0, "body_only": 25.5})
+    (row,) = collect(suite, tmp_path)
+    assert row["fit_train_ratio"] == pytest.approx(2.5) and row["fit_train_drift"] == pytest.approx(1.5)
+    assert row["fit_novel_ratio"] == pytest.approx(4.0) and row["fit_train_frames"] == 20
+    assert row["margin_novel_pose_psnr_db"] == pytest.approx(0.5)
+    assert row["margin_novel_pose_iou"] == pytest.approx(0.02)
+    assert row["full_novel_view_psnr_db"] == pytest.approx(27.0) and row["body_only_train_s"] == 12.5
+    suite["scenes"]["a"]["sequences"].pop()
+    with pytest.raises(SystemExit, match="a: the suite's scene has no novel_pose"):
+        collect(suite, tmp_path)
