@@ -170,6 +170,18 @@ class FitConfig:
         if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex.max_iters < 1:
             raise ValueError("FitConfig: iteration limits must be >= 1")
 
+    @property
+    def prior_follows_simulation(self) -> bool:
+        """L_prior pulls every frame towards the simulated pose (``prior_reference`` sim, a prior weight,
+        method rig; the vertex method keeps L_prior on frame 0 towards its start, nearest is not optimised)."""
+        return self.prior_reference == "sim" and self.weights.prior > 0 and self.method == "rig"
+
+    @property
+    def needs_simulation(self) -> bool:
+        """Whether the fit reads the rig's simulation of the observed motion (``seq-<sequence>``): for the
+        ``sim_delta`` start or for :attr:`prior_follows_simulation`."""
+        return self.start == "sim_delta" or self.prior_follows_simulation
+
     @classmethod
     def from_config(cls, section: Mapping | None = None, loss: str | None = None) -> "FitConfig":
         """The settings of config section ``fit`` (keys left out: the schema's defaults), as the

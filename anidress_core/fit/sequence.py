@@ -380,8 +380,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     cfg = FitConfig.from_config({}) if cfg is None else cfg
     if starts is not None and starts.shape[0] < num_frames:
         raise ValueError(f"fit_sequence: starts must hold all {num_frames} frames, got {tuple(starts.shape)}")
-    sim_prior = cfg.prior_reference == "sim" and cfg.weights.prior > 0 and cfg.method == "rig"
-    if cfg.start == "sim_delta" or sim_prior:
+    if cfg.needs_simulation:
         if sim_transforms is None or sim_transforms.shape[0] < num_frames:
             raise ValueError(f"fit_sequence: start 'sim_delta' and prior_reference 'sim' need the simulated "
                              f"transforms of all {num_frames} frames, got "
@@ -421,7 +420,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
             i = int(torch.argmin(torch.nan_to_num(scores, nan=float("inf"))))
             G, picked = props.transforms[i].double(), {"kept": props.labels[i], "candidates": len(props.labels)}
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor,
-                        prior_verts=lbs(rig.rest, rig.weights, S[t]) if sim_prior else None)
+                        prior_verts=lbs(rig.rest, rig.weights, S[t]) if cfg.prior_follows_simulation else None)
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
         if res.notes and log is not None:

@@ -353,7 +353,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
                  f"every {cfg.proposal_every} frames", db_note)
     sim_transforms = None
     # frames t > 0 start from the previous fit moved as the simulation moves, or L_prior pulls towards it
-    if cfg.start == "sim_delta" or (cfg.prior_reference == "sim" and cfg.weights.prior > 0):
+    if cfg.needs_simulation:
         if sim_name not in art.sequences:
             raise ValueError(f"{rig_npz}: fit/start 'sim_delta' and fit/prior_reference 'sim' need the rig's simulated "
                              f"sequence {sim_name!r}; it has {sorted(art.sequences)} (rule motions simulates every captured "

@@ -49,3 +49,17 @@ def test_variant_configs():
     assert c.flow == 0 and c.normal == 0.1 and c.anchor == 0 and c.collision == 0 and c.prior == 0
     with pytest.raises(ValueError, match="unknown fit loss variant"):
         fit.FitConfig.from_config({}, "nope")
+
+
+def test_which_settings_read_the_simulation_of_the_observed_motion():
+    """One property says whether the fit needs the rig's ``seq-<sequence>`` (rule fit's error, fit_sequence's check)."""
+    from anidress_core.fit import FitConfig
+
+    base = FitConfig.from_config({})
+    assert base.prior_follows_simulation and base.needs_simulation  # the default: L_prior follows it
+    assert not base.replace(prior_reference="start").needs_simulation
+    assert not base.replace(weights={"prior": 0.0}).needs_simulation
+    assert not base.replace(method="nearest").needs_simulation  # not optimised: no L_prior
+    assert not base.replace(method="vertex").prior_follows_simulation
+    assert base.replace(prior_reference="start", start="sim_delta").needs_simulation
+    assert not FitConfig.from_config({}, loss="pipeline_no_sim_prior").needs_simulation
