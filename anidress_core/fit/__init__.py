@@ -21,7 +21,7 @@ from .config import FitConfig, LossWeights, VertexSettings
 from .images import blurred, chromaticity, image_features, sample, sample_blurred
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import LMResult, levenberg_marquardt
-from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, total_loss
+from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, total_loss, with_prior_information
 from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, contour_length, crop_frame,
                       crop_window, downsample, make_problem, occluder_depth, uncrop_fragments)
 from .sequence import (FrameFit, backward_pass, cue_notes, fit_frame, fit_problem, fit_sequence, flow_align,
@@ -35,7 +35,7 @@ from .variants import PAPER_WEIGHTS, VARIANTS, apply_variant
 __all__ = [
     "FitConfig", "LossWeights", "VertexSettings", "VARIANTS", "PAPER_WEIGHTS", "apply_variant",
     "RigParts", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem", "Evaluation", "evaluate",
-    "gauss_newton_system", "loss_terms", "total_loss", "TERMS", "TERM_NAMES", "LMResult", "levenberg_marquardt",
+    "gauss_newton_system", "loss_terms", "total_loss", "with_prior_information", "TERMS", "TERM_NAMES", "LMResult", "levenberg_marquardt",
     "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "backward_pass", "cue_notes", "flow_align", "smooth_transforms", "flow_targets",
     "AnchorRef", "update_anchor", "texture_anchor", "texture_blur_texels", "Contacts", "body_contacts",
     "chromaticity", "image_features", "blurred", "sample", "sample_blurred", "contour_length", "occluder_depth",

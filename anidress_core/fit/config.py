@@ -133,6 +133,13 @@ class FitConfig:
     prior_tangential: bool
     """L_prior counts only the offset along the reference surface (its tangent plane at each vertex);
     the images alone place the surface along its normals."""
+    prior_information: str
+    """L_prior's weight per bone scaled by its share of the Gauss-Newton information along the same
+    directions (:func:`anidress_core.fit.terms.prior.information_scale`, at each frame's start):
+    ``uniform`` (one weight for every vertex), ``anchor`` (less prior where L_anchor places the
+    material) or ``anchor_flow`` (where L_anchor or L_flow does). Uniform by default: ``anchor`` was
+    worse on 9 of 10 tuning scenes (median 2.95 -> 3.14x the rig floor), ``anchor_flow`` on 3 of 3 plain
+    ones (studies/fit/README.md section 11)."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -145,6 +152,9 @@ class FitConfig:
             raise ValueError(f"FitConfig.start must be 'previous' or 'sim_delta', got {self.start!r}")
         if self.prior_reference not in ("start", "sim"):
             raise ValueError(f"FitConfig.prior_reference must be 'start' or 'sim', got {self.prior_reference!r}")
+        if self.prior_information not in ("uniform", "anchor", "anchor_flow"):
+            raise ValueError(f"FitConfig.prior_information must be 'uniform', 'anchor' or 'anchor_flow', got "
+                             f"{self.prior_information!r}")
         if self.anchor_reference not in ("images", "texture"):
             raise ValueError(f"FitConfig.anchor_reference must be 'images' or 'texture', got {self.anchor_reference!r}")
         for k, v in dataclasses.asdict(self.weights).items():

@@ -26,7 +26,7 @@ from .jacobians import projection_jacobian, skin_jacobian
 from .problem import FlowTargets, FrameCues, Problem, RigParts, Views, make_problem
 from .terms import TERMS, Rendered, anchor, collision, flow, normal, prior, silhouette
 
-__all__ = ["Evaluation", "evaluate", "gauss_newton_system", "total_loss", "loss_terms"]
+__all__ = ["Evaluation", "evaluate", "gauss_newton_system", "total_loss", "loss_terms", "with_prior_information"]
 
 
 class Evaluation(NamedTuple):
@@ -100,10 +100,34 @@ def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=
     return H, g
 
 
+#: ``fit/prior_information``: the image terms whose Gauss-Newton information lowers L_prior's weight
+PRIOR_INFORMATION_TERMS = {"uniform": (), "anchor": ("anchor",), "anchor_flow": ("anchor", "flow")}
+
+
+def with_prior_information(pb: Problem, verts: Tensor) -> Problem:
+    """``pb`` with L_prior's per-vertex factor of ``cfg.prior_information`` evaluated at ``verts`` (V, 3)
+    (:func:`anidress_core.fit.terms.prior.information_scale`; held fixed for the frame, so the loss the
+    optimiser compares stays one function). Unchanged when L_prior is off or the setting is 'uniform'."""
+    names = PRIOR_INFORMATION_TERMS[pb.cfg.prior_information]
+    if pb.prior is None or not names:
+        return pb
+    ev = evaluate(pb, verts)
+    _, Puv = projection_jacobian(ev.verts, pb.views)
+    lay = pb.rig.layout
+    blocks = torch.zeros(lay.perm.numel() // 9, 3, 3, dtype=torch.float64, device=verts.device)
+    gx = torch.zeros(verts.shape[0], 3, dtype=torch.float64, device=verts.device)
+    if "anchor" in names:
+        anchor.gauss_newton(pb, ev.data["anchor"], Puv, blocks, gx)
+    if "flow" in names:
+        flow.gauss_newton(pb, ev.uv, Puv, blocks, gx)
+    return pb._replace(prior_scale=prior.information_scale(pb, blocks[lay.diag]))
+
+
 def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow_targets: FlowTargets | None,
                cfg: FitConfig, fragments: raster.Fragments | None = None, prior_verts: Tensor | None = None,
                anchor_ref: "anchor.AnchorRef | None" = None,
-               contacts: "collision.Contacts | None" = None) -> tuple[Tensor, dict]:
+               contacts: "collision.Contacts | None" = None, prior_scale: Tensor | None = None
+               ) -> tuple[Tensor, dict]:
     """Differentiable (autograd) total loss of a mesh ``verts`` (V, 3) and its unweighted terms.
 
     The same loss :func:`anidress_core.fit.fit_frame` minimises, built from every term's
@@ -111,7 +135,7 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
     :func:`raster.project_vertices`), for the vertex ablation and to check the Gauss-Newton
     systems. ``fragments``: visibility to hold fixed (default: rasterise ``verts``).
     """
-    pb = make_problem(rig, views, cues, flow_targets, cfg, prior_verts, anchor_ref, contacts)
+    pb = make_problem(rig, views, cues, flow_targets, cfg, prior_verts, anchor_ref, contacts, prior_scale)
     K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
     if fragments is None:
         fragments = raster.occlude(raster.rasterize(verts.detach(), rig.faces, K, E, views.height, views.width,

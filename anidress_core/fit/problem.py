@@ -220,6 +220,7 @@ class Problem(NamedTuple):
     prior: Tensor | None = None  # (V, 3) L_prior's reference mesh (frame 0's start, or the simulated pose), or None
     w_prior: float = 0.0  # its weight per vertex: weights.prior / V
     prior_proj: Tensor | None = None  # (V, 3, 3) I - n n^T at the reference's vertex normals (tangential L_prior), or None
+    prior_scale: Tensor | None = None  # (V,) L_prior's factor per vertex (fit/prior_information), or None (1)
     anchor_feat: Tensor | None = None  # (C, 9, H, W) image_features of the chromaticity, or None (L_anchor off)
     anchor_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
     anchor: "AnchorRef | None" = None
@@ -232,12 +233,13 @@ class Problem(NamedTuple):
 
 def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig,
                  prior: Tensor | None = None, anchor: "AnchorRef | None" = None,
-                 contacts: "Contacts | None" = None) -> Problem:
+                 contacts: "Contacts | None" = None, prior_scale: Tensor | None = None) -> Problem:
     """The :class:`Problem` of one frame: cues checked and sanitised, terms with weight 0 (or without
     their inputs) switched off. prior: (V, 3) L_prior's reference mesh (used when ``cfg.weights.prior``
     > 0; with ``cfg.prior_tangential`` only the offset along its surface counts: the projection onto the
     tangent plane of its area-weighted vertex normals); anchor: L_anchor's references; contacts:
-    L_collision's planes."""
+    L_collision's planes; prior_scale: (V,) L_prior's factor per vertex
+    (:func:`anidress_core.fit.terms.prior.information_scale`; default 1)."""
     check_cues(views, cues)
     w = cfg.weights
     soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
@@ -269,6 +271,7 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
         rig=rig, views=views, cfg=cfg, mask=mask, mask_flat=soft.reshape(-1), n_px=n_px,
         normals=normals, normal_ok=nok, occluder=occ, flow=flow,
         prior=prior, w_prior=w.prior / rig.rest.shape[0], prior_proj=proj,
+        prior_scale=None if prior is None or prior_scale is None else prior_scale.detach().double(),
         anchor_feat=anchor_feat, anchor_region=region, anchor=anchor,
         contacts=contacts if w.collision > 0 and contacts is not None and contacts.vert.numel() else None,
         pixel_ok=pixel_ok,

@@ -29,7 +29,7 @@ from ..geometry import invert_transform, lbs, nearest_rotation
 from .config import FitConfig
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import levenberg_marquardt
-from .objective import evaluate, gauss_newton_system, loss_terms
+from .objective import evaluate, gauss_newton_system, loss_terms, with_prior_information
 from .problem import (FlowTargets, FrameCues, Problem, RigParts, Views, check_cues, crop_frame, crop_window,
                       make_problem, occluder_or_inf, uncrop_fragments)
 from .terms.anchor import AnchorRef, update_anchor
@@ -267,6 +267,8 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         pb = make_problem(rig, views, cues, flow, cfg, prior)
     else:
         pb = make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts)
+        if cfg.method == "rig" and not notes.get("no_mask"):
+            pb = with_prior_information(pb, x_start)
     if notes.get("no_mask") or cfg.method == "nearest":  # the start evaluated, not optimised
         ev = evaluate(pb, x_start)
         res = FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, 0, not notes.get("no_mask"), [ev.loss],

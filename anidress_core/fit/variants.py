@@ -4,7 +4,8 @@ rules ``fit`` and ``fit_ablation``, the CLI).
 * ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
 * ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, or no
   temporal filter); ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_sim_delta``: the pipeline with a part that is
-  off by default turned on; ``pipeline_image_anchor``: without the garment texture.
+  off by default turned on, as are ``pipeline_prior_anchor_info``, ``pipeline_prior_info`` (L_prior weighted
+  per bone by the image terms' information); ``pipeline_image_anchor``: without the garment texture.
 * ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
   lowest pipeline loss.
 * ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress, supplementary), none
@@ -56,6 +57,12 @@ VARIANTS: dict[str, Variant] = {
                                      "(fit/prior_reference start; the pipeline before L_prior followed the simulation)",
                                      lambda c: c.replace(prior_reference="start", prior_tangential=False,
                                                          weights={"prior": 10.0})),
+    "pipeline_prior_anchor_info": Variant("the pipeline with L_prior's weight per bone scaled by its share of the "
+                                          "information L_prior and L_anchor put on it (fit/prior_information anchor)",
+                                          lambda c: c.replace(prior_information="anchor")),
+    "pipeline_prior_info": Variant("the pipeline with L_prior's weight per bone scaled by its share of the "
+                                   "information L_prior, L_anchor and L_flow put on it (fit/prior_information anchor_flow)",
+                                   lambda c: c.replace(prior_information="anchor_flow")),
     "pipeline_image_anchor": Variant("the pipeline's loss with L_anchor's references from the images, not the garment "
                                      "texture (which a capture does not have)",
                                      lambda c: c.replace(anchor_reference="images")),

@@ -19,7 +19,7 @@ def check_system(rig, views, cues, G0, cfg, residuals=None, flow=None, irls=Fals
     vector at the increment d, visibility of ev held fixed; by forward-mode autograd), and 2 g against
     the autograd gradient of loss_terms (the terms' references). Returns the evaluation."""
     pb = fit.make_problem(rig, views, cues, flow, cfg, problem.get("prior"), problem.get("anchor"),
-                          problem.get("contacts"))
+                          problem.get("contacts"), problem.get("prior_scale"))
     ev = fit.evaluate(pb, lbs(rig.rest, rig.weights, G0))
     assert ev.loss > 0
     H, gvec = fit.gauss_newton_system(pb, ev, G0)
@@ -27,7 +27,7 @@ def check_system(rig, views, cues, G0, cfg, residuals=None, flow=None, irls=Fals
     x = lbs(rig.rest, rig.weights, fit.apply_increment(G0, rig.centres, d.view(-1, 6)))
     total, terms = fit.loss_terms(rig, views, cues, x, flow, cfg, fragments=ev.fragments,
                                   prior_verts=problem.get("prior"), anchor_ref=problem.get("anchor"),
-                                  contacts=problem.get("contacts"))
+                                  contacts=problem.get("contacts"), prior_scale=problem.get("prior_scale"))
     assert abs(float(total.detach()) - ev.loss) < 1e-10 * ev.loss  # value = reference's value
     for k in fit.TERM_NAMES:
         assert abs(float(terms[k].detach()) - ev.terms[k]) <= 1e-10 * max(ev.terms[k], 1e-300)
@@ -158,6 +158,53 @@ def test_prior_tangential():
     assert fit.evaluate(pb, ref + 0.01 * n).terms["prior"] < 1e-20
     assert fit.evaluate(pb, ref + 0.01 * torch.linalg.cross(n, torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype).expand_as(n))
                         ).terms["prior"] > 1e-6
+
+
+def test_prior_scaled_per_vertex():
+    """With a factor s_v per vertex (fit/prior_information): residual sqrt(w s_v / V) (I - n n^T)(x - x_ref)."""
+    rig, views, g, _, cues, _, G0 = scene(6)
+    ref = lbs(rig.rest, rig.weights, pose(rig, g, 0.02, 0.01, G0))
+    cfg = only("prior", 10.0).replace(prior_tangential=True)
+    n = vertex_normals(ref, rig.faces)
+    s = torch.rand(ref.shape[0], generator=g, dtype=torch.float64)
+
+    def residuals(d, pb, ev):
+        off = moved(rig, G0, d) - ref
+        tangential = off - (off * n).sum(-1, keepdim=True) * n
+        return (tangential * (10.0 * s[:, None] / off.shape[0]) ** 0.5).reshape(-1)
+
+    scaled = check_system(rig, views, cues, G0, cfg, residuals, prior=ref, prior_scale=s).terms["prior"]
+    whole = fit.evaluate(fit.make_problem(rig, views, cues, None, cfg, prior=ref), lbs(rig.rest, rig.weights, G0))
+    assert 0 < scaled < whole.terms["prior"]
+
+
+def test_prior_information_scale():
+    """information_scale: in (0, 1], lowest where L_flow's targets sit, lower the more information they
+    carry; 'uniform' and a setting without the term leave the prior whole."""
+    rig, views, g, _, cues, xt, G0 = scene(7)
+    ref = lbs(rig.rest, rig.weights, G0)
+    uv, _ = raster.project_vertices(xt, views.K, views.world_to_cam)
+    bone = rig.weights.argmax(1)  # (V,)
+    v = (bone == 0).nonzero().flatten()  # the targets sit on bone 0's vertices only
+    c = torch.zeros_like(v)
+    ft = fit.FlowTargets(c, v, uv[c, v])
+    scales = {}
+    for w_flow in (3.0, 30.0):
+        cfg = config(dict(PAPER, silhouette=0.0, normal=0.0, flow=w_flow, prior=10.0)).replace(
+            prior_information="anchor_flow")
+        pb = fit.with_prior_information(fit.make_problem(rig, views, cues, ft, cfg, prior=ref), ref)
+        scales[w_flow] = pb.prior_scale
+        assert pb.prior_scale.shape == (ref.shape[0],) and bool(((pb.prior_scale > 0) & (pb.prior_scale <= 1)).all())
+        # the targets' vertices keep less of the prior than the vertices not skinned to bone 0
+        far = rig.weights[:, 0] == 0
+        assert bool(far.any()) and float(pb.prior_scale[v].mean()) < float(pb.prior_scale[far].mean())
+        # 'anchor' counts no flow: without L_anchor the prior is whole; 'uniform' computes nothing
+        pa = fit.with_prior_information(fit.make_problem(rig, views, cues, ft, cfg.replace(prior_information="anchor"),
+                                                         prior=ref), ref)
+        assert torch.allclose(pa.prior_scale, torch.ones(()).double())
+        assert fit.with_prior_information(fit.make_problem(rig, views, cues, ft, cfg.replace(
+            prior_information="uniform"), prior=ref), ref).prior_scale is None
+    assert float(scales[30.0][v].mean()) < float(scales[3.0][v].mean())
 
 
 def test_anchor():

@@ -6,8 +6,9 @@ slide along the surface counts; the images place the surface). The reference
 (``fit/prior_reference``): ``start``, frame 0 only, its start pose (masks and normals cannot
 observe a nearly rotationally symmetric garment sliding about the body, and at frame 0 there is
 no flow); ``sim``, every frame, the rig's simulated pose of the observed motion at that frame.
-Weight ``fit/weights/prior`` (0 = off, the paper's loss). Residual sqrt(w / V) P (x - x_ref);
-P is symmetric and idempotent, so its Gauss-Newton block on each vertex is w / V P.
+Weight ``fit/weights/prior`` (0 = off, the paper's loss), times a factor s_v in (0, 1] per vertex
+with ``fit/prior_information`` (:func:`information_scale`; 1 without). Residual sqrt(w s_v / V) P (x - x_ref);
+P is symmetric and idempotent, so its Gauss-Newton block on each vertex is w s_v / V P.
 """
 from __future__ import annotations
 
@@ -32,22 +33,29 @@ def _offset(pb: "Problem", verts: Tensor) -> Tensor:
     return torch.einsum("vij,vj->vi", pb.prior_proj.to(verts.dtype), d)
 
 
+def _scale(pb: "Problem", like: Tensor) -> Tensor | float:
+    """(V, 1) the per-vertex factor s_v, or 1.0."""
+    return 1.0 if pb.prior_scale is None else pb.prior_scale.to(like.dtype)[:, None]
+
+
 def value(pb: "Problem", r) -> tuple[float, None]:
     """L_prior at the render ``r`` (0.0 when off: no reference this frame, or weight 0)."""
     if pb.prior is None:
         return 0.0, None
-    return float((_offset(pb, r.verts) ** 2).sum()) / r.verts.shape[0], None
+    off = _offset(pb, r.verts)
+    return float((_scale(pb, off) * off ** 2).sum()) / r.verts.shape[0], None
 
 
 def gauss_newton(pb: "Problem", verts: Tensor, blocks: Tensor, gx: Tensor) -> bool:
-    """Add w / V P to every vertex's diagonal block and w / V P (x - x_ref) to gx, in place."""
+    """Add w s_v / V P to every vertex's diagonal block and w s_v / V P (x - x_ref) to gx, in place."""
     if pb.prior is None:
         return False
     V = verts.shape[0]
     P = (torch.eye(3, dtype=blocks.dtype, device=blocks.device).expand(V, 3, 3) if pb.prior_proj is None
          else pb.prior_proj.to(blocks.dtype))
-    blocks.index_add_(0, pb.rig.layout.diag, pb.w_prior * P)
-    gx += pb.w_prior * _offset(pb, verts)
+    s = _scale(pb, blocks)
+    blocks.index_add_(0, pb.rig.layout.diag, pb.w_prior * (s[:, :, None] if torch.is_tensor(s) else s) * P)
+    gx += pb.w_prior * s * _offset(pb, verts)
     return True
 
 
@@ -55,4 +63,29 @@ def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tens
     """Differentiable L_prior, or None when off."""
     if pb.prior is None:
         return None
-    return (_offset(pb, verts) ** 2).sum() / verts.shape[0]
+    off = _offset(pb, verts)
+    return (_scale(pb, off) * off ** 2).sum() / verts.shape[0]
+
+
+def information_scale(pb: "Problem", info: Tensor) -> Tensor:
+    """(V,) float64 the factor s_v of L_prior's weight where the images already place the material.
+
+    info: (V, 3, 3) the weighted Gauss-Newton blocks that image terms with one vertex per residual
+    (L_anchor, L_flow) put on each vertex. Per vertex the information along the directions L_prior
+    counts, i_v = tr(P_v info_v) / rank(P_v) (P_v the tangent projector, or I); per bone b its
+    skinning-weighted mean i_b = sum_v W_vb i_v / sum_v W_vb; the bone's factor is L_prior's share
+    of the information s_b = p / (p + i_b), p = w / V (L_prior's own per vertex and direction), so
+    s_b ~ 1 where the images say nothing about where the material is and ~ p / i_b where they do;
+    s_v = sum_b W_vb s_b. Terms whose residuals couple vertices (L_silhouette, L_normal) are not
+    counted: they place the surface and its orientation, not the material along it.
+    """
+    V = info.shape[0]
+    P = (torch.eye(3, dtype=torch.float64, device=info.device).expand(V, 3, 3) if pb.prior_proj is None
+         else pb.prior_proj.double())
+    rank = P.diagonal(dim1=-2, dim2=-1).sum(-1).round().clamp_min(1)  # 2 (tangent plane) or 3
+    i_v = (P * info.double()).sum((-2, -1)) / rank  # tr(P info) for symmetric P
+    W = pb.rig.weights.double()  # (V, B)
+    i_b = (W * i_v[:, None]).sum(0) / W.sum(0).clamp_min(1e-12)
+    p = float(pb.w_prior)
+    s_b = p / (p + i_b.clamp_min(0))
+    return (W @ s_b).clamp(0, 1)
