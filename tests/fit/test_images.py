@@ -89,6 +89,23 @@ def test_texture_anchor_samples_the_blurred_texture_chromaticity_at_the_uvs():
         fit.texture_anchor(faces, face_uv, tex, 1.0, num_vertices=5)
 
 
+def test_texture_anchor_equals_blurring_the_whole_texture():
+    """texture_anchor blurs only around the V sample points: the same references as blurring the whole
+    texture and sampling it (raster.sample_texture, clamped border), UVs at the borders included."""
+    g = torch.Generator().manual_seed(5)
+    tex = torch.rand(24, 30, 3, generator=g, dtype=torch.float64)
+    V = 40
+    faces = torch.arange(V).view(-1, 4)[:, :3].reshape(-1, 3)
+    faces = torch.cat([faces, torch.arange(V).view(-1, 4)[:, 1:]])  # every vertex in a face
+    uv_v = torch.rand(V, 2, generator=g, dtype=torch.float64) * 1.1 - 0.05  # some outside [0, 1]
+    uv_v[:4] = torch.tensor([[0.0, 0.0], [1.0, 1.0], [0.0, 1.0], [1.0, 0.0]], dtype=torch.float64)
+    face_uv = uv_v[faces]
+    for blur in (0.0, 0.7, 2.5):
+        ref = fit.texture_anchor(faces, face_uv, tex, blur, num_vertices=V)
+        whole = fit.blurred(fit.chromaticity(tex)[None], blur)[0].permute(1, 2, 0)
+        torch.testing.assert_close(ref.chroma, raster.sample_texture(whole, uv_v), rtol=0, atol=1e-12)
+
+
 def test_texture_blur_matches_the_pixel_footprint():
     """A unit square textured over the whole texture, seen head-on from 2 m with focal 100 px:
     one pixel covers 2 cm = 0.02 * 512 texels; times sqrt(1/12 + blur^2)."""

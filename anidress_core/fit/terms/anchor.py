@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from ... import raster
-from ..images import blurred, chromaticity, eroded, pixel_ok, sample, sample_blurred
+from ..images import chromaticity, eroded, pixel_ok, sample, sample_blurred
 from ..problem import Views, image_finite
 
 if TYPE_CHECKING:
@@ -105,8 +105,14 @@ def texture_anchor(faces: Tensor, face_uv: Tensor, texture: Tensor, blur_texels:
     if bool((first == faces.numel()).any()):
         raise ValueError("texture_anchor: some vertices are in no face")
     uv = face_uv.reshape(-1, 2)[first].double()  # (V, 2)
-    chroma = blurred(chromaticity(texture.double())[None], blur_texels)[0].permute(1, 2, 0)  # (Ht, Wt, 3)
-    ref = raster.sample_texture(chroma, uv)
+    # the blurred texture at V points only (sample_blurred: the same values as blurring the whole
+    # texture, then raster.sample_texture with its clamped border; 1024^2 texels took 3 s to blur)
+    Ht, Wt = texture.shape[:2]
+    px = torch.stack([uv[:, 0] * Wt - 0.5, (1 - uv[:, 1]) * Ht - 0.5], -1)  # texel coordinates, centres at integers
+    chroma = chromaticity(texture.double())[None]  # (1, Ht, Wt, 3)
+    cam = torch.zeros(V, dtype=torch.int64, device=uv.device)
+    step = 1024  # vertices per gather: (step, 2r + 2, 2r + 2, 3) texels at a time
+    ref = torch.cat([sample_blurred(chroma, cam[i:i + step], px[i:i + step], blur_texels) for i in range(0, V, step)])
     return AnchorRef(ref, torch.ones(V, dtype=torch.bool, device=ref.device))
 
 
