@@ -106,7 +106,7 @@ def texture_anchor(faces: Tensor, face_uv: Tensor, texture: Tensor, blur_texels:
         raise ValueError("texture_anchor: some vertices are in no face")
     uv = face_uv.reshape(-1, 2)[first].double()  # (V, 2)
     # the blurred texture at V points only (sample_blurred: the same values as blurring the whole
-    # texture, then raster.sample_texture with its clamped border; 1024^2 texels took 3 s to blur)
+    # texture, then raster.sample_texture with its clamped border; blurring a whole 1024^2 texture costs seconds)
     Ht, Wt = texture.shape[:2]
     px = torch.stack([uv[:, 0] * Wt - 0.5, (1 - uv[:, 1]) * Ht - 0.5], -1)  # texel coordinates, centres at integers
     chroma = chromaticity(texture.double())[None]  # (1, Ht, Wt, 3)
