@@ -104,7 +104,8 @@ class FitConfig:
     every this many frames after it (keyframes; frames); 0 = off. At a keyframe the chained fit
     competes with the proposals: the lowest loss (without L_prior) is kept. Off by default: measured
     neutral on the demo skirt (14.64 -> 14.61 mm at 10) and worse on a 128x128 skirt (18.79 -> 18.99 mm),
-    module docstring of :mod:`anidress_core.fit.proposals`."""
+    module docstring of :mod:`anidress_core.fit.proposals`; with the simulation prior, every 5 frames, worse
+    on 7 of 10 tuning scenes (median 2.95 -> 2.98x the rig floor; studies/fit/README.md section 8)."""
     proposal_nearest: int
     """Proposals per keyframe from other simulated motions: the nearest frames by body pose and
     root velocity (count)."""
