@@ -121,7 +121,8 @@ class FitConfig:
     """After the forward pass: :func:`anidress_core.fit.backward_pass` (each frame refitted from the
     next frame's kept pose, the lower loss kept). Off by default: about twice the fit time for no
     measured gain (demo skirt with proposals every 10 frames: 14.61 -> 14.59 mm; 128x128 skirt:
-    18.79 -> 18.95 mm alone)."""
+    18.79 -> 18.95 mm alone); with the simulation prior worse (tuning suite median 2.95 -> 3.68x the rig
+    floor, 18-22x on two skirt jumps; studies/fit/README.md section 8)."""
     start: str
     """Start of frame t > 0: ``previous`` (frame t-1's result) or ``sim_delta`` (frame t-1's result
     moved by the simulation's own change of every bone from t-1 to t, G_sim[t] G_sim[t-1]^-1
