@@ -14,7 +14,11 @@ import math
 from dataclasses import dataclass
 from typing import Mapping
 
-__all__ = ["LossWeights", "VertexSettings", "FitConfig", "STAGE_KEYS"]
+__all__ = ["LossWeights", "VertexSettings", "FitConfig", "STAGE_KEYS", "PRIOR_INFORMATION_TERMS"]
+
+#: ``fit/prior_information``: its values and the image terms whose Gauss-Newton information lowers
+#: L_prior's weight for each (:func:`anidress_core.fit.objective.with_prior_information`).
+PRIOR_INFORMATION_TERMS = {"uniform": (), "anchor": ("anchor",), "anchor_flow": ("anchor", "flow")}
 
 #: Keys of config section ``fit`` that the stage reads, not the fit itself.
 STAGE_KEYS = ("views", "cues", "first_frame_init", "ablations", "device", "threads", "eval", "frames")
@@ -154,8 +158,8 @@ class FitConfig:
             raise ValueError(f"FitConfig.start must be 'previous' or 'sim_delta', got {self.start!r}")
         if self.prior_reference not in ("start", "sim"):
             raise ValueError(f"FitConfig.prior_reference must be 'start' or 'sim', got {self.prior_reference!r}")
-        if self.prior_information not in ("uniform", "anchor", "anchor_flow"):
-            raise ValueError(f"FitConfig.prior_information must be 'uniform', 'anchor' or 'anchor_flow', got "
+        if self.prior_information not in PRIOR_INFORMATION_TERMS:
+            raise ValueError(f"FitConfig.prior_information must be one of {list(PRIOR_INFORMATION_TERMS)}, got "
                              f"{self.prior_information!r}")
         if self.anchor_reference not in ("images", "texture"):
             raise ValueError(f"FitConfig.anchor_reference must be 'images' or 'texture', got {self.anchor_reference!r}")

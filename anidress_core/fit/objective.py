@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from .. import raster
-from .config import FitConfig, LossWeights
+from .config import PRIOR_INFORMATION_TERMS, FitConfig, LossWeights
 from .jacobians import projection_jacobian, skin_jacobian
 from .problem import FlowTargets, FrameCues, Problem, RigParts, Views, make_problem
 from .terms import TERMS, Rendered, anchor, collision, flow, normal, prior, silhouette
@@ -98,10 +98,6 @@ def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=
         H += (Jx.t() @ (Hx @ Jx)).double()
         g += (Jx.t() @ gx.reshape(-1).to(jdtype)).double()
     return H, g
-
-
-#: ``fit/prior_information``: the image terms whose Gauss-Newton information lowers L_prior's weight
-PRIOR_INFORMATION_TERMS = {"uniform": (), "anchor": ("anchor",), "anchor_flow": ("anchor", "flow")}
 
 
 def with_prior_information(pb: Problem, verts: Tensor) -> Problem:

@@ -63,3 +63,17 @@ def test_which_settings_read_the_simulation_of_the_observed_motion():
     assert not base.replace(method="vertex").prior_follows_simulation
     assert base.replace(prior_reference="start", start="sim_delta").needs_simulation
     assert not FitConfig.from_config({}, loss="pipeline_no_sim_prior").needs_simulation
+
+
+def test_prior_information_values_come_from_one_place():
+    """The schema's enum of fit/prior_information is config.PRIOR_INFORMATION_TERMS's keys; others are refused."""
+    from anidress_core.fit import FitConfig
+    from anidress_core.fit.config import PRIOR_INFORMATION_TERMS
+
+    fit_schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]["fit"]
+    schema = fit_schema["properties"]["prior_information"]
+    assert sorted(schema["enum"]) == sorted(PRIOR_INFORMATION_TERMS) and schema["default"] == "uniform"
+    for v in PRIOR_INFORMATION_TERMS:
+        assert FitConfig.from_config({"prior_information": v}).prior_information == v
+    with pytest.raises(ValueError, match="prior_information"):
+        FitConfig.from_config({}).replace(prior_information="hessian")
