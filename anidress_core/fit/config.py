@@ -127,6 +127,11 @@ class FitConfig:
     measured gain (demo skirt with proposals every 10 frames: 14.61 -> 14.59 mm; 128x128 skirt:
     18.79 -> 18.95 mm alone); with the simulation prior worse (tuning suite median 2.95 -> 3.68x the rig
     floor, 18-22x on two skirt jumps; studies/fit/README.md section 8)."""
+    window: int
+    """Frames refined jointly after the chain (:mod:`anidress_core.fit.window`: L_flow couples the window's
+    poses instead of carrying targets from the previous result); 0 or 1 = off."""
+    window_iters: int
+    """Most loss evaluations of one window's joint Levenberg-Marquardt (each evaluates all its frames)."""
     start: str
     """Start of frame t > 0: ``previous`` (frame t-1's result) or ``sim_delta`` (frame t-1's result
     moved by the simulation's own change of every bone from t-1 to t, G_sim[t] G_sim[t-1]^-1
@@ -174,7 +179,7 @@ class FitConfig:
                              f"{self.collision_clearance}, {self.collision_radius}")
         if int(self.smooth_passes) != self.smooth_passes or self.smooth_passes < 0:
             raise ValueError(f"FitConfig.smooth_passes must be an integer >= 0, got {self.smooth_passes}")
-        for k in ("proposal_every", "proposal_nearest", "proposal_refine"):
+        for k in ("proposal_every", "proposal_nearest", "proposal_refine", "window", "window_iters"):
             v = getattr(self, k)
             if int(v) != v or v < 0:
                 raise ValueError(f"FitConfig.{k} must be an integer >= 0, got {v}")
@@ -183,7 +188,7 @@ class FitConfig:
         if not (self.proposal_velocity_weight >= 0 and math.isfinite(self.proposal_velocity_weight)):
             raise ValueError(f"FitConfig.proposal_velocity_weight must be finite and >= 0, got "
                              f"{self.proposal_velocity_weight}")
-        if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex.max_iters < 1:
+        if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex.max_iters < 1 or self.window_iters < 1:
             raise ValueError("FitConfig: iteration limits must be >= 1")
 
     @property
@@ -216,7 +221,7 @@ class FitConfig:
         kw["vertex"] = VertexSettings(float(kw["vertex"]["lr"]), int(kw["vertex"]["max_iters"]),
                                       int(kw["vertex"]["patience"]))
         for k in ("max_iters", "max_iters_first", "flow_margin_px", "flow_align_iters", "crop_margin", "smooth_passes",
-                  "proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine"):
+                  "proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine", "window", "window_iters"):
             kw[k] = int(kw[k])
         for k in ("rel_tol", "step_tol", "damping", "visibility_depth_tol", "image_blur", "anchor_scale",
                   "collision_clearance", "collision_radius", "proposal_velocity_weight"):

@@ -30,11 +30,12 @@ from .config import FitConfig
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import levenberg_marquardt
 from .objective import evaluate, gauss_newton_system, loss_terms, with_prior_information
-from .problem import (FlowTargets, FrameCues, Problem, RigParts, Views, check_cues, crop_frame, crop_window,
+from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, check_cues, crop_frame, crop_window,
                       make_problem, occluder_or_inf, uncrop_fragments)
 from .terms.anchor import AnchorRef, update_anchor
 from .terms.collision import body_contacts
 from .terms.flow import flow_targets
+from .window import pair_flow, refine_window
 
 if TYPE_CHECKING:
     from .proposals import Proposals
@@ -70,7 +71,13 @@ class FrameFit:
     pixel term), ``no_mask`` (True: no view left, the start pose kept, not converged),
     ``mask_unknown_px``, ``normals_nonfinite_px``, ``image_nonfinite_px`` (pixels left out),
     ``flow_targets_nonfinite`` (targets dropped), ``no_flow`` (set by :func:`fit_sequence`: no
-    flow for the frame, L_flow off)."""
+    flow for the frame, L_flow off), ``window`` (set by :func:`fit_sequence`: the joint refinement of the
+    window this frame ended, :func:`anidress_core.fit.window.refine_window`'s record)."""
+    problem: Problem | None = None
+    """The problem the frame was fitted on (``fit_frame(keep_problem=True)``, method rig; for the window
+    refinement), else None."""
+    crop: Crop | None = None
+    """Its render windows (None: whole images), kept with ``problem``."""
 
 
 def flow_align(rig: RigParts, views: Views, flow: FlowTargets, transforms: Tensor, iters: int) -> Tensor:
@@ -213,7 +220,8 @@ def cue_notes(cues: FrameCues, flow: FlowTargets | None) -> tuple[FrameCues, Flo
 
 def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: FitConfig | None = None,
               flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None,
-              anchor: AnchorRef | None = None, prior_verts: Tensor | None = None) -> FrameFit:
+              anchor: AnchorRef | None = None, prior_verts: Tensor | None = None, keep_problem: bool = False
+              ) -> FrameFit:
     """Fit one frame.
 
     init: (B, 4, 4) starting bone transforms (frame t-1's result, or the first frame's
@@ -224,6 +232,7 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     carry images).
     prior_verts: (V, 3) L_prior's reference at this frame (``cfg.prior_reference`` 'sim'); default: at
     the first frame the start (LBS of ``init``), none after it.
+    keep_problem: the result keeps its problem and render windows (``problem``, ``crop``; method rig).
     Never returns non-finite poses: steps with a non-finite loss are rejected, and defective
     cues are handled as :func:`cue_notes` says (views with an empty mask dropped; no view left:
     the start pose -- ``init`` moved by the flow alignment -- is kept, ``converged`` False;
@@ -278,6 +287,8 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     else:
         res = fit_problem(pb, G, cfg.max_iters_first if first else cfg.max_iters)
     res.notes = notes
+    if keep_problem and cfg.method == "rig":
+        res.problem, res.crop = pb, window
     if window is not None:  # visibility in whole images (outside the windows: no garment)
         res.fragments = uncrop_fragments(res.fragments, window, full_hw[0], full_hw[1],
                                          torch.full((views.K.shape[0], *full_hw), float("inf"), dtype=torch.float64,
@@ -346,6 +357,25 @@ def backward_pass(rig: RigParts, views: Views, fits: list[FrameFit], cues_of: Ca
     return out
 
 
+def _refine_window(fits: list[FrameFit], pairs: list, views: Views, cfg: FitConfig, log) -> list[FrameFit]:
+    """The window's chained results refined jointly (:func:`anidress_core.fit.window.refine_window`), their
+    problems dropped; unchanged when fewer than two frames, or a frame was not optimised (no mask, or a
+    proposal kept) so that it has no problem. The refinement's time is shared out over the frames' ``wall_s``."""
+    if len(fits) >= 2 and all(f.problem is not None and not f.notes.get("no_mask") for f in fits):
+        t0 = time.perf_counter()
+        refined, rec = refine_window([f.problem for f in fits], views, pairs, fits, [f.crop for f in fits],
+                                     cfg.window_iters)
+        share = (time.perf_counter() - t0) / len(fits)
+        for f in refined:
+            f.notes = {**f.notes, "window": rec}
+            f.terms["wall_s"] = f.terms.get("wall_s", 0.0) + share
+        if log is not None:
+            log.info("fit: window of %d frames refined jointly: loss %.6g -> %.6g (%d evaluations)", len(fits),
+                     rec["chain_loss"], rec["loss"], rec["iterations"])
+        fits = refined
+    return [dataclasses.replace(f, problem=None, crop=None) for f in fits]
+
+
 def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
                  cfg: FitConfig | None = None, progress: bool = True, log=None,
@@ -365,7 +395,10 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     ``proposals_of(t)`` -> :class:`anidress_core.fit.proposals.Proposals` (candidate poses of frame t,
     e.g. :func:`anidress_core.fit.proposals.frame_proposals`) compete with the chained fit
     (:func:`anidress_core.fit.proposals.best_of`; ``notes['proposal']``: the label kept and the
-    losses). ``cfg.backward``: then :func:`backward_pass`. The temporal filter comes last.
+    losses). ``cfg.window`` > 1 (method rig): after every ``window`` chained frames (and at the last frame)
+    those frames are refined jointly, L_flow coupling their poses (:mod:`anidress_core.fit.window`); the
+    next frame is chained from the refined last one. ``cfg.backward``: then :func:`backward_pass`. The
+    temporal filter comes last.
 
     ``cfg.start == 'sim_delta'``: frame t > 0 starts from frame t-1's result moved by the simulated
     change of every bone, ``sim_transforms[t] @ sim_transforms[t-1]^-1 @ G[t-1]`` (sim_transforms:
@@ -391,6 +424,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
         if cfg.start == "sim_delta":
             delta = S[1:num_frames] @ invert_transform(S[:num_frames - 1])  # (T - 1, B, 4, 4): t-1 -> t
 
+    use_window = cfg.window > 1 and cfg.method == "rig"
+    pairs: list = []  # the current window's coupled flow targets (pair_flow), one per frame so far
     out: list[FrameFit] = []
     G = torch.as_tensor(init, device=rig.rest.device).double()
     x_prev = None
@@ -421,8 +456,11 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
             scores = score_poses(rig, views, cues, props.transforms, cfg, targets, anchor)
             i = int(torch.argmin(torch.nan_to_num(scores, nan=float("inf"))))
             G, picked = props.transforms[i].double(), {"kept": props.labels[i], "candidates": len(props.labels)}
+        if use_window:
+            pairs.append(None if t % cfg.window == 0 else pair_flow(targets, out[-1].verts, views))
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor,
-                        prior_verts=lbs(rig.rest, rig.weights, S[t]) if cfg.prior_follows_simulation else None)
+                        prior_verts=lbs(rig.rest, rig.weights, S[t]) if cfg.prior_follows_simulation else None,
+                        keep_problem=use_window)
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
         if res.notes and log is not None:
@@ -447,7 +485,11 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
         res.terms["wall_s"] = time.perf_counter() - t0
         res.terms["flow_targets"] = 0 if targets is None else int(targets.cam.numel())
         out.append(res)
-        G = res.transforms
+        if use_window and ((t + 1) % cfg.window == 0 or t == num_frames - 1):
+            first_of_window = t + 1 - len(pairs)
+            out[first_of_window:] = _refine_window(out[first_of_window:], pairs, views, cfg, log)
+            pairs = []
+        G = out[-1].transforms
         x_prev = res.verts if cfg.method == "vertex" else None
         prev_mask = cues.mask
     if cfg.backward and cfg.method == "rig" and len(out) >= 2:

@@ -3,7 +3,7 @@ rules ``fit`` and ``fit_ablation``, the CLI).
 
 * ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
 * ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, or no
-  temporal filter); ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_sim_delta``: the pipeline with a part that is
+  temporal filter); ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_window``, ``pipeline_sim_delta``: the pipeline with a part that is
   off by default turned on, as are ``pipeline_prior_anchor_info``, ``pipeline_prior_info`` (L_prior weighted
   per bone by the image terms' information); ``pipeline_image_anchor``: without the garment texture.
 * ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
@@ -50,6 +50,8 @@ VARIANTS: dict[str, Variant] = {
                                   "(fit/proposal_every 5)", lambda c: c.replace(proposal_every=5)),
     "pipeline_backward": Variant("the pipeline with the backward pass after the forward one (fit/backward)",
                                  lambda c: c.replace(backward=True)),
+    "pipeline_window": Variant("the pipeline with every 5 chained frames refined jointly, L_flow coupling their poses "
+                               "(fit/window 5)", lambda c: c.replace(window=5)),
     "pipeline_sim_delta": Variant("the pipeline with each frame started from the previous fit moved by the "
                                   "simulation's change of every bone (fit/start sim_delta)",
                                   lambda c: c.replace(start="sim_delta")),
