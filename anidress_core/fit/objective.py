@@ -63,8 +63,8 @@ def evaluate(pb: Problem, verts: Tensor) -> Evaluation:
     return Evaluation(total_loss(pb.cfg.weights, terms), terms, verts, frags, uv, data)
 
 
-def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=torch.float64
-                        ) -> tuple[Tensor, Tensor]:
+def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=torch.float64,
+                        skin: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """H (P, P) = sum_k w_k/n J_k^T J_k and g (P,) = sum_k w_k/n J_k^T r_k at ``ev``, P = 6 B.
 
     transforms: (B, 4, 4) the pose of ``ev``. ``jdtype``: dtype of the (3V, P) Jacobian products
@@ -72,12 +72,13 @@ def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=
     optimiser). Silhouette residuals are chained to the parameters row by row (into H, g
     directly); the others are accumulated in vertex space (3x3 blocks of vertex pairs sharing
     a face, H_x, and g_x, in the order normal, flow, anchor, prior, collision), then
-    H += Jx^T H_x Jx, g += Jx^T g_x once.
+    H += Jx^T H_x Jx, g += Jx^T g_x once. skin: (V, 3, P) :func:`skin_jacobian` at ``transforms`` in
+    ``jdtype``, when the caller has it.
     """
     rig = pb.rig
     verts = ev.verts
     V = verts.shape[0]
-    Jx = skin_jacobian(rig, transforms).to(jdtype).reshape(3 * V, -1)  # (3V, P)
+    Jx = (skin_jacobian(rig, transforms).to(jdtype) if skin is None else skin).reshape(3 * V, -1)  # (3V, P)
     P = Jx.shape[-1]
     _, Puv = projection_jacobian(verts, pb.views)  # (C, V, 2, 3)
     H = torch.zeros(P, P, dtype=torch.float64, device=verts.device)

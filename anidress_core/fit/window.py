@@ -99,29 +99,43 @@ def window_system(problems: list[Problem], views: Views, pairs: list[PairFlow | 
     g = torch.zeros(Wn * P, dtype=torch.float64, device=dev)
     J3 = []
     for i, (pb, ev) in enumerate(zip(problems, wev.frames)):
-        Hi, gi = gauss_newton_system(pb, ev, X[i], jdtype)
+        J3.append(skin_jacobian(rig, X[i]).to(jdtype))  # (V, 3, P)
+        Hi, gi = gauss_newton_system(pb, ev, X[i], jdtype, skin=J3[-1])
         sl = slice(i * P, (i + 1) * P)
         H[sl, sl] += Hi
         g[sl] += gi
-        J3.append(skin_jacobian(rig, X[i]).to(jdtype))  # (V, 3, P)
     for i in range(1, Wn):
         p = pairs[i]
         w = problems[i].cfg.weights.flow / problems[i].n_px
         if p is None or not w > 0:
             continue
+        # per target n: r_n = uv_i - uv_{i-1} - f_n depends on one vertex at two frames; summed per vertex
+        # (3 x 3 blocks over the U vertices with a target), then chained with the skinning Jacobians once
+        used, slot = torch.unique(p.vert, return_inverse=True)
+        U = used.numel()
         _, Pa = projection_jacobian(wev.frames[i - 1].verts, views)  # (C, V, 2, 3)
         _, Pb = projection_jacobian(wev.frames[i].verts, views)
-        A = (Pb[p.cam, p.vert].to(jdtype) @ J3[i][p.vert]).reshape(-1, P)  # (2N, P) d r / d delta_i
-        Bm = -(Pa[p.cam, p.vert].to(jdtype) @ J3[i - 1][p.vert]).reshape(-1, P)  # d r / d delta_{i-1}
-        r = (wev.uv[i][p.cam, p.vert] - wev.uv[i - 1][p.cam, p.vert] - p.flow).reshape(-1).to(jdtype)
+        Pa, Pb = Pa[p.cam, p.vert], Pb[p.cam, p.vert]  # (N, 2, 3)
+        r = wev.uv[i][p.cam, p.vert] - wev.uv[i - 1][p.cam, p.vert] - p.flow  # (N, 2)
+
+        def per_vertex(x: Tensor) -> Tensor:
+            return torch.zeros(U, *x.shape[1:], dtype=x.dtype, device=dev).index_add_(0, slot, x)
+
+        Maa = per_vertex(Pa.transpose(1, 2) @ Pa)  # (U, 3, 3)
+        Mbb = per_vertex(Pb.transpose(1, 2) @ Pb)
+        Mab = -per_vertex(Pa.transpose(1, 2) @ Pb)
+        ga = -per_vertex(torch.einsum("nij,ni->nj", Pa, r))  # (U, 3)
+        gb = per_vertex(torch.einsum("nij,ni->nj", Pb, r))
+        Ja, Jb = J3[i - 1][used], J3[i][used]  # (U, 3, P)
+        Ja2, Jb2 = Ja.reshape(3 * U, P), Jb.reshape(3 * U, P)
         a, b = slice(i * P, (i + 1) * P), slice((i - 1) * P, i * P)
-        H[a, a] += w * (A.t() @ A).double()
-        H[b, b] += w * (Bm.t() @ Bm).double()
-        Hab = w * (Bm.t() @ A).double()
+        H[a, a] += w * (Jb2.t() @ (Mbb.to(jdtype) @ Jb).reshape(3 * U, P)).double()
+        H[b, b] += w * (Ja2.t() @ (Maa.to(jdtype) @ Ja).reshape(3 * U, P)).double()
+        Hab = w * (Ja2.t() @ (Mab.to(jdtype) @ Jb).reshape(3 * U, P)).double()  # rows: frame i-1
         H[b, a] += Hab
         H[a, b] += Hab.t()
-        g[a] += w * (A.t() @ r).double()
-        g[b] += w * (Bm.t() @ r).double()
+        g[a] += w * (Jb2.t() @ gb.reshape(-1).to(jdtype)).double()
+        g[b] += w * (Ja2.t() @ ga.reshape(-1).to(jdtype)).double()
     return H, g
 
 
