@@ -71,8 +71,8 @@ class FrameFit:
     pixel term), ``no_mask`` (True: no view left, the start pose kept, not converged),
     ``mask_unknown_px``, ``normals_nonfinite_px``, ``image_nonfinite_px`` (pixels left out),
     ``flow_targets_nonfinite`` (targets dropped), ``no_flow`` (set by :func:`fit_sequence`: no
-    flow for the frame, L_flow off), ``window`` (set by :func:`fit_sequence`: the joint refinement of the
-    window this frame ended, :func:`anidress_core.fit.window.refine_window`'s record)."""
+    flow for the frame, L_flow off), ``window`` (set by :func:`fit_sequence` on the last frame of a window
+    refined jointly: its length ``frames`` and :func:`anidress_core.fit.window.refine_window`'s record)."""
     problem: Problem | None = None
     """The problem the frame was fitted on (``fit_frame(keep_problem=True)``, method rig; for the window
     refinement), else None."""
@@ -358,8 +358,8 @@ def backward_pass(rig: RigParts, views: Views, fits: list[FrameFit], cues_of: Ca
 
 
 def _refine_window(fits: list[FrameFit], pairs: list, views: Views, cfg: FitConfig, log) -> list[FrameFit]:
-    """The window's chained results refined jointly (:func:`anidress_core.fit.window.refine_window`), their
-    problems dropped; unchanged when fewer than two frames, or a frame was not optimised (no mask, or a
+    """The window's chained results refined jointly (:func:`anidress_core.fit.window.refine_window`; its record,
+    with the window's length ``frames``, in the last frame's ``notes['window']``), their problems dropped; unchanged when fewer than two frames, or a frame was not optimised (no mask, or a
     proposal kept) so that it has no problem. The refinement's time is shared out over the frames' ``wall_s``."""
     if len(fits) >= 2 and all(f.problem is not None and not f.notes.get("no_mask") for f in fits):
         t0 = time.perf_counter()
@@ -367,8 +367,8 @@ def _refine_window(fits: list[FrameFit], pairs: list, views: Views, cfg: FitConf
                                      cfg.window_iters)
         share = (time.perf_counter() - t0) / len(fits)
         for f in refined:
-            f.notes = {**f.notes, "window": rec}
             f.terms["wall_s"] = f.terms.get("wall_s", 0.0) + share
+        refined[-1].notes = {**refined[-1].notes, "window": {"frames": len(fits), **rec}}
         if log is not None:
             log.info("fit: window of %d frames refined jointly: loss %.6g -> %.6g (%d evaluations)", len(fits),
                      rec["chain_loss"], rec["loss"], rec["iterations"])

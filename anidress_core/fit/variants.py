@@ -3,13 +3,13 @@ rules ``fit`` and ``fit_ablation``, the CLI).
 
 * ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
 * ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, or no
-  temporal filter); ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_window``, ``pipeline_sim_delta``: the pipeline with a part that is
+  temporal filter, no window refinement); ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_sim_delta``: the pipeline with a part that is
   off by default turned on, as are ``pipeline_prior_anchor_info``, ``pipeline_prior_info`` (L_prior weighted
   per bone by the image terms' information); ``pipeline_image_anchor``: without the garment texture.
 * ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
   lowest pipeline loss.
 * ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress, supplementary), none
-  of our terms and no temporal filter; the solver settings are the section's.
+  of our terms, no temporal filter and no window refinement; the solver settings are the section's.
 * ``paper_vertex``, ``paper_no_normal_flow``, ``paper_no_flow``: the paper's ablations (Fig. 9)
   (a) direct vertex fitting without the rig (Adam on the vertex positions), (b) no normal and
   no flow losses, (c) no flow loss, on the paper's loss.
@@ -32,7 +32,7 @@ class Variant(NamedTuple):
 
 
 def _paper(c: FitConfig) -> FitConfig:
-    return c.replace(weights=PAPER_WEIGHTS, smooth_passes=0, method="rig")
+    return c.replace(weights=PAPER_WEIGHTS, smooth_passes=0, window=0, method="rig")
 
 
 VARIANTS: dict[str, Variant] = {
@@ -50,8 +50,9 @@ VARIANTS: dict[str, Variant] = {
                                   "(fit/proposal_every 5)", lambda c: c.replace(proposal_every=5)),
     "pipeline_backward": Variant("the pipeline with the backward pass after the forward one (fit/backward)",
                                  lambda c: c.replace(backward=True)),
-    "pipeline_window": Variant("the pipeline with every 5 chained frames refined jointly, L_flow coupling their poses "
-                               "(fit/window 5)", lambda c: c.replace(window=5)),
+    "pipeline_no_window": Variant("the pipeline without the joint refinement of windows of frames (fit/window 0): the "
+                                  "chain alone, L_flow's targets carried from the previous result",
+                                  lambda c: c.replace(window=0)),
     "pipeline_sim_delta": Variant("the pipeline with each frame started from the previous fit moved by the "
                                   "simulation's change of every bone (fit/start sim_delta)",
                                   lambda c: c.replace(start="sim_delta")),
@@ -70,8 +71,9 @@ VARIANTS: dict[str, Variant] = {
                                      lambda c: c.replace(anchor_reference="images")),
     "nearest": Variant("baseline, no fitting: per frame the simulated pose (nearest simulated frames by body pose and "
                        "velocity, the simulation of the observed motion at t +- offsets) with the lowest pipeline loss "
-                       "on the frame's cues", lambda c: c.replace(method="nearest", smooth_passes=0, backward=False)),
-    "paper": Variant("the paper's loss: 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow, rig, no temporal filter", _paper),
+                       "on the frame's cues", lambda c: c.replace(method="nearest", smooth_passes=0, backward=False, window=0)),
+    "paper": Variant("the paper's loss: 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow, rig, no temporal filter, no window "
+                     "refinement", _paper),
     "paper_vertex": Variant("paper (a): direct vertex fitting without the rig (Adam on vertex positions), "
                             "the paper's loss", lambda c: _paper(c).replace(method="vertex")),
     "paper_no_normal_flow": Variant("paper (b): no normal and no flow losses (silhouettes only)",

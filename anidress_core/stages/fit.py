@@ -25,8 +25,8 @@ and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transf
 the weighted loss and every unweighted term ``loss_<term>`` per frame, with the loss variant
 that ran and every weight as used in the header; the header's ``meta['frame_notes']`` says per
 frame what the fit did about defective cues (views dropped, a frame kept at its start, NaN pixels,
-no flow: :attr:`anidress_core.fit.FrameFit.notes`), which proposal a keyframe kept and which frames
-the backward pass replaced.
+no flow: :attr:`anidress_core.fit.FrameFit.notes`), which proposal a keyframe kept, which frames
+the backward pass replaced, and on the last frame of each window refined jointly its loss before and after.
 
 ``fit_eval`` writes ``fit_metrics.csv``: per method and frame, vertex RMSE against the
 ground-truth garment carried onto the template's vertices, the rig's floor on that

@@ -13,8 +13,10 @@ TERM_OFF = {k: 0.0 for k in fit.TERM_NAMES}
 
 
 def config(weights: dict | None = None, **kw) -> fit.FitConfig:
-    """FitConfig of the config section {weights, **kw} (the rest: the schema's defaults)."""
+    """FitConfig of the config section {weights, **kw} (the rest: the schema's defaults, except ``window``:
+    0, the chain alone, unless given; tests/fit/test_window.py tests the window refinement)."""
     sec = dict(kw)
+    sec.setdefault("window", 0)
     if weights is not None:
         sec["weights"] = weights
     return fit.FitConfig.from_config(sec)

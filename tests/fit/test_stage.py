@@ -196,8 +196,12 @@ def test_stage_records_what_it_did_about_bad_cues(tiny_skirt, tmp_path):
     gp = read_garment_poses(tmp_path / "gp.npz", frames=4, bones=6)
     assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
     assert all(np.isfinite(v).all() for v in gp.terms.values())
-    assert meta["frame_notes"] == {"1": {"no_flow": True}, "2": {"views_dropped": [1]}}
     assert gp.header["meta"]["frame_notes"] == meta["frame_notes"]
+    notes = {t: dict(n) for t, n in meta["frame_notes"].items()}
+    windows = {t: n.pop("window") for t, n in notes.items() if "window" in n}
+    assert list(windows) == ["3"] and windows["3"]["frames"] == 4  # the default fit/window 5, four frames
+    assert windows["3"]["loss"] <= windows["3"]["chain_loss"]
+    assert {t: n for t, n in notes.items() if n} == {"1": {"no_flow": True}, "2": {"views_dropped": [1]}}
 
 
 def test_stage_proposals_from_the_simulation_database(tiny_skirt, tmp_path):

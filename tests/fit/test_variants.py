@@ -38,8 +38,10 @@ def test_variant_configs():
         others = {k: getattr(c.weights, k) for k in fit.TERM_NAMES if k != term}
         assert others == {k: getattr(base.weights, k) for k in others}
     assert fit.FitConfig.from_config({}, "pipeline_no_smooth").smooth_passes == 0
+    assert base.window > 1 and fit.FitConfig.from_config({}, "pipeline_no_window").window == 0
+    assert fit.FitConfig.from_config({}, "nearest").window == 0
     paper = fit.FitConfig.from_config({"weights": {"anchor": 7.0, "normal": 300.0}}, "paper")
-    assert paper.weights == fit.PAPER_WEIGHTS and paper.smooth_passes == 0 and paper.method == "rig"
+    assert paper.weights == fit.PAPER_WEIGHTS and paper.smooth_passes == 0 and paper.window == 0 and paper.method == "rig"
     assert {k: getattr(paper.weights, k) for k in fit.TERM_NAMES} == PAPER
     assert paper.max_iters == base.max_iters  # the solver is the section's
     assert fit.FitConfig.from_config({}, "paper_vertex").method == "vertex"

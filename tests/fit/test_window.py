@@ -122,14 +122,15 @@ def test_fit_sequence_refines_windows_jointly():
     flow_of = lambda t: (torch.zeros(C, H, W, 2, dtype=torch.float64), None)  # noqa: E731
     cfg = config(dict(PAPER, normal=300.0), max_iters=3, max_iters_first=5, smooth_passes=0)
     start = pose(rig, g, 0.03, 0.01, Gs[0])
-    chain = fit.fit_sequence(rig, views, 5, lambda t: frames[t][0], flow_of, start, cfg, progress=False)
+    chain = fit.fit_sequence(rig, views, 5, lambda t: frames[t][0], flow_of, start, cfg.replace(window=0),
+                             progress=False)
     res = fit.fit_sequence(rig, views, 5, lambda t: frames[t][0], flow_of, start, cfg.replace(window=3),
                            progress=False)
     assert all("window" not in r.notes and r.problem is None for r in chain)
+    assert [("window" in r.notes) for r in res] == [False, False, True, False, True]
     for lo, hi in ((0, 3), (3, 5)):
-        rec = res[lo].notes["window"]
-        assert all(r.notes["window"] is rec for r in res[lo:hi])
-        assert rec["loss"] <= rec["chain_loss"] and rec["iterations"] >= 1
+        rec = res[hi - 1].notes["window"]
+        assert rec["frames"] == hi - lo and rec["loss"] <= rec["chain_loss"] and rec["iterations"] >= 1
         assert abs(sum(r.loss for r in res[lo:hi]) - rec["loss"]) <= 1e-9 * rec["loss"]
     assert res[3].terms["flow"] > 0 and res[4].terms["flow"] > 0
     for r in res:
