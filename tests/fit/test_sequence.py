@@ -141,6 +141,11 @@ def test_empty_masks_nan_cues_and_missing_flow_give_finite_poses(caplog):
     assert res[1].terms["flow_targets"] == 0 and res[2].terms["flow_targets"] > 0
     for r in res:
         assert torch.isfinite(r.transforms).all() and torch.isfinite(r.verts).all() and math.isfinite(r.loss)
+    # the same frames refined as one window (the default's fit/window): finite too
+    win = fit.fit_sequence(rig, views, 3, cues_of, flow_of, start, cfg.replace(window=3), progress=False)
+    assert win[2].notes["window"]["frames"] == 3 and win[1].notes.get("no_flow")
+    for r in win:
+        assert torch.isfinite(r.transforms).all() and torch.isfinite(r.verts).all() and math.isfinite(r.loss)
     # with the temporal filter on: the same per-frame fits, then smooth_transforms over the sequence
     sm = fit.fit_sequence(rig, views, 3, cues_of, flow_of, start, cfg.replace(smooth_passes=1), progress=False)
     want = fit.smooth_transforms(torch.stack([r.transforms for r in res]), 1)
