@@ -359,8 +359,10 @@ def backward_pass(rig: RigParts, views: Views, fits: list[FrameFit], cues_of: Ca
 
 def _refine_window(fits: list[FrameFit], pairs: list, views: Views, cfg: FitConfig, log) -> list[FrameFit]:
     """The window's chained results refined jointly (:func:`anidress_core.fit.window.refine_window`; its record,
-    with the window's length ``frames``, in the last frame's ``notes['window']``), their problems dropped; unchanged when fewer than two frames, or a frame was not optimised (no mask, or a
-    proposal kept) so that it has no problem. The refinement's time is shared out over the frames' ``wall_s``."""
+    with the window's length ``frames``, in the last frame's ``notes['window']``), their problems dropped.
+    Unchanged when fewer than two frames, or when a frame was not optimised (no mask, or a proposal kept) and
+    so has no problem. The refinement's time is shared out over the frames' ``wall_s``; ``iterations`` stay
+    the chain's."""
     if len(fits) >= 2 and all(f.problem is not None and not f.notes.get("no_mask") for f in fits):
         t0 = time.perf_counter()
         refined, rec = refine_window([f.problem for f in fits], views, pairs, fits, [f.crop for f in fits],

@@ -29,7 +29,7 @@ from .. import raster
 from ..geometry import lbs
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import levenberg_marquardt
-from .objective import Evaluation, evaluate, gauss_newton_system, total_loss
+from .objective import evaluate, gauss_newton_system, total_loss
 from .problem import FlowTargets, Problem, Views, uncrop_fragments
 
 __all__ = ["PairFlow", "pair_flow", "WindowEvaluation", "evaluate_window", "window_system", "refine_window"]
@@ -162,7 +162,6 @@ def refine_window(problems: list[Problem], views: Views, pairs: list[PairFlow | 
     wev: WindowEvaluation = res.evaluation
     out = []
     for i, (f, ev) in enumerate(zip(fits, wev.frames)):
-        ev: Evaluation
         terms = dict(ev.terms)
         if i > 0:
             terms["flow"] = wev.pair[i]
