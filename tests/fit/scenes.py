@@ -78,6 +78,16 @@ def render(rig, views, G, occluder=None):
     return fit.FrameCues(fr.face_id >= 0, n, occ), x, fr
 
 
+def moving(rig, views, T: int, seed: int, rot: float = 0.02, trans: float = 0.005):
+    """T frames of the rig from a random pose (0.1 rad / 2 cm per bone), each moved by ``rot`` rad and
+    ``trans`` m per bone from the last. Returns the generator (to go on drawing), the true poses and
+    each frame's :func:`render` (cues, vertices, fragments)."""
+    g = torch.Generator().manual_seed(seed)
+    Gs = [pose(rig, g, 0.1, 0.02)]
+    Gs += [pose(rig, g, rot, trans, Gs[-1]) for _ in range(T - 1)]
+    return g, Gs, [render(rig, views, G) for G in Gs]
+
+
 def exact_flow(rig, views, x_prev, fr_prev, x_next):
     """Flow targets that move the previous mesh's visible vertices to their true next positions."""
     vis = raster.visible_vertices(x_prev, views.K, views.world_to_cam, fr_prev)

@@ -10,7 +10,7 @@ import torch
 
 from anidress_core import fit
 from anidress_core.geometry import lbs
-from tests.fit.scenes import PAPER, config, pose, render, rmse, textured, toy
+from tests.fit.scenes import PAPER, config, moving, pose, render, rmse, textured, toy
 from tests.fit.test_terms import check_system, scene
 
 torch.set_num_threads(1)
@@ -126,10 +126,7 @@ def test_frames_without_flow_and_nan_flow(caplog):
     everywhere (no target survives) and frame 3 a partly NaN flow: finite fits, L_flow off where it
     has no target, 'no_flow' noted and logged; NaN flow targets passed in are dropped and counted."""
     rig, views = toy(C=4, H=48, W=48)
-    g = torch.Generator().manual_seed(5)
-    Gs = [pose(rig, g, 0.1, 0.02)]
-    Gs += [pose(rig, g, 0.02, 0.005, Gs[-1]) for _ in range(3)]
-    frames = [render(rig, views, G) for G in Gs]
+    g, Gs, frames = moving(rig, views, 4, seed=5)
     C, H, W = frames[0][0].mask.shape
 
     def flow_of(t):
@@ -169,10 +166,7 @@ def test_a_sequence_through_a_blind_frame_recovers():
     """Frame 1 with every mask empty keeps frame 0's pose (noted, not converged); frame 2 is fitted again
     from there (its loss falls)."""
     rig, views = toy(C=4, H=48, W=48)
-    g = torch.Generator().manual_seed(8)
-    Gs = [pose(rig, g, 0.1, 0.02)]
-    Gs += [pose(rig, g, 0.01, 0.004, Gs[-1]) for _ in range(2)]
-    frames = [render(rig, views, G) for G in Gs]
+    _, Gs, frames = moving(rig, views, 3, seed=8, rot=0.01, trans=0.004)
 
     def cues_of(t):
         c = frames[t][0]

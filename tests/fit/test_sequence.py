@@ -9,7 +9,7 @@ import torch
 
 from anidress_core import fit, raster
 from anidress_core.geometry import lbs
-from tests.fit.scenes import PAPER, config, pose, render, rmse, textured, textured_sequence, toy
+from tests.fit.scenes import PAPER, config, moving, pose, render, rmse, textured, textured_sequence, toy
 
 torch.set_num_threads(1)
 
@@ -110,10 +110,7 @@ def test_anchor_sees_a_garment_sliding_about_its_axis():
 
 def test_empty_masks_nan_cues_and_missing_flow_give_finite_poses(caplog):
     rig, views = toy(C=4, H=48, W=48)
-    g = torch.Generator().manual_seed(5)
-    Gs = [pose(rig, g, 0.1, 0.02)]
-    Gs += [pose(rig, g, 0.02, 0.005, Gs[-1]) for _ in range(2)]
-    frames = [render(rig, views, G) for G in Gs]
+    g, Gs, frames = moving(rig, views, 3, seed=5)
 
     def cues_of(t):
         c, _, _ = frames[t]

@@ -8,7 +8,7 @@ import torch
 from anidress_core import fit, raster
 from anidress_core.fit.window import PairFlow, evaluate_window, pair_flow, window_system
 from anidress_core.geometry import lbs
-from tests.fit.scenes import PAPER, config, only, pose, render, toy
+from tests.fit.scenes import PAPER, config, moving, only, pose, render, toy
 
 torch.set_num_threads(1)
 
@@ -114,10 +114,7 @@ def test_fit_sequence_refines_windows_jointly():
     loss never rises above the chain's, equals the sum of its frames' results, and the poses stay finite;
     the problems are not kept."""
     rig, views = toy(C=3, H=48, W=48)
-    g = torch.Generator().manual_seed(9)
-    Gs = [pose(rig, g, 0.1, 0.02)]
-    Gs += [pose(rig, g, 0.02, 0.005, Gs[-1]) for _ in range(4)]
-    frames = [render(rig, views, G) for G in Gs]
+    g, Gs, frames = moving(rig, views, 5, seed=9)
     C, H, W = frames[0][0].mask.shape
     flow_of = lambda t: (torch.zeros(C, H, W, 2, dtype=torch.float64), None)  # noqa: E731
     cfg = config(dict(PAPER, normal=300.0), max_iters=3, max_iters_first=5, smooth_passes=0)
