@@ -104,6 +104,13 @@ def window_system(problems: list[Problem], views: Views, pairs: list[PairFlow | 
         sl = slice(i * P, (i + 1) * P)
         H[sl, sl] += Hi
         g[sl] += gi
+    Pfull: dict = {}  # frame -> (C, V, 2, 3) d uv / d x in the whole-image views, once per frame
+
+    def proj_jacobian(i: int) -> Tensor:
+        if i not in Pfull:
+            Pfull[i] = projection_jacobian(wev.frames[i].verts, views)[1]
+        return Pfull[i]
+
     for i in range(1, Wn):
         p = pairs[i]
         w = problems[i].cfg.weights.flow / problems[i].n_px
@@ -113,9 +120,7 @@ def window_system(problems: list[Problem], views: Views, pairs: list[PairFlow | 
         # (3 x 3 blocks over the U vertices with a target), then chained with the skinning Jacobians once
         used, slot = torch.unique(p.vert, return_inverse=True)
         U = used.numel()
-        _, Pa = projection_jacobian(wev.frames[i - 1].verts, views)  # (C, V, 2, 3)
-        _, Pb = projection_jacobian(wev.frames[i].verts, views)
-        Pa, Pb = Pa[p.cam, p.vert], Pb[p.cam, p.vert]  # (N, 2, 3)
+        Pa, Pb = proj_jacobian(i - 1)[p.cam, p.vert], proj_jacobian(i)[p.cam, p.vert]  # (N, 2, 3)
         r = wev.uv[i][p.cam, p.vert] - wev.uv[i - 1][p.cam, p.vert] - p.flow  # (N, 2)
 
         def per_vertex(x: Tensor) -> Tensor:
