@@ -40,6 +40,10 @@ class LossWeights:
     """L_collision, mean over vertices of the squared clearance shortfall outside the body, m^2 (ours)."""
     prior: float
     """L_prior, mean squared vertex offset from the reference pose (``FitConfig.prior_reference``), m^2 (ours)."""
+    stretch: float = 0.0
+    """L_stretch, mean squared relative stretch of the template's edges from their rest lengths (ours;
+    the pipeline's 300 was chosen on the tuning suite among 100-3000: median 2.74 -> 2.54x the rig floor at
+    8 views, better on 9 of 10 scenes; studies/fit/README.md section 14). 0 where a caller leaves it out."""
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from .. import raster
 from .config import PRIOR_INFORMATION_TERMS, FitConfig, LossWeights
 from .jacobians import projection_jacobian, skin_jacobian
 from .problem import FlowTargets, FrameCues, Problem, RigParts, Views, make_problem
-from .terms import TERMS, Rendered, anchor, collision, flow, normal, prior, silhouette
+from .terms import TERMS, Rendered, anchor, collision, flow, normal, prior, silhouette, stretch
 
 __all__ = ["Evaluation", "evaluate", "gauss_newton_system", "total_loss", "loss_terms", "with_prior_information"]
 
@@ -46,6 +46,7 @@ def total_loss(weights: LossWeights, terms: dict):
     loss = weights.silhouette * terms["silhouette"] + weights.normal * terms["normal"] + weights.flow * terms["flow"]
     loss += weights.prior * terms["prior"] + weights.anchor * terms["anchor"]
     loss += weights.collision * terms["collision"]
+    loss += weights.stretch * terms["stretch"]
     return loss
 
 
@@ -93,7 +94,8 @@ def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=
              flow.gauss_newton(pb, ev.uv, Puv, blocks, gx),
              anchor.gauss_newton(pb, ev.data["anchor"], Puv, blocks, gx),
              prior.gauss_newton(pb, verts, blocks, gx),
-             collision.gauss_newton(pb, verts, blocks, gx)]
+             collision.gauss_newton(pb, verts, blocks, gx),
+             stretch.gauss_newton(pb, verts, blocks, gx)]
     if any(added):
         Hx = lay.matrix(blocks.to(jdtype))
         H += (Jx.t() @ (Hx @ Jx)).double()
@@ -146,4 +148,5 @@ def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow
     total = w.silhouette * terms["silhouette"] + w.normal * terms["normal"] + w.flow * terms["flow"]
     total = total + w.prior * terms["prior"] + w.anchor * terms["anchor"]  # (the vertex ablation's grouping)
     total = total + w.collision * terms["collision"]
+    total = total + w.stretch * terms["stretch"]
     return total, terms

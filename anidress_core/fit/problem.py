@@ -31,6 +31,7 @@ from .images import chromaticity, eroded, image_features
 if TYPE_CHECKING:
     from .terms.anchor import AnchorRef
     from .terms.collision import Contacts
+    from .terms.stretch import Edges
 
 __all__ = ["RigParts", "HessianLayout", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem",
            "contour_length", "occluder_depth", "sanitize_normals", "occluder_or_inf", "check_cues", "Crop",
@@ -225,6 +226,7 @@ class Problem(NamedTuple):
     anchor_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
     anchor: "AnchorRef | None" = None
     contacts: "Contacts | None" = None  # L_collision's planes, or None (L_collision off)
+    stretch: "Edges | None" = None  # L_stretch's edges, or None (L_stretch off)
     pixel_ok: Tensor | None = None
     """(C H W,) float64 1 where the mask is known, 0 where it is not (NaN in a float mask: a pixel
     left out, or a whole view dropped by :func:`anidress_core.fit.fit_frame`); None = all known.
@@ -263,6 +265,11 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
         anchor = None
     n_px = float(max(float(soft.sum()), 1.0))  # the paper's sums over pixels / targets, one common scale
     prior = None if prior is None or w.prior == 0 else prior.detach().double()
+    stretch_edges = None
+    if w.stretch > 0:
+        from .terms.stretch import rest_edges  # (the terms import this module)
+
+        stretch_edges = rest_edges(rig.rest, *rig.edges, rig.faces, rig.layout)
     proj = None
     if prior is not None and cfg.prior_tangential:
         n = vertex_normals(prior, rig.faces)  # (V, 3) unit (zero at isolated vertices: their offset counts whole)
@@ -275,6 +282,7 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
         anchor_feat=anchor_feat, anchor_region=region, anchor=anchor,
         contacts=contacts if w.collision > 0 and contacts is not None and contacts.vert.numel() else None,
         pixel_ok=pixel_ok,
+        stretch=stretch_edges,
     )
 
 

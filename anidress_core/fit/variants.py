@@ -23,7 +23,7 @@ from .config import FitConfig, LossWeights
 __all__ = ["PAPER_WEIGHTS", "Variant", "VARIANTS", "apply_variant"]
 
 #: The paper's weights (lambda_M, lambda_N, lambda_of) = (2.0, 0.1, 3.0), none of ours.
-PAPER_WEIGHTS = LossWeights(silhouette=2.0, normal=0.1, flow=3.0, anchor=0.0, collision=0.0, prior=0.0)
+PAPER_WEIGHTS = LossWeights(silhouette=2.0, normal=0.1, flow=3.0, anchor=0.0, collision=0.0, prior=0.0, stretch=0.0)
 
 
 class Variant(NamedTuple):
@@ -42,6 +42,8 @@ VARIANTS: dict[str, Variant] = {
     "pipeline_no_anchor": Variant("the pipeline's loss without L_anchor", lambda c: c.replace(weights={"anchor": 0.0})),
     "pipeline_no_collision": Variant("the pipeline's loss without L_collision",
                                      lambda c: c.replace(weights={"collision": 0.0})),
+    "pipeline_no_stretch": Variant("the pipeline's loss without L_stretch",
+                                   lambda c: c.replace(weights={"stretch": 0.0})),
     "pipeline_no_prior": Variant("the pipeline's loss without L_prior (frame 0)",
                                  lambda c: c.replace(weights={"prior": 0.0})),
     "pipeline_no_smooth": Variant("the pipeline's loss without the temporal filter of the bone transforms",

@@ -150,8 +150,9 @@ def test_garment_poses_reader_checks_the_caller_shapes(tmp_path):
     G = np.tile(np.eye(4, dtype=np.float32), (T, B, 1, 1))
     terms = {k: np.full(T, 0.5) for k in fit.TERM_NAMES}
     weights = {k: 2.0 for k in fit.TERM_NAMES}
+    loss = np.full(T, float(len(fit.TERM_NAMES)))  # sum of 2.0 x 0.5
     p = tmp_path / "garment_poses.npz"
-    save_garment_poses(p, G, np.zeros((T, V, 3)), np.zeros((1, 3), np.int64), np.full(T, 6.0), terms, weights,
+    save_garment_poses(p, G, np.zeros((T, V, 3)), np.zeros((1, 3), np.int64), loss, terms, weights,
                        np.ones(T), np.ones(T, bool), np.zeros(T), np.zeros(T), np.zeros((T, 2)), {}, {"loss": "x"})
     gp = read_garment_poses(p, frames=T, bones=B)
     assert gp.weights == weights and set(gp.terms) == set(fit.TERM_NAMES) and gp.header["meta"]["loss"] == "x"
@@ -161,7 +162,7 @@ def test_garment_poses_reader_checks_the_caller_shapes(tmp_path):
     with pytest.raises(files.ArtifactError, match="frames of garment poses"):
         read_garment_poses(p, frames=T + 1)
     G[1, 0, 0, 0] = np.nan
-    save_garment_poses(p, G, np.zeros((T, V, 3)), np.zeros((1, 3), np.int64), np.full(T, 6.0), terms, weights,
+    save_garment_poses(p, G, np.zeros((T, V, 3)), np.zeros((1, 3), np.int64), loss, terms, weights,
                        np.ones(T), np.ones(T, bool), np.zeros(T), np.zeros(T), np.zeros((T, 2)), {}, {})
     with pytest.raises(files.ArtifactError, match="NaN"):
         read_garment_poses(p)

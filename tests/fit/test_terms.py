@@ -7,7 +7,7 @@ import torch
 
 from anidress_core import fit, raster
 from anidress_core.fit.images import pixel_ok, sample
-from anidress_core.fit.terms import collision
+from anidress_core.fit.terms import Rendered, collision, stretch
 from anidress_core.geometry import lbs, vertex_normals
 from tests.fit.scenes import PAPER, config, only, pose, render, toy
 
@@ -253,6 +253,35 @@ def test_collision():
         return collision.residual(contacts, xx, cfg.collision_clearance) * (1e3 / xx.shape[0]) ** 0.5
 
     assert check_system(rig, views, cues, G0, cfg, residuals, contacts=contacts).terms["collision"] > 0
+
+
+def test_stretch():
+    """L_stretch: exact J^T J, J^T r of the edges' relative stretch, and zero at the rest pose."""
+    rig, views, _, _, cues, _, G0 = scene(7)
+    cfg = only("stretch", 30.0)
+    edges = stretch.rest_edges(rig.rest, *rig.edges, rig.faces, rig.layout)
+    assert edges.a.numel() == rig.edges[0].shape[0]
+
+    def residuals(d, pb, ev):
+        s, _ = stretch.residual(edges, moved(rig, G0, d))
+        return s * (30.0 / s.numel()) ** 0.5
+
+    assert check_system(rig, views, cues, G0, cfg, residuals).terms["stretch"] > 0
+    pb = fit.make_problem(rig, views, cues, None, cfg)
+    assert fit.evaluate(pb, rig.rest).terms["stretch"] < 1e-24
+
+
+def test_stretch_of_a_collapsed_mesh_is_finite():
+    """Every vertex at one point: stretch -1 on every edge, no NaN in the value or the Gauss-Newton block."""
+    rig, views, _, _, cues, _, _ = scene(8)
+    pb = fit.make_problem(rig, views, cues, None, only("stretch", 30.0))
+    x = torch.zeros_like(rig.rest)
+    s, _ = stretch.residual(pb.stretch, x)
+    assert torch.equal(s, -torch.ones_like(s))
+    assert stretch.value(pb, Rendered(x, None, None, None))[0] == 1.0
+    blocks = torch.zeros(rig.layout.perm.numel() // 9, 3, 3, dtype=torch.float64)
+    gx = torch.zeros_like(x)
+    assert stretch.gauss_newton(pb, x, blocks, gx) and bool(torch.isfinite(blocks).all() and torch.isfinite(gx).all())
 
 
 def test_total_is_the_weighted_sum_of_the_terms():

@@ -2,7 +2,8 @@
 Gauss-Newton block and its autograd reference together (AniDress §3.2 and ours).
 
     L = w_silhouette L_silhouette + w_normal L_normal + w_flow L_flow        (the paper's, supp.)
-      + w_anchor L_anchor + w_prior L_prior + w_collision L_collision        (ours)
+      + w_anchor L_anchor + w_prior L_prior + w_collision L_collision
+      + w_stretch L_stretch                                                  (ours)
 
 Each module has ``NAME`` (its config key ``fit/weights/<NAME>``), ``value(pb, r)`` ->
 (unweighted value, what its Gauss-Newton block needs) at a render ``r`` (:class:`Rendered`),
@@ -28,13 +29,13 @@ class Rendered(NamedTuple):
     fragments: raster.Fragments  # occluded fragments (visibility)
 
 
-from . import anchor, collision, flow, normal, prior, silhouette  # noqa: E402
+from . import anchor, collision, flow, normal, prior, silhouette, stretch  # noqa: E402
 
 #: The terms in the order of the Gauss-Newton accumulation (silhouette into H directly; then the
-#: vertex-space blocks normal, flow, anchor, prior, collision).
-TERMS = (silhouette, normal, flow, anchor, prior, collision)
+#: vertex-space blocks normal, flow, anchor, prior, collision, stretch).
+TERMS = (silhouette, normal, flow, anchor, prior, collision, stretch)
 
 #: Their names (config keys fit/weights/<name>, FrameFit.terms keys, garment_poses.npz loss_<name>).
 TERM_NAMES = tuple(t.NAME for t in TERMS)
 
-__all__ = ["Rendered", "TERMS", "TERM_NAMES", "silhouette", "normal", "flow", "anchor", "prior", "collision"]
+__all__ = ["Rendered", "TERMS", "TERM_NAMES", "silhouette", "normal", "flow", "anchor", "prior", "collision", "stretch"]

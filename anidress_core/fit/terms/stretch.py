@@ -1,0 +1,92 @@
+"""L_stretch (ours, not in the paper): the fitted garment keeps its rest edge lengths.
+
+The mean over the template's edges of the squared relative stretch ((|x_a - x_b| - l_ab) / l_ab)^2,
+l_ab the rest length (dimensionless). Cloth is nearly inextensible, and the rig's bones can slide
+the material along the surface only by stretching the edges between them, which no image sees on
+a plain fabric; with the waist band held by the body, this carries its placement down the garment.
+Weight ``fit/weights/stretch``. Residual sqrt(w / E) r_ab, Jacobian u^T / l_ab on x_a and -u^T / l_ab
+on x_b (u the unit edge direction); its Gauss-Newton blocks fill the (a, a), (b, b), (a, b), (b, a)
+pairs of the vertex-space pattern (every edge lies on a face).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch
+from torch import Tensor
+
+from ... import raster
+
+if TYPE_CHECKING:
+    from ..problem import HessianLayout, Problem
+
+NAME = "stretch"
+
+
+class Edges(NamedTuple):
+    """L_stretch's edges: vertex ids, rest lengths, and their pairs in the Gauss-Newton pattern."""
+
+    a: Tensor  # (E,) int64
+    b: Tensor  # (E,) int64
+    rest: Tensor  # (E,) float64 rest length (m)
+    pair_ab: Tensor  # (E,) the (a, b) pair of HessianLayout
+    pair_ba: Tensor  # (E,) the (b, a) pair
+
+
+def rest_edges(rest: Tensor, edges: Tensor, edge_faces: Tensor, faces: Tensor, layout: "HessianLayout") -> Edges:
+    """The :class:`Edges` of the mesh ``rest`` (V, 3) with unique ``edges`` (E, 2), one face of each
+    ``edge_faces[:, 0]`` (E,) in ``faces`` (F, 3); edges of zero rest length are left out."""
+    a, b = edges[:, 0], edges[:, 1]
+    f = faces[edge_faces[:, 0]]  # (E, 3)
+    ka = (f == a[:, None]).long().argmax(1)
+    kb = (f == b[:, None]).long().argmax(1)
+    fid = edge_faces[:, 0]
+    ab, ba = layout.face_pair[fid, ka, kb], layout.face_pair[fid, kb, ka]
+    length = (rest[a] - rest[b]).norm(dim=-1).double()
+    keep = length > 0
+    return Edges(a[keep], b[keep], length[keep], ab[keep], ba[keep])
+
+
+def residual(edges: Edges, verts: Tensor) -> tuple[Tensor, Tensor]:
+    """(E,) relative stretch (|x_a - x_b| - l) / l of ``verts`` (V, 3), and (E, 3) the unit edge directions."""
+    d = verts[edges.a] - verts[edges.b]
+    n = d.norm(dim=-1)
+    u = d / n.clamp_min(1e-12)[:, None]
+    rest = edges.rest.to(verts.dtype)
+    return (n - rest) / rest, u
+
+
+def value(pb: "Problem", r) -> tuple[float, None]:
+    """L_stretch at the render ``r`` (0.0 when off)."""
+    if pb.stretch is None:
+        return 0.0, None
+    s, _ = residual(pb.stretch, r.verts)
+    return float(s.pow(2).mean()), None
+
+
+def gauss_newton(pb: "Problem", verts: Tensor, blocks: Tensor, gx: Tensor) -> bool:
+    """Add w/E uu^T / l^2 to the (a, a), (b, b) blocks, its negative to (a, b), (b, a), and
+    +-w/E r u / l to gx, in place."""
+    if pb.stretch is None:
+        return False
+    e = pb.stretch
+    s, u = residual(e, verts)
+    inv = 1.0 / e.rest.to(verts.dtype)
+    c = pb.cfg.weights.stretch / s.numel()
+    uu = (c * inv.pow(2))[:, None, None] * u[:, :, None] * u[:, None, :]
+    lay = pb.rig.layout
+    blocks.index_add_(0, torch.cat([lay.diag[e.a], lay.diag[e.b], e.pair_ab, e.pair_ba]),
+                      torch.cat([uu, uu, -uu, -uu]).to(blocks.dtype))
+    gs = (c * s * inv)[:, None] * u
+    gx.index_add_(0, e.a, gs.to(gx.dtype))
+    gx.index_add_(0, e.b, -gs.to(gx.dtype))
+    return True
+
+
+def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tensor | None:
+    """Differentiable L_stretch, or None when off."""
+    if pb.stretch is None:
+        return None
+    d = verts[pb.stretch.a] - verts[pb.stretch.b]
+    rest = pb.stretch.rest.to(verts.dtype)
+    return ((d.norm(dim=-1) - rest) / rest).pow(2).mean()
