@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from anidress_core.config import load_config, scene_section
-from anidress_core.fit import VARIANTS, FitConfig
+from anidress_core.fit import VARIANTS, FitConfig, LossWeights
 from anidress_core.io.garment_poses import load_garment_poses
 from anidress_core.io.scene import read_scene
 from anidress_core.stages import setup_logging
@@ -189,7 +189,26 @@ def reusable(path: Path, method: str, params: dict) -> bool:
     # and the settings as used the same as the variant's now (a default changed since changes them)
     used = dataclasses.asdict(FitConfig.from_config(params, OPTIMUM_OF if oracle else method))
     return (meta.get("loss") == (OPTIMUM_OF if oracle else method) and bool(meta.get("starts")) == oracle
-            and full(meta.get("params")) == full(params) and key(meta.get("config")) == key(used))
+            and full(meta.get("params")) == full(params)
+            and key(with_new_settings(meta.get("config") or {}, used)) == key(used))
+
+
+def with_new_settings(stored: dict, used: dict, legacy: dict | None = None) -> dict:
+    """``stored`` (a fit's settings as recorded) with every setting added since filled in from ``used``
+    where ``used`` has it at its legacy value (the field's default in :class:`FitConfig` or
+    :class:`LossWeights`, the value that does what the fit did before the setting existed)."""
+    if legacy is None:
+        legacy = {f.name: f.default for f in dataclasses.fields(FitConfig) if f.default is not dataclasses.MISSING}
+        legacy["weights"] = {f.name: f.default for f in dataclasses.fields(LossWeights)
+                             if f.default is not dataclasses.MISSING}
+    out = dict(stored)
+    for k, v in used.items():
+        if k not in out:
+            if k in legacy and v == legacy[k]:
+                out[k] = v
+        elif isinstance(v, dict) and isinstance(out[k], dict):
+            out[k] = with_new_settings(out[k], v, legacy.get(k, {}))
+    return out
 
 
 def floor_transforms(scene: str, seq: str, rig_npz: str, frames: int) -> torch.Tensor:

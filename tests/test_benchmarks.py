@@ -143,3 +143,21 @@ def test_collect_field_suite_reads_a_run(tmp_path):
     suite["scenes"]["a"]["sequences"].pop()
     with pytest.raises(SystemExit, match="a: the suite's scene has no novel_pose"):
         collect(suite, tmp_path)
+
+
+def test_fit_reuse_fills_a_setting_added_since_only_at_its_legacy_value():
+    """bench_fit --reuse: a stored fit without L_stretch (made before it existed) stands for a variant that has
+    it off (its legacy 0), never for one that has it at the pipeline's weight."""
+    import dataclasses
+
+    from anidress_core.fit import FitConfig
+    from benchmarks.bench_fit import with_new_settings
+
+    def stored_before(cfg):  # the settings as a fit recorded them before fit/weights/stretch existed
+        d = dataclasses.asdict(cfg)
+        del d["weights"]["stretch"]
+        return d
+
+    for name, off in (("pipeline_no_stretch", True), ("paper", True), ("pipeline", False)):
+        used = dataclasses.asdict(FitConfig.from_config({}, name))
+        assert (with_new_settings(stored_before(FitConfig.from_config({}, name)), used) == used) is off, name
