@@ -1,0 +1,25 @@
+"""Probe: L_stretch (fit/weights/stretch, anidress_core.fit.terms.stretch) at other weights.
+
+Registers ``stretch_<w>`` (the pipeline with L_stretch's weight w) as loss variants and runs the maintained
+benchmark (benchmarks/bench_fit.py) with its own arguments, e.g. on half of the tuning suite:
+
+    .venv/bin/python studies/fit/stretch/run.py --suite <half of config/fit_suite.yaml> --views 8 \\
+        --methods pipeline_no_stretch,stretch_100,stretch_1000 --threads 1 --reuse --out /tmp/stretch
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
+
+from anidress_core.fit import variants as V  # noqa: E402
+from benchmarks import bench_fit  # noqa: E402
+
+for w in (100.0, 300.0, 1000.0, 3000.0):
+    V.VARIANTS[f"stretch_{w:g}"] = V.Variant(f"the pipeline with L_stretch, weight {w:g}",
+                                             lambda c, w=w: c.replace(weights={"stretch": w}))
+
+if __name__ == "__main__":
+    bench_fit.PROG = ".venv/bin/python studies/fit/stretch/run.py"
+    bench_fit.main()
