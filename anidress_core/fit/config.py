@@ -135,8 +135,9 @@ class FitConfig:
     """Frames refined jointly after the chain (:mod:`anidress_core.fit.window`: L_flow couples the window's
     poses instead of carrying targets from the previous result); 0 or 1 = off. Chosen on the tuning suite
     (median 2.95 -> 2.76x the rig floor at 8 views, better on 10 of 10 scenes; windows of 10 no better, 3
-    evaluations per window less of the gain) at 1.5-1.75x the fit's CPU time; on the held-out suite 3.13 ->
-    2.99x at 8 views, no gain at 4 (benchmarks/fit.md; studies/fit/README.md section 13)."""
+    evaluations per window less of the gain) at 1.4-1.75x the fit's CPU time; on the held-out suite, with
+    L_stretch, 2.58 -> 2.53x at 8 views (better on 7 of 10), 3.07 -> 3.00x at 4 (benchmarks/fit.md;
+    studies/fit/README.md section 13)."""
     window_iters: int
     """Most loss evaluations of one window's joint Levenberg-Marquardt (each evaluates all its frames)."""
     start: str
