@@ -47,6 +47,7 @@ class RigParts(NamedTuple):
     faces: Tensor  # (F, 3) int64
     edges: tuple  # raster.mesh_edges(faces): (E, 2) vertex ids, (E, 2) faces either side
     layout: "HessianLayout"  # sparsity pattern of the vertex-space Gauss-Newton matrix
+    stretch: "Edges"  # L_stretch's edges and their rest lengths
 
     @staticmethod
     def make(rest: Tensor, weights: Tensor, centres: Tensor, faces: Tensor) -> "RigParts":
@@ -64,7 +65,10 @@ class RigParts(NamedTuple):
         if not (bool(torch.isfinite(rest).all()) and bool(torch.isfinite(weights).all())
                 and bool(torch.isfinite(centres).all())):
             raise ValueError("RigParts: rest, weights or centres contain NaN or inf")
-        return RigParts(rest, weights, centres, faces, raster.mesh_edges(faces), HessianLayout.make(faces, V))
+        from .terms.stretch import rest_edges  # (the terms import this module)
+
+        edges, layout = raster.mesh_edges(faces), HessianLayout.make(faces, V)
+        return RigParts(rest, weights, centres, faces, edges, layout, rest_edges(rest, *edges, faces, layout))
 
 
 class HessianLayout(NamedTuple):
@@ -265,11 +269,6 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
         anchor = None
     n_px = float(max(float(soft.sum()), 1.0))  # the paper's sums over pixels / targets, one common scale
     prior = None if prior is None or w.prior == 0 else prior.detach().double()
-    stretch_edges = None
-    if w.stretch > 0:
-        from .terms.stretch import rest_edges  # (the terms import this module)
-
-        stretch_edges = rest_edges(rig.rest, *rig.edges, rig.faces, rig.layout)
     proj = None
     if prior is not None and cfg.prior_tangential:
         n = vertex_normals(prior, rig.faces)  # (V, 3) unit (zero at isolated vertices: their offset counts whole)
@@ -282,7 +281,7 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
         anchor_feat=anchor_feat, anchor_region=region, anchor=anchor,
         contacts=contacts if w.collision > 0 and contacts is not None and contacts.vert.numel() else None,
         pixel_ok=pixel_ok,
-        stretch=stretch_edges,
+        stretch=rig.stretch if w.stretch > 0 else None,
     )
 
 
