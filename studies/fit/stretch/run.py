@@ -19,6 +19,15 @@ from benchmarks import bench_fit  # noqa: E402
 for w in (100.0, 300.0, 1000.0, 3000.0):
     V.VARIANTS[f"stretch_{w:g}"] = V.Variant(f"the pipeline with L_stretch, weight {w:g}",
                                              lambda c, w=w: c.replace(weights={"stretch": w}))
+for w in (3e3, 3e4):
+    V.VARIANTS[f"stretch_prior_{w:g}"] = V.Variant(f"the pipeline (L_stretch 300) with L_prior's weight {w:g}",
+                                                   lambda c, w=w: c.replace(weights={"prior": w}))
+for k in (0.0, 0.3):
+    V.VARIANTS[f"stretch_compression_{k:g}"] = V.Variant(f"the pipeline with L_stretch's compression factor {k:g}",
+                                                         lambda c, k=k: c.replace(stretch_compression=k))
+for w in (1.0, 10.0):
+    V.VARIANTS[f"stretch_flow_{w:g}"] = V.Variant(f"the pipeline (L_stretch 300) with L_flow's weight {w:g}",
+                                                  lambda c, w=w: c.replace(weights={"flow": w}))
 
 if __name__ == "__main__":
     bench_fit.PROG = ".venv/bin/python studies/fit/stretch/run.py"
