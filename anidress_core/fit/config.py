@@ -159,9 +159,6 @@ class FitConfig:
     material) or ``anchor_flow`` (where L_anchor or L_flow does). Uniform by default: ``anchor`` was
     worse on 9 of 10 tuning scenes (median 2.95 -> 3.14x the rig floor), ``anchor_flow`` on 3 of 3 plain
     ones (studies/fit/README.md section 11)."""
-    stretch_compression: float = 1.0
-    """L_stretch's factor on the residual of a shortened edge (1: compression counts as much as
-    extension; 0: only extension counts, folds are free)."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -196,8 +193,6 @@ class FitConfig:
                 raise ValueError(f"FitConfig.{k} must be an integer >= 0, got {v}")
         if int(self.proposal_offsets) != self.proposal_offsets or self.proposal_offsets < -1:
             raise ValueError(f"FitConfig.proposal_offsets must be an integer >= -1, got {self.proposal_offsets}")
-        if not 0 <= self.stretch_compression <= 1:
-            raise ValueError(f"FitConfig.stretch_compression must be in [0, 1], got {self.stretch_compression}")
         if not (self.proposal_velocity_weight >= 0 and math.isfinite(self.proposal_velocity_weight)):
             raise ValueError(f"FitConfig.proposal_velocity_weight must be finite and >= 0, got "
                              f"{self.proposal_velocity_weight}")
@@ -237,7 +232,7 @@ class FitConfig:
                   "proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine", "window", "window_iters"):
             kw[k] = int(kw[k])
         for k in ("rel_tol", "step_tol", "damping", "visibility_depth_tol", "image_blur", "anchor_scale",
-                  "collision_clearance", "collision_radius", "proposal_velocity_weight", "stretch_compression"):
+                  "collision_clearance", "collision_radius", "proposal_velocity_weight"):
             kw[k] = float(kw[k])
         kw["backward"] = bool(kw["backward"])
         kw["prior_tangential"] = bool(kw["prior_tangential"])

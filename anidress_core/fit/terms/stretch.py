@@ -47,26 +47,20 @@ def rest_edges(rest: Tensor, edges: Tensor, edge_faces: Tensor, faces: Tensor, l
     return Edges(a[keep], b[keep], length[keep], ab[keep], ba[keep])
 
 
-def residual(edges: Edges, verts: Tensor, compression: float = 1.0) -> tuple[Tensor, Tensor]:
-    """(E,) residuals k (|x_a - x_b| - l) / l of ``verts`` (V, 3), k = ``compression`` on shortened edges
-    and 1 on stretched ones, and (E, 3) k times the unit edge directions (the residual's gradient in
-    x_a, times l)."""
+def residual(edges: Edges, verts: Tensor) -> tuple[Tensor, Tensor]:
+    """(E,) relative stretch (|x_a - x_b| - l) / l of ``verts`` (V, 3), and (E, 3) the unit edge directions."""
     d = verts[edges.a] - verts[edges.b]
     n = d.norm(dim=-1)
     u = d / n.clamp_min(1e-12)[:, None]
     rest = edges.rest.to(verts.dtype)
-    s = (n - rest) / rest
-    if compression != 1.0:
-        k = torch.where(s < 0, torch.full_like(s, compression), torch.ones_like(s))
-        s, u = k * s, k[:, None] * u
-    return s, u
+    return (n - rest) / rest, u
 
 
 def value(pb: "Problem", r) -> tuple[float, None]:
     """L_stretch at the render ``r`` (0.0 when off)."""
     if pb.stretch is None:
         return 0.0, None
-    s, _ = residual(pb.stretch, r.verts, pb.cfg.stretch_compression)
+    s, _ = residual(pb.stretch, r.verts)
     return float(s.pow(2).mean()), None
 
 
@@ -76,7 +70,7 @@ def gauss_newton(pb: "Problem", verts: Tensor, blocks: Tensor, gx: Tensor) -> bo
     if pb.stretch is None:
         return False
     e = pb.stretch
-    s, u = residual(e, verts, pb.cfg.stretch_compression)
+    s, u = residual(e, verts)
     inv = 1.0 / e.rest.to(verts.dtype)
     c = pb.cfg.weights.stretch / s.numel()
     uu = (c * inv.pow(2))[:, None, None] * u[:, :, None] * u[:, None, :]
@@ -93,4 +87,4 @@ def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tens
     """Differentiable L_stretch, or None when off."""
     if pb.stretch is None:
         return None
-    return residual(pb.stretch, verts, pb.cfg.stretch_compression)[0].pow(2).mean()
+    return residual(pb.stretch, verts)[0].pow(2).mean()

@@ -1,6 +1,7 @@
 """Probe: L_stretch (fit/weights/stretch, anidress_core.fit.terms.stretch) at other weights.
 
-Registers ``stretch_<w>`` (the pipeline with L_stretch's weight w) as loss variants and runs the maintained
+Registers ``stretch_<w>`` (the pipeline with L_stretch's weight w), ``stretch_prior_<w>`` and ``stretch_flow_<w>``
+(the pipeline, L_stretch at its default, with L_prior's or L_flow's weight w) as loss variants and runs the maintained
 benchmark (benchmarks/bench_fit.py) with its own arguments, e.g. on half of the tuning suite:
 
     .venv/bin/python studies/fit/stretch/run.py --suite <half of config/fit_suite.yaml> --views 8 \\
@@ -22,9 +23,6 @@ for w in (100.0, 300.0, 1000.0, 3000.0):
 for w in (3e3, 3e4):
     V.VARIANTS[f"stretch_prior_{w:g}"] = V.Variant(f"the pipeline (L_stretch 300) with L_prior's weight {w:g}",
                                                    lambda c, w=w: c.replace(weights={"prior": w}))
-for k in (0.0, 0.3):
-    V.VARIANTS[f"stretch_compression_{k:g}"] = V.Variant(f"the pipeline with L_stretch's compression factor {k:g}",
-                                                         lambda c, k=k: c.replace(stretch_compression=k))
 for w in (1.0, 10.0):
     V.VARIANTS[f"stretch_flow_{w:g}"] = V.Variant(f"the pipeline (L_stretch 300) with L_flow's weight {w:g}",
                                                   lambda c, w=w: c.replace(weights={"flow": w}))
