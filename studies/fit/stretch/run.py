@@ -1,7 +1,8 @@
 """Probe: L_stretch (fit/weights/stretch, anidress_core.fit.terms.stretch) at other weights.
 
 Registers ``stretch_<w>`` (the pipeline with L_stretch's weight w), ``stretch_prior_<w>`` and ``stretch_flow_<w>``
-(the pipeline, L_stretch at its default, with L_prior's or L_flow's weight w) as loss variants and runs the maintained
+(the pipeline, L_stretch at its default, with L_prior's or L_flow's weight w), ``stretch_normal_<w>`` and
+``stretch_iters_10`` (10 loss evaluations per frame t > 0) as loss variants and runs the maintained
 benchmark (benchmarks/bench_fit.py) with its own arguments, e.g. on half of the tuning suite:
 
     .venv/bin/python studies/fit/stretch/run.py --suite <half of config/fit_suite.yaml> --views 8 \\
@@ -26,6 +27,11 @@ for w in (3e3, 3e4):
 for w in (1.0, 10.0):
     V.VARIANTS[f"stretch_flow_{w:g}"] = V.Variant(f"the pipeline (L_stretch 300) with L_flow's weight {w:g}",
                                                   lambda c, w=w: c.replace(weights={"flow": w}))
+for w in (100.0, 1000.0):
+    V.VARIANTS[f"stretch_normal_{w:g}"] = V.Variant(f"the pipeline (L_stretch 300) with L_normal's weight {w:g}",
+                                                    lambda c, w=w: c.replace(weights={"normal": w}))
+V.VARIANTS["stretch_iters_10"] = V.Variant("the pipeline (L_stretch 300) with 10 loss evaluations per frame t > 0",
+                                           lambda c: c.replace(max_iters=10))
 
 if __name__ == "__main__":
     bench_fit.PROG = ".venv/bin/python studies/fit/stretch/run.py"
