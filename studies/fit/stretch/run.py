@@ -21,7 +21,7 @@ from benchmarks import bench_fit  # noqa: E402
 for w in (100.0, 300.0, 1000.0, 3000.0):
     V.VARIANTS[f"stretch_{w:g}"] = V.Variant(f"the pipeline with L_stretch, weight {w:g}",
                                              lambda c, w=w: c.replace(weights={"stretch": w}))
-for w in (3e3, 3e4):
+for w in (1e3, 3e3, 3e4):
     V.VARIANTS[f"stretch_prior_{w:g}"] = V.Variant(f"the pipeline (L_stretch 300) with L_prior's weight {w:g}",
                                                    lambda c, w=w: c.replace(weights={"prior": w}))
 for w in (1.0, 10.0):
@@ -32,6 +32,8 @@ for w in (100.0, 1000.0):
                                                     lambda c, w=w: c.replace(weights={"normal": w}))
 V.VARIANTS["stretch_iters_10"] = V.Variant("the pipeline (L_stretch 300) with 10 loss evaluations per frame t > 0",
                                            lambda c: c.replace(max_iters=10))
+V.VARIANTS["stretch_ref_sim"] = V.Variant("the pipeline with L_stretch's edge lengths from the frame's simulated pose",
+                                          lambda c: c.replace(stretch_reference="sim"))
 
 if __name__ == "__main__":
     bench_fit.PROG = ".venv/bin/python studies/fit/stretch/run.py"
