@@ -159,9 +159,6 @@ class FitConfig:
     material) or ``anchor_flow`` (where L_anchor or L_flow does). Uniform by default: ``anchor`` was
     worse on 9 of 10 tuning scenes (median 2.95 -> 3.14x the rig floor), ``anchor_flow`` on 3 of 3 plain
     ones (studies/fit/README.md section 11)."""
-    stretch_reference: str = "rest"
-    """L_stretch's edge lengths: ``rest`` (the template's) or ``sim`` (those of L_prior's reference, the
-    simulated pose of the frame, when it has one)."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -174,8 +171,6 @@ class FitConfig:
             raise ValueError(f"FitConfig.start must be 'previous' or 'sim_delta', got {self.start!r}")
         if self.prior_reference not in ("start", "sim"):
             raise ValueError(f"FitConfig.prior_reference must be 'start' or 'sim', got {self.prior_reference!r}")
-        if self.stretch_reference not in ("rest", "sim"):
-            raise ValueError(f"FitConfig.stretch_reference must be 'rest' or 'sim', got {self.stretch_reference!r}")
         if self.prior_information not in PRIOR_INFORMATION_TERMS:
             raise ValueError(f"FitConfig.prior_information must be one of {list(PRIOR_INFORMATION_TERMS)}, got "
                              f"{self.prior_information!r}")

@@ -281,18 +281,8 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
         anchor_feat=anchor_feat, anchor_region=region, anchor=anchor,
         contacts=contacts if w.collision > 0 and contacts is not None and contacts.vert.numel() else None,
         pixel_ok=pixel_ok,
-        stretch=None if w.stretch == 0 else stretch_edges(rig, prior if cfg.stretch_reference == "sim" else None),
+        stretch=rig.stretch if w.stretch > 0 else None,
     )
-
-
-def stretch_edges(rig: RigParts, reference: Tensor | None) -> "Edges":
-    """L_stretch's edges: the rig's, their lengths taken from ``reference`` (V, 3) when given (at least a
-    tenth of the rest length)."""
-    if reference is None:
-        return rig.stretch
-    e = rig.stretch
-    length = (reference[e.a] - reference[e.b]).norm(dim=-1).double()
-    return e._replace(rest=torch.maximum(length, 0.1 * e.rest))
 
 
 def image_finite(image: Tensor, blur: float) -> Tensor:

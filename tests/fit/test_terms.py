@@ -9,7 +9,7 @@ from anidress_core import fit, raster
 from anidress_core.fit.images import pixel_ok, sample
 from anidress_core.fit.terms import Rendered, collision, stretch
 from anidress_core.geometry import lbs, vertex_normals
-from tests.fit.scenes import PAPER, TERM_OFF, config, only, pose, render, toy
+from tests.fit.scenes import PAPER, config, only, pose, render, toy
 
 torch.set_num_threads(1)
 
@@ -270,22 +270,6 @@ def test_stretch():
     assert check_system(rig, views, cues, G0, cfg, residuals).terms["stretch"] > 0
     pb = fit.make_problem(rig, views, cues, None, cfg)
     assert fit.evaluate(pb, rig.rest).terms["stretch"] < 1e-24
-
-
-def test_stretch_lengths_from_the_simulated_pose():
-    """fit/stretch_reference sim: L_stretch's lengths are those of L_prior's reference, so it is zero there
-    (and not at the rest pose); lengths below a tenth of the rest length are raised to it."""
-    rig, views, _, _, cues, _, G0 = scene(7)
-    ref = lbs(rig.rest, rig.weights, G0)
-    cfg = config(dict(TERM_OFF, stretch=30.0, prior=1.0), stretch_reference="sim")
-    pb = fit.make_problem(rig, views, cues, None, cfg, prior=ref)
-    assert fit.evaluate(pb, ref).terms["stretch"] < 1e-24 < fit.evaluate(pb, rig.rest).terms["stretch"]
-    collapsed = fit.make_problem(rig, views, cues, None, cfg, prior=torch.zeros_like(ref))
-    assert torch.equal(collapsed.stretch.rest, 0.1 * rig.stretch.rest)
-    # with L_prior off there is no reference: the template's rest lengths
-    off = fit.make_problem(rig, views, cues, None, config(dict(TERM_OFF, stretch=30.0), stretch_reference="sim"),
-                           prior=ref)
-    assert off.stretch is rig.stretch
 
 
 def test_stretch_of_a_collapsed_mesh_is_finite():

@@ -32,8 +32,6 @@ for w in (100.0, 1000.0):
                                                     lambda c, w=w: c.replace(weights={"normal": w}))
 V.VARIANTS["stretch_iters_10"] = V.Variant("the pipeline (L_stretch 300) with 10 loss evaluations per frame t > 0",
                                            lambda c: c.replace(max_iters=10))
-V.VARIANTS["stretch_ref_sim"] = V.Variant("the pipeline with L_stretch's edge lengths from the frame's simulated pose",
-                                          lambda c: c.replace(stretch_reference="sim"))
 
 if __name__ == "__main__":
     bench_fit.PROG = ".venv/bin/python studies/fit/stretch/run.py"
