@@ -13,4 +13,5 @@ runpy.run_path(str(Path(__file__).with_name("run.py")))  # registers the probe's
 import benchmarks.bench_fit as B  # noqa: E402
 
 B.OPTIMUM_OF = os.environ["OF"]
+B.PROG = f"OF={B.OPTIMUM_OF} PYTHONPATH=. .venv/bin/python studies/fit/stretch/optimum.py"
 B.main()

@@ -2,7 +2,7 @@
 
 Registers ``stretch_<w>`` (the pipeline with L_stretch's weight w), ``stretch_prior_<w>`` and ``stretch_flow_<w>``
 (the pipeline, L_stretch at its default, with L_prior's or L_flow's weight w), ``stretch_normal_<w>`` and
-``stretch_iters_10`` (10 loss evaluations per frame t > 0) as loss variants and runs the maintained
+``stretch_iters_10`` (10 loss evaluations per frame t > 0) and ``stretch_images_only`` (no L_prior, no L_flow) as loss variants and runs the maintained
 benchmark (benchmarks/bench_fit.py) with its own arguments, e.g. on half of the tuning suite:
 
     .venv/bin/python studies/fit/stretch/run.py --suite <half of config/fit_suite.yaml> --views 8 \\
@@ -32,6 +32,8 @@ for w in (100.0, 1000.0):
                                                     lambda c, w=w: c.replace(weights={"normal": w}))
 V.VARIANTS["stretch_iters_10"] = V.Variant("the pipeline (L_stretch 300) with 10 loss evaluations per frame t > 0",
                                            lambda c: c.replace(max_iters=10))
+V.VARIANTS["stretch_images_only"] = V.Variant("the pipeline (L_stretch 300) without L_prior and L_flow",
+                                              lambda c: c.replace(weights={"prior": 0.0, "flow": 0.0}))
 
 if __name__ == "__main__":
     bench_fit.PROG = ".venv/bin/python studies/fit/stretch/run.py"
