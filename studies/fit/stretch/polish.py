@@ -3,8 +3,8 @@
 as section 12's polish_probe did without L_stretch; with ``KEEP_PRIOR=1`` L_prior stays on (only L_flow off).
 The row is labelled ``optimum`` (bench_fit's started-from row); its "As run" line names the loss.
 
-    [KEEP_PRIOR=1] PYTHONPATH=. .venv/bin/python studies/fit/stretch/polish.py --suite <overlay> --methods optimum --views 8 \\
-        --frames 12 --no-sim --threads 1 --runs /tmp/tune/runs_a --out /tmp/polish
+    [KEEP_PRIOR=1] PYTHONPATH=. .venv/bin/python studies/fit/stretch/polish.py --suite <overlay> \\
+        --methods optimum --views 8 --frames 12 --no-sim --threads 1 --runs /tmp/tune/runs_a --out /tmp/polish
 """
 import glob
 import os

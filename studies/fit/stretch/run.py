@@ -1,9 +1,10 @@
-"""Probe: L_stretch (fit/weights/stretch, anidress_core.fit.terms.stretch) at other weights.
+"""Probe: L_stretch (fit/weights/stretch, anidress_core.fit.terms.stretch) and the settings around it.
 
-Registers ``stretch_<w>`` (the pipeline with L_stretch's weight w), ``stretch_prior_<w>`` and ``stretch_flow_<w>``
-(the pipeline, L_stretch at its default, with L_prior's or L_flow's weight w), ``stretch_normal_<w>`` and
-``stretch_iters_10`` (10 loss evaluations per frame t > 0) and ``stretch_images_only`` (no L_prior, no L_flow) as loss variants and runs the maintained
-benchmark (benchmarks/bench_fit.py) with its own arguments, e.g. on half of the tuning suite:
+Registers loss variants and runs the maintained benchmark (benchmarks/bench_fit.py) with its own arguments:
+``stretch_<w>`` (the pipeline with L_stretch's weight w); with L_stretch at its default,
+``stretch_prior_<w>``, ``stretch_flow_<w>``, ``stretch_normal_<w>`` (that term's weight w),
+``stretch_iters_10`` (10 loss evaluations per frame t > 0) and ``stretch_images_only`` (no L_prior, no L_flow).
+E.g. on half of the tuning suite:
 
     .venv/bin/python studies/fit/stretch/run.py --suite <half of config/fit_suite.yaml> --views 8 \\
         --methods pipeline_no_stretch,stretch_100,stretch_1000 --threads 1 --reuse --out /tmp/stretch
