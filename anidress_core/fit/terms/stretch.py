@@ -37,10 +37,10 @@ def rest_edges(rest: Tensor, edges: Tensor, edge_faces: Tensor, faces: Tensor, l
     """The :class:`Edges` of the mesh ``rest`` (V, 3) with unique ``edges`` (E, 2), one face of each
     ``edge_faces[:, 0]`` (E,) in ``faces`` (F, 3); edges of zero rest length are left out."""
     a, b = edges[:, 0], edges[:, 1]
-    f = faces[edge_faces[:, 0]]  # (E, 3)
+    fid = edge_faces[:, 0]
+    f = faces[fid]  # (E, 3)
     ka = (f == a[:, None]).long().argmax(1)
     kb = (f == b[:, None]).long().argmax(1)
-    fid = edge_faces[:, 0]
     ab, ba = layout.face_pair[fid, ka, kb], layout.face_pair[fid, kb, ka]
     length = (rest[a] - rest[b]).norm(dim=-1).double()
     keep = length > 0
