@@ -50,13 +50,9 @@ def value(pb: "Problem", r) -> tuple[float, SilhouetteData]:
     return float((res * res).sum()) / pb.n_px, SilhouetteData(cr.inside_xy, cr.outside_xy, cr.cam, cr.edge, pix, res)
 
 
-def gauss_newton(pb: "Problem", s: SilhouetteData, uv: Tensor, Puv: Tensor, Jx: Tensor, H: Tensor, g: Tensor,
-                 jdtype) -> None:
-    """Add w/n J^T J to H (P, P) and w/n J^T r to g (P,) in place: dt/dq by autograd on the gathered
-    edge end points, chained through Puv (C, V, 2, 3) and Jx (3V, P), summed per pixel."""
-    w_sil = pb.cfg.weights.silhouette
-    if not (w_sil > 0 and s.pixel.numel()):
-        return
+def crossing_rows(s: SilhouetteData, uv: Tensor, Puv: Tensor, Jx: Tensor, jdtype) -> Tensor:
+    """(N, P) derivative of each crossing's fraction t w.r.t. the parameters: dt/dq by autograd on the
+    gathered edge end points, chained through Puv (C, V, 2, 3) and Jx (3V, P), in ``jdtype``."""
     V = uv.shape[1]
     P = Jx.shape[-1]
     uvf = uv.reshape(-1, 2)
@@ -69,9 +65,19 @@ def gauss_newton(pb: "Problem", s: SilhouetteData, uv: Tensor, Puv: Tensor, Jx: 
     a0 = torch.einsum("ni,nij->nj", g1, Puv[s.cam, e0])  # dt/dx_e0 (N, 3)
     a1 = torch.einsum("ni,nij->nj", g2, Puv[s.cam, e1])
     J3 = Jx.view(V, 3, P)
-    Jt = torch.einsum("nj,njp->np", a0.to(jdtype), J3[e0]) + torch.einsum("nj,njp->np", a1.to(jdtype), J3[e1])
+    return torch.einsum("nj,njp->np", a0.to(jdtype), J3[e0]) + torch.einsum("nj,njp->np", a1.to(jdtype), J3[e1])
+
+
+def gauss_newton(pb: "Problem", s: SilhouetteData, uv: Tensor, Puv: Tensor, Jx: Tensor, H: Tensor, g: Tensor,
+                 jdtype, rows: Tensor | None = None) -> None:
+    """Add w/n J^T J to H (P, P) and w/n J^T r to g (P,) in place: each crossing's row
+    (:func:`crossing_rows`; ``rows`` when the caller has them) summed per pixel."""
+    w_sil = pb.cfg.weights.silhouette
+    if not (w_sil > 0 and s.pixel.numel()):
+        return
+    Jt = crossing_rows(s, uv, Puv, Jx, jdtype) if rows is None else rows
     upix, inv = torch.unique(s.pixel, return_inverse=True)
-    Jp = torch.zeros(upix.shape[0], P, dtype=jdtype, device=uv.device).index_add(0, inv, Jt)
+    Jp = torch.zeros(upix.shape[0], Jt.shape[-1], dtype=jdtype, device=uv.device).index_add(0, inv, Jt)
     if pb.pixel_ok is not None:
         Jp = Jp * pb.pixel_ok[upix].to(jdtype)[:, None]
     w = w_sil / pb.n_px

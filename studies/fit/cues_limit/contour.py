@@ -48,29 +48,30 @@ def signed_distance(mask: torch.Tensor) -> torch.Tensor:
     return hit[1]
 
 
+_silhouette_value, _silhouette_gauss_newton = S.value, S.gauss_newton
+
+
 def value(pb, r):
-    """L_silhouette as :func:`anidress_core.fit.terms.silhouette.value`, plus (w / w_silhouette) L_contour."""
-    uv, z, frags = r.uv, r.z, r.fragments
-    hard = (frags.face_id >= 0).reshape(-1).double()
-    cr = raster.silhouette_crossings(uv, z, pb.rig.faces, frags, pb.rig.edges)
-    nv = uv.shape[1]
-    uvf = uv.reshape(-1, 2)
-    t = raster.crossing_fraction(uvf[cr.cam * nv + cr.edge[:, 0]], uvf[cr.cam * nv + cr.edge[:, 1]], cr.inside_xy,
-                                 cr.outside_xy)
-    pix = torch.where(t > 0.5, cr.outside, cr.inside)
-    res = hard.index_add(0, pix, t - 0.5) - pb.mask_flat
-    if pb.pixel_ok is not None:
-        res = res * pb.pixel_ok
-    data = S.SilhouetteData(cr.inside_xy, cr.outside_xy, cr.cam, cr.edge, pix, res)
-    sil = float((res * res).sum()) / pb.n_px
+    """L_silhouette (:func:`anidress_core.fit.terms.silhouette.value`) plus (w / w_silhouette) L_contour."""
+    sil, data = _silhouette_value(pb, r)
     w, tau = SETTINGS.get(pb.cfg.loss, (0.0, 0.0))
     if not w > 0:
         return sil, (data, None, None, 0.0)
+    nv = r.uv.shape[1]
+    uvf = r.uv.reshape(-1, 2)
+    t = raster.crossing_fraction(uvf[data.cam * nv + data.edge[:, 0]], uvf[data.cam * nv + data.edge[:, 1]],
+                                 data.inside_xy, data.outside_xy)
+    H, W = pb.mask.shape[1:]
+
+    def flat(xy):  # pixel centres at integer coordinates (u = column, v = row)
+        return data.cam * (H * W) + xy[:, 1].round().long() * W + xy[:, 0].round().long()
+
+    inside, outside = flat(data.inside_xy), flat(data.outside_xy)
     D = signed_distance(pb.mask)
-    Di, Do = D[cr.inside], D[cr.outside]
+    Di, Do = D[inside], D[outside]
     ok = (Di.abs() <= tau) & (Do.abs() <= tau)
     if pb.pixel_ok is not None:
-        ok &= (pb.pixel_ok[cr.inside] > 0) & (pb.pixel_ok[cr.outside] > 0)
+        ok &= (pb.pixel_ok[inside] > 0) & (pb.pixel_ok[outside] > 0)
     zero = torch.zeros_like(t)
     rc = torch.where(ok, (1 - t) * Di + t * Do, zero)
     slope = torch.where(ok, Do - Di, zero)
@@ -78,32 +79,16 @@ def value(pb, r):
 
 
 def gauss_newton(pb, s, uv, Puv, Jx, H, g, jdtype):
-    """L_silhouette's rows (:func:`anidress_core.fit.terms.silhouette.gauss_newton`) plus the contour's."""
+    """L_silhouette's rows (:func:`anidress_core.fit.terms.silhouette.gauss_newton`) plus the contour's, both
+    from the crossings' rows (:func:`anidress_core.fit.terms.silhouette.crossing_rows`) computed once."""
     s, rc, slope, w = s
-    w_sil = pb.cfg.weights.silhouette
-    if not (w_sil > 0 and s.pixel.numel()):
-        return
-    nv, P = uv.shape[1], Jx.shape[-1]
-    uvf = uv.reshape(-1, 2)
-    with torch.enable_grad():
-        q1 = uvf[s.cam * nv + s.edge[:, 0]].detach().requires_grad_()
-        q2 = uvf[s.cam * nv + s.edge[:, 1]].detach().requires_grad_()
-        g1, g2 = torch.autograd.grad(raster.crossing_fraction(q1, q2, s.inside_xy, s.outside_xy).sum(), (q1, q2))
-    e0, e1 = s.edge[:, 0], s.edge[:, 1]
-    a0 = torch.einsum("ni,nij->nj", g1, Puv[s.cam, e0])  # dt/dx_e0 (N, 3)
-    a1 = torch.einsum("ni,nij->nj", g2, Puv[s.cam, e1])
-    J3 = Jx.view(nv, 3, P)
-    Jt = torch.einsum("nj,njp->np", a0.to(jdtype), J3[e0]) + torch.einsum("nj,njp->np", a1.to(jdtype), J3[e1])
-    upix, inv = torch.unique(s.pixel, return_inverse=True)
-    Jp = torch.zeros(upix.shape[0], P, dtype=jdtype, device=uv.device).index_add(0, inv, Jt)
-    if pb.pixel_ok is not None:
-        Jp = Jp * pb.pixel_ok[upix].to(jdtype)[:, None]
-    H += w_sil / pb.n_px * (Jp.t() @ Jp).double()
-    g += w_sil / pb.n_px * (Jp.t() @ s.residual[upix].to(jdtype)).double()
-    if w > 0:
-        Jc = slope.to(jdtype)[:, None] * Jt
-        H += w / pb.n_px * (Jc.t() @ Jc).double()
-        g += w / pb.n_px * (Jc.t() @ rc.to(jdtype)).double()
+    if not (w > 0 and s.pixel.numel()):
+        return _silhouette_gauss_newton(pb, s, uv, Puv, Jx, H, g, jdtype)
+    Jt = S.crossing_rows(s, uv, Puv, Jx, jdtype)
+    _silhouette_gauss_newton(pb, s, uv, Puv, Jx, H, g, jdtype, rows=Jt)
+    Jc = slope.to(jdtype)[:, None] * Jt
+    H += w / pb.n_px * (Jc.t() @ Jc).double()
+    g += w / pb.n_px * (Jc.t() @ rc.to(jdtype)).double()
 
 
 for name, (w, tau) in SETTINGS.items():
