@@ -1,6 +1,7 @@
 """Probe: the fit with the ground truth's optical flows in place of the pipeline's (``GT_FLOWS=1``; the pipeline's
-masks and the shipped normals kept), and with a larger budget per frame: how much of the fit's error is the flow
-estimator's, how much the optimiser's? Registers ``prior_<w>``
+masks and the shipped normals kept), or with any of the ground truth's cues (``GT_CUES=masks,flows,normals``: the
+named ones from data/<scene>/<seq>/gt, the others as the pipeline has them), and with a larger budget per frame: how
+much of the fit's error is the cues', how much the optimiser's? Registers ``prior_<w>``
 (the pipeline with L_prior's weight w, for w in 0, 1000; ``pipeline`` is the defaults), ``it15_fa10`` (15 loss
 evaluations per frame t > 0 and 10 Gauss-Newton steps of the flow alignment, instead of 5 and 3) and
 ``p0_it15_fa10`` (that without L_prior), ``it15_fa10_tol1e-2`` (that stopping when a step gains less than
@@ -36,16 +37,35 @@ V.VARIANTS["it15_fa10_tol1e-2"] = V.Variant("the pipeline with up to 15 loss eva
 _pipeline_cues = bench_fit.cue_dirs
 
 
+CUES = ("masks", "flows", "normals")
+
+
+def gt_cues() -> tuple[str, ...]:
+    """The cues to take from the ground truth, from ``GT_CUES`` (comma list of CUES) or ``GT_FLOWS=1`` (flows)."""
+    names = [c for c in os.environ.get("GT_CUES", "").split(",") if c]
+    if os.environ.get("GT_FLOWS") == "1":
+        names.append("flows")
+    bad = sorted(set(names) - set(CUES))
+    if bad:
+        raise SystemExit(f"GT_CUES: unknown cue(s) {bad}; choose from {list(CUES)}")
+    return tuple(c for c in CUES if c in names)
+
+
 def cue_dirs(scene: str, seq: str, source: str) -> dict:
-    """The pipeline's masks with the synthetic scene's ground-truth flows (data/<scene>/<seq>/gt/flows)."""
+    """The pipeline's cues with those of :func:`gt_cues` from the synthetic scene's ground truth
+    (data/<scene>/<seq>/gt/<cue>)."""
     d = _pipeline_cues(scene, seq, source)
-    return {**d, "flows": f"data/{scene}/{seq}/gt/flows",
-            "label": "pipeline masks + ground-truth flows + shipped degraded normals"}
+    swap = gt_cues()
+    d = {**d, **{c: f"data/{scene}/{seq}/gt/{c}" for c in swap}}
+    label = {"masks": "pipeline masks", "flows": "pipeline flows", "normals": "shipped degraded normals"}
+    d["label"] = " + ".join(f"ground-truth {c}" if c in swap else label[c] for c in CUES)
+    return d
 
 
 if __name__ == "__main__":
-    gt = os.environ.get("GT_FLOWS") == "1"
-    if gt:
+    swap = gt_cues()
+    if swap:
         bench_fit.cue_dirs = cue_dirs
-    bench_fit.PROG = f"{'GT_FLOWS=1 ' if gt else ''}PYTHONPATH=. .venv/bin/python studies/fit/cues_limit/run.py"
+    env = ("GT_FLOWS=1 " if swap == ("flows",) else f"GT_CUES={','.join(swap)} ") if swap else ""
+    bench_fit.PROG = f"{env}PYTHONPATH=. .venv/bin/python studies/fit/cues_limit/run.py"
     bench_fit.main()
