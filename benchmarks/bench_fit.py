@@ -63,6 +63,12 @@ SUITE_WORST_8, SUITE_DRIFT = 2.5, 1.3
 SIM = "sim"
 SIM_DESCRIPTION = ("reference, no fit: the rig driven by its simulated poses of the sequence "
                    "(rig.transforms_of('seq-<sequence>'), the cloth simulator alone; no fps)")
+#: the reference that is no fit either: the rig driven by the stiffness ensemble's mean simulation
+SIM_ENSEMBLE = "sim_ensemble"
+SIM_ENSEMBLE_DESCRIPTION = ("reference, no fit: the rig driven by the mean of the simulations of the sequence at "
+                            "simulate/ensemble_bend_stiffness (results/<scene>/sim_ensemble/seq-<sequence>.npz, "
+                            "rig.fit_transforms of its frames: L_prior's reference; no fps)")
+SIM_REFS = (SIM, SIM_ENSEMBLE)
 #: the bound that is no method: the pipeline with every frame started from the rig floor (an oracle)
 OPTIMUM, OPTIMUM_OF = "optimum", "pipeline"
 OPTIMUM_DESCRIPTION = (f"bound, not a method: `{OPTIMUM_OF}` (the same loss and settings) with every frame started "
@@ -72,13 +78,14 @@ OPTIMUM_DESCRIPTION = (f"bound, not a method: `{OPTIMUM_OF}` (the same loss and 
 #: frames/s at FPS_VIEWS views
 CRITERIA_METHODS = ("pipeline", "paper")
 #: the baselines `pipeline` is compared with in the notes
-BASELINES = ("paper", "nearest", SIM)
+BASELINES = ("paper", "nearest", SIM, SIM_ENSEMBLE)
 RMSE_TARGET, FPS_TARGET, FPS_VIEWS = 1.5, 1.0, 8
 
 
 def description(method: str) -> str:
-    """The text of a method: its VARIANTS description (``sim``: the simulation reference)."""
-    return {SIM: SIM_DESCRIPTION, OPTIMUM: OPTIMUM_DESCRIPTION}.get(method) or VARIANTS[method].description
+    """The text of a method: its VARIANTS description (``sim``, ``sim_ensemble``: the simulation references)."""
+    return ({SIM: SIM_DESCRIPTION, SIM_ENSEMBLE: SIM_ENSEMBLE_DESCRIPTION, OPTIMUM: OPTIMUM_DESCRIPTION}.get(method)
+            or VARIANTS[method].description)
 
 
 def base_of(method: str) -> str | None:
@@ -89,14 +96,15 @@ def base_of(method: str) -> str | None:
 
 
 def parse_methods(text: str, sim: bool) -> list[str]:
-    """``--methods`` as a list of VARIANTS names (``sim`` first unless ``sim`` is False), checked."""
+    """``--methods`` as a list of VARIANTS names (the references ``sim``, ``sim_ensemble`` first unless ``sim`` is
+    False), checked."""
     names = [m.strip() for m in text.split(",") if m.strip()]
-    bad = [m for m in names if m not in (SIM, OPTIMUM) and m not in VARIANTS]
+    bad = [m for m in names if m not in (*SIM_REFS, OPTIMUM) and m not in VARIANTS]
     if bad:
-        raise SystemExit(f"--methods: unknown {bad}; choose from {[SIM, OPTIMUM, *VARIANTS]} "
+        raise SystemExit(f"--methods: unknown {bad}; choose from {[*SIM_REFS, OPTIMUM, *VARIANTS]} "
                          "(anidress_core/fit/variants.py)")
-    names = [m for m in dict.fromkeys(names) if m != SIM]
-    return ([SIM] if sim else []) + names
+    names = [m for m in dict.fromkeys(names) if m not in SIM_REFS]
+    return (list(SIM_REFS) if sim else []) + names
 
 
 def weights_text(weights: dict) -> str:
@@ -118,7 +126,7 @@ def methods_lines(methods: list[str], scene_params: dict[str, dict]) -> list[str
              "as run: config/config.yaml section `fit` with the scene's `scenes/<scene>/fit` on top, the variant "
              "applied; the loss of each row as used is the csv's `weights` column):"]
     for m in methods:
-        if m == SIM:
+        if m in SIM_REFS:
             lines.append(f"  - `{m}`: {description(m)}")
             continue
         per = {s: settings_text(FitConfig.from_config(p, OPTIMUM_OF if m == OPTIMUM else m))
@@ -150,28 +158,39 @@ def cue_dirs(scene: str, seq: str, source: str) -> dict:
             "label": "pipeline masks + pipeline flows (config cues) + shipped degraded normals"}
 
 
-def write_sim_poses(rig_npz: str, seq: str, frames: int, out: Path) -> None:
-    """The ``sim`` reference as a garment_poses.npz: the rig driven by its simulated poses of ``seq``."""
+def write_sim_poses(rig_npz: str, seq: str, frames: int, out: Path, method: str = SIM,
+                    ensemble_npz: str | None = None) -> None:
+    """A simulation reference as a garment_poses.npz: the rig driven by its simulated poses of ``seq``
+    (``sim``) or by the stiffness ensemble's mean at ``ensemble_npz`` (``sim_ensemble``)."""
     from anidress_core.geometry import lbs
     from anidress_core.io import files
     from anidress_core.io.rig import read_rig
+    from anidress_core.stages.fit import ensemble_transforms
 
     art = read_rig(rig_npz, dtype=torch.float64)
     name = f"seq-{seq}"
-    if name not in art.sequences:
-        raise SystemExit(f"{rig_npz}: no simulated sequence {name!r} (has {sorted(art.sequences)})")
-    G = art.transforms_of(name).double()
-    G = G[:frames] if frames else G
+    if method == SIM_ENSEMBLE:
+        G, source = ensemble_transforms(ensemble_npz, art, frames or None, "cpu")
+    else:
+        if name not in art.sequences:
+            raise SystemExit(f"{rig_npz}: no simulated sequence {name!r} (has {sorted(art.sequences)})")
+        G, source = art.transforms_of(name).double(), f"rig.transforms_of({name!r})"
+        G = G[:frames] if frames else G
     T = G.shape[0]
     X = lbs(art.model.rest, art.model.weights, G)
     nan = np.full(T, np.nan)
     files.save_npz(out, {"transforms": G.float().numpy(), "verts": X.float().numpy(),
                          "faces": np.asarray(art.faces, np.int64), "loss": nan, "iterations": np.zeros(T, np.int64),
                          "wall_s": nan},
-                   meta={"method": SIM, "loss": SIM, "description": description(SIM), "rig": rig_npz,
+                   meta={"method": method, "loss": method, "description": description(method), "rig": rig_npz,
                          "sequence": seq, "frames": T, "fps": float("nan"), "wall_fit_s": float("nan"),
                          "cpu_fit_s": float("nan"), "torch_threads": torch.get_num_threads(),
-                         "source": f"rig.transforms_of({name!r})"})
+                         "source": source})
+
+
+def ensemble_npz(scene: str, seq: str) -> str:
+    """The stiffness ensemble's mean simulation of ``seq`` (rule simulate_ensemble)."""
+    return f"results/{scene}/sim_ensemble/seq-{seq}.npz"
 
 
 def reusable(path: Path, method: str, params: dict) -> bool:
@@ -281,8 +300,9 @@ def main() -> None:
     ap.add_argument("--views", default="8,4")
     ap.add_argument("--methods", default=None,
                     help=f"loss variants to fit, from {', '.join(VARIANTS)} (anidress_core/fit/variants.py); "
-                         f"the reference `{SIM}` is added unless --no-sim (default: {','.join(DEFAULT_METHODS)})")
-    ap.add_argument("--no-sim", action="store_true", help="leave out the simulation-only reference row")
+                         f"the references `{SIM}`, `{SIM_ENSEMBLE}` are added unless --no-sim (default: "
+                         f"{','.join(DEFAULT_METHODS)})")
+    ap.add_argument("--no-sim", action="store_true", help="leave out the simulation-only reference rows")
     ap.add_argument("--cues", default="pipeline", choices=["pipeline", "ground_truth"])
     ap.add_argument("--frames", type=int, default=0, help="fit only the first N frames (0: all)")
     ap.add_argument("--threads", type=int, default=2)
@@ -331,8 +351,8 @@ def main() -> None:
                 fits, metas = {}, {}
                 for method in methods:
                     out = run_dir / method / "garment_poses.npz"
-                    if method == SIM:  # no fitting: cheap, always recomputed
-                        write_sim_poses(rig, seq, args.frames, out)
+                    if method in SIM_REFS:  # no fitting: cheap, always recomputed
+                        write_sim_poses(rig, seq, args.frames, out, method, ensemble_npz(scene, seq))
                     else:
                         p = dict(params, views=nv)
                         if args.frames:
@@ -344,6 +364,7 @@ def main() -> None:
                                     dirs["flows"], dirs["normals"], p, out,
                                     ablation=OPTIMUM_OF if oracle else method, progress=False,
                                     cue_source=dirs["label"], motions_dir=f"results/{scene}/motions",
+                                    sim_ensemble_npz=ensemble_npz(scene, seq),
                                     starts=floor_transforms(scene, seq, rig, args.frames) if oracle else None)
                             log.info("bench_fit: %s %s v%d %s: %.1f s", scene, seq, nv, method,
                                      time.perf_counter() - t0)
@@ -358,7 +379,7 @@ def main() -> None:
                 for method in fits:
                     rows.append(summary_row([x for x in per if x["method"] == method], metas[method], scene=scene,
                                             sequence=seq, views=nv, method=method, cues=args.cues))
-                fitted = [m for m in fits if m != SIM]
+                fitted = [m for m in fits if m not in SIM_REFS]
                 cams = metas[fitted[0]]["cameras"] if fitted else "--"
                 notes.append(f"{scene}/{seq}, {nv} views: template -> ground-truth correspondence distance mean "
                              f"{1e3 * summ['correspondence_mean_m']:.2f} mm, max {1e3 * summ['correspondence_max_m']:.2f}"
@@ -421,9 +442,9 @@ def verdicts(rows: list[dict]) -> list[str]:
             out.append(line)
         if "pipeline" in g:
             out += [f"  - {compare('pipeline', g['pipeline'], b, g[b])}" for b in BASELINES if b in g]
-        for base in dict.fromkeys(base_of(m) for m in g if m != SIM):
+        for base in dict.fromkeys(base_of(m) for m in g if m not in SIM_REFS):
             if base is not None and base in g:
-                out += [f"  - {compare(base, g[base], m, g[m])}" for m in g if m != SIM and base_of(m) == base]
+                out += [f"  - {compare(base, g[base], m, g[m])}" for m in g if m not in SIM_REFS and base_of(m) == base]
     return out
 
 

@@ -147,8 +147,12 @@ class FitConfig:
     the simulator predicts it, which the images then correct)."""
 
     prior_reference: str
-    """L_prior's reference: ``start`` (frame 0 only: its start pose) or ``sim`` (every frame: the rig's
-    simulated pose of the observed motion at that frame, :mod:`anidress_core.fit.terms.prior`)."""
+    """L_prior's reference: ``start`` (frame 0 only: its start pose), ``sim`` (every frame: the rig's
+    simulated pose of the observed motion at that frame, :mod:`anidress_core.fit.terms.prior`) or
+    ``sim_ensemble`` (every frame: the mean of the simulations of the observed motion at several bending
+    stiffnesses, rule simulate_ensemble, carried into the rig; closer to the truth than any one member on
+    10 of 10 tuning scenes, studies/fit/README.md section 16). ``sim`` and ``sim_ensemble`` also give
+    frame 0's start (``first_frame_init`` auto / sim) and ``sim_delta``'s motion."""
     prior_tangential: bool
     """L_prior counts only the offset along the reference surface (its tangent plane at each vertex);
     the images alone place the surface along its normals."""
@@ -159,6 +163,12 @@ class FitConfig:
     material) or ``anchor_flow`` (where L_anchor or L_flow does). Uniform by default: ``anchor`` was
     worse on 9 of 10 tuning scenes (median 2.95 -> 3.14x the rig floor), ``anchor_flow`` on 3 of 3 plain
     ones (studies/fit/README.md section 11)."""
+    prior_tangent_planes: str = "reference"
+    """Whose vertex normals give the tangent planes of the tangential L_prior: ``start`` (the frame's
+    start mesh, the previous result moved by the flow alignment: near the surface the images place) or
+    ``reference`` (L_prior's reference mesh; the ensemble's mean is smoother than the cloth, and its
+    planes let L_prior pull the surface; studies/fit/README.md section 16). The config's default is
+    ``start``; this field's default is what fits made before the setting existed used."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -169,8 +179,12 @@ class FitConfig:
             raise ValueError(f"FitConfig.method must be 'rig', 'vertex' or 'nearest', got {self.method!r}")
         if self.start not in ("previous", "sim_delta"):
             raise ValueError(f"FitConfig.start must be 'previous' or 'sim_delta', got {self.start!r}")
-        if self.prior_reference not in ("start", "sim"):
-            raise ValueError(f"FitConfig.prior_reference must be 'start' or 'sim', got {self.prior_reference!r}")
+        if self.prior_reference not in ("start", "sim", "sim_ensemble"):
+            raise ValueError(f"FitConfig.prior_reference must be 'start', 'sim' or 'sim_ensemble', got "
+                             f"{self.prior_reference!r}")
+        if self.prior_tangent_planes not in ("start", "reference"):
+            raise ValueError(f"FitConfig.prior_tangent_planes must be 'start' or 'reference', got "
+                             f"{self.prior_tangent_planes!r}")
         if self.prior_information not in PRIOR_INFORMATION_TERMS:
             raise ValueError(f"FitConfig.prior_information must be one of {list(PRIOR_INFORMATION_TERMS)}, got "
                              f"{self.prior_information!r}")
@@ -201,14 +215,16 @@ class FitConfig:
 
     @property
     def prior_follows_simulation(self) -> bool:
-        """L_prior pulls every frame towards the simulated pose (``prior_reference`` sim, a prior weight,
-        method rig; the vertex method keeps L_prior on frame 0 towards its start, nearest is not optimised)."""
-        return self.prior_reference == "sim" and self.weights.prior > 0 and self.method == "rig"
+        """L_prior pulls every frame towards the simulated pose (``prior_reference`` sim or sim_ensemble, a
+        prior weight, method rig; the vertex method keeps L_prior on frame 0 towards its start, nearest is not
+        optimised)."""
+        return self.prior_reference in ("sim", "sim_ensemble") and self.weights.prior > 0 and self.method == "rig"
 
     @property
     def needs_simulation(self) -> bool:
-        """Whether the fit reads the rig's simulation of the observed motion (``seq-<sequence>``): for the
-        ``sim_delta`` start or for :attr:`prior_follows_simulation`."""
+        """Whether the fit reads the simulation of the observed motion (the rig's ``seq-<sequence>``, or the
+        ensemble's mean with ``prior_reference`` sim_ensemble): for the ``sim_delta`` start or for
+        :attr:`prior_follows_simulation`."""
         return self.start == "sim_delta" or self.prior_follows_simulation
 
     @classmethod

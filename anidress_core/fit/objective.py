@@ -125,16 +125,18 @@ def with_prior_information(pb: Problem, verts: Tensor) -> Problem:
 def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow_targets: FlowTargets | None,
                cfg: FitConfig, fragments: raster.Fragments | None = None, prior_verts: Tensor | None = None,
                anchor_ref: "anchor.AnchorRef | None" = None,
-               contacts: "collision.Contacts | None" = None, prior_scale: Tensor | None = None
-               ) -> tuple[Tensor, dict]:
+               contacts: "collision.Contacts | None" = None, prior_scale: Tensor | None = None,
+               tangent_mesh: Tensor | None = None) -> tuple[Tensor, dict]:
     """Differentiable (autograd) total loss of a mesh ``verts`` (V, 3) and its unweighted terms.
 
     The same loss :func:`anidress_core.fit.fit_frame` minimises, built from every term's
     ``reference`` (:func:`raster.silhouette`, :func:`raster.render_face_normals`,
     :func:`raster.project_vertices`), for the vertex ablation and to check the Gauss-Newton
-    systems. ``fragments``: visibility to hold fixed (default: rasterise ``verts``).
+    systems. ``fragments``: visibility to hold fixed (default: rasterise ``verts``); ``tangent_mesh``:
+    :func:`anidress_core.fit.make_problem`'s (L_prior's tangent planes).
     """
-    pb = make_problem(rig, views, cues, flow_targets, cfg, prior_verts, anchor_ref, contacts, prior_scale)
+    pb = make_problem(rig, views, cues, flow_targets, cfg, prior_verts, anchor_ref, contacts, prior_scale,
+                      tangent_mesh)
     K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
     if fragments is None:
         fragments = raster.occlude(raster.rasterize(verts.detach(), rig.faces, K, E, views.height, views.width,

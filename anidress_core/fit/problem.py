@@ -239,11 +239,13 @@ class Problem(NamedTuple):
 
 def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig,
                  prior: Tensor | None = None, anchor: "AnchorRef | None" = None,
-                 contacts: "Contacts | None" = None, prior_scale: Tensor | None = None) -> Problem:
+                 contacts: "Contacts | None" = None, prior_scale: Tensor | None = None,
+                 tangent_mesh: Tensor | None = None) -> Problem:
     """The :class:`Problem` of one frame: cues checked and sanitised, terms with weight 0 (or without
     their inputs) switched off. prior: (V, 3) L_prior's reference mesh (used when ``cfg.weights.prior``
-    > 0; with ``cfg.prior_tangential`` only the offset along its surface counts: the projection onto the
-    tangent plane of its area-weighted vertex normals); anchor: L_anchor's references; contacts:
+    > 0; with ``cfg.prior_tangential`` only the offset along the surface counts: the projection onto the
+    tangent planes of the area-weighted vertex normals of ``tangent_mesh`` (V, 3), default the reference
+    itself); anchor: L_anchor's references; contacts:
     L_collision's planes; prior_scale: (V,) L_prior's factor per vertex
     (:func:`anidress_core.fit.terms.prior.information_scale`; default 1)."""
     check_cues(views, cues)
@@ -271,7 +273,8 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
     prior = None if prior is None or w.prior == 0 else prior.detach().double()
     proj = None
     if prior is not None and cfg.prior_tangential:
-        n = vertex_normals(prior, rig.faces)  # (V, 3) unit (zero at isolated vertices: their offset counts whole)
+        planes = prior if tangent_mesh is None else tangent_mesh.detach().to(prior)
+        n = vertex_normals(planes, rig.faces)  # (V, 3) unit (zero at isolated vertices: their offset counts whole)
         proj = torch.eye(3, dtype=prior.dtype, device=prior.device) - n[:, :, None] * n[:, None, :]
     return Problem(
         rig=rig, views=views, cfg=cfg, mask=mask, mask_flat=soft.reshape(-1), n_px=n_px,

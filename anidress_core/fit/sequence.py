@@ -272,10 +272,11 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         views, cues, flow = crop_frame(views, cues, flow, window)
     if cues.occluder is None:  # the body's depth, in the windows only
         cues = cues._replace(occluder=occluder_or_inf(cues, views), occluder_mesh=None)
+    planes = x_start if cfg.prior_tangent_planes == "start" else None  # L_prior's tangent planes
     if cfg.method == "vertex":
-        pb = make_problem(rig, views, cues, flow, cfg, prior)
+        pb = make_problem(rig, views, cues, flow, cfg, prior, tangent_mesh=planes)
     else:
-        pb = make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts)
+        pb = make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts, tangent_mesh=planes)
         if cfg.method == "rig" and not notes.get("no_mask"):
             pb = with_prior_information(pb, x_start)
     if notes.get("no_mask") or cfg.method == "nearest":  # the start evaluated, not optimised

@@ -3,7 +3,8 @@ rules ``fit`` and ``fit_ablation``, the CLI).
 
 * ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
 * ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, or no
-  temporal filter, no window refinement); ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_sim_delta``: the pipeline with a part that is
+  temporal filter, no window refinement); ``pipeline_single_sim``: L_prior following one simulation
+  (the rig's) instead of the stiffness ensemble's mean; ``pipeline_previous``: the defaults before it; ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_sim_delta``: the pipeline with a part that is
   off by default turned on, as are ``pipeline_prior_anchor_info``, ``pipeline_prior_info`` (L_prior weighted
   per bone by the image terms' information); ``pipeline_image_anchor``: without the garment texture.
 * ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
@@ -62,6 +63,14 @@ VARIANTS: dict[str, Variant] = {
                                      "(fit/prior_reference start; the pipeline before L_prior followed the simulation)",
                                      lambda c: c.replace(prior_reference="start", prior_tangential=False,
                                                          weights={"prior": 10.0})),
+    "pipeline_single_sim": Variant("the pipeline with L_prior's reference and frame 0's start from the rig's own "
+                                   "simulation of the observed motion, one bending stiffness (fit/prior_reference sim), "
+                                   "not the stiffness ensemble's mean", lambda c: c.replace(prior_reference="sim")),
+    "pipeline_previous": Variant("the pipeline's defaults before the stiffness ensemble (to 2026-12-05): L_prior "
+                                 "weight 1e4 towards the rig's own simulation of the observed motion, its tangent "
+                                 "planes at that reference", lambda c: c.replace(prior_reference="sim",
+                                                                               prior_tangent_planes="reference",
+                                                                               weights={"prior": 1e4})),
     "pipeline_prior_anchor_info": Variant("the pipeline with L_prior's weight per bone scaled by its share of the "
                                           "information L_prior and L_anchor put on it (fit/prior_information anchor)",
                                           lambda c: c.replace(prior_information="anchor")),

@@ -240,7 +240,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             normals_dir: str | os.PathLike | None, params: Mapping, out_npz: str | os.PathLike,
             ablation: str | None = None, progress: bool = True, cue_source: str = "",
             undistorted_dir: str | os.PathLike | None = None, motions_dir: str | os.PathLike | None = None,
-            body_dir: str | os.PathLike | None = None, starts: torch.Tensor | None = None) -> dict:
+            body_dir: str | os.PathLike | None = None, starts: torch.Tensor | None = None,
+            sim_ensemble_npz: str | os.PathLike | None = None) -> dict:
     """Fit the garment poses of sequence ``seq`` and write ``out_npz`` (see the module docstring).
 
     params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
@@ -250,6 +251,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     body_dir: the sequence's body poses refined by rule refine_body, read instead of its smpl/.
     starts: (T, B, 4, 4) a start for every frame (an oracle for benchmarks, e.g. the rig floor:
     :func:`anidress_core.fit.fit_sequence`), recorded in the header's ``starts``.
+    sim_ensemble_npz: the ensemble's mean simulation of ``seq`` (``results/<scene>/sim_ensemble/seq-<seq>.npz``,
+    rule simulate_ensemble), read with ``fit/prior_reference: sim_ensemble`` (:func:`ensemble_transforms`).
     Returns the header metadata written.
     """
     t_start = time.perf_counter()
@@ -285,12 +288,17 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         raise files.ArtifactError(f"{sdir / 'smpl'}: no frames")
     if int(params.get("frames", 0) or 0) > 0:  # a prefix of the sequence (quick runs, benchmarks)
         T = min(T, int(params["frames"]))
-    # 4. start of frame 0
+    # 4. the simulation of the observed motion the fit follows (frame 0's start, L_prior, sim_delta), start of frame 0
     start = params.get("first_frame_init", "auto")
     sim_name = f"seq-{seq}"
-    if start in ("auto", "sim") and sim_name in art.sequences:
-        G0 = art.transforms_of(sim_name)[0].double()
-        start_used = f"rig transforms of the simulated sequence {sim_name}, frame 0"
+    followed, followed_note = None, None
+    if cfg.prior_reference == "sim_ensemble" and (cfg.needs_simulation or start in ("auto", "sim")):
+        followed, followed_note = ensemble_transforms(sim_ensemble_npz, art, T, device)
+    elif sim_name in art.sequences:
+        followed, followed_note = art.transforms_of(sim_name).double(), f"rig transforms of the simulated sequence {sim_name}"
+    if start in ("auto", "sim") and followed is not None:
+        G0 = followed[0]
+        start_used = f"{followed_note}, frame 0"
     elif start == "sim":
         raise ValueError(f"{rig_npz}: first_frame_init is 'sim' but the rig has no simulated sequence {sim_name!r} "
                          f"(has {sorted(art.sequences)})")
@@ -354,11 +362,13 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     sim_transforms = None
     # frames t > 0 start from the previous fit moved as the simulation moves, or L_prior pulls towards it
     if cfg.needs_simulation:
-        if sim_name not in art.sequences:
+        if followed is None:
             raise ValueError(f"{rig_npz}: fit/start 'sim_delta' and fit/prior_reference 'sim' need the rig's simulated "
                              f"sequence {sim_name!r}; it has {sorted(art.sequences)} (rule motions simulates every captured "
                              "sequence; or set fit/prior_reference: start, the variant pipeline_no_sim_prior)")
-        sim_transforms = art.transforms_of(sim_name).double().to(device)
+        sim_transforms = followed.to(device)
+        log.info("fit: L_prior%s follows %s", " and the sim_delta start" if cfg.start == "sim_delta" else "",
+                 followed_note)
     # 7. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
@@ -395,6 +405,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
         "proposal_database": db_note,
+        "followed_simulation": followed_note if sim_transforms is not None else None,
         "starts": None if starts is None else "given per frame (oracle)",
         "frame_notes": {str(t): r.notes for t, r in enumerate(res) if r.notes},  # what was done about bad cues
         # (anidress_core.fit.FrameFit.notes: views dropped, frames kept at their start, NaN pixels, no flow)
@@ -429,6 +440,32 @@ def gt_correspondence(rest: np.ndarray, gt_rest: np.ndarray, gt_faces: np.ndarra
 
     cp = closest_points(rest, gt_rest, gt_faces)
     return cp.face, cp.bary, cp.distance
+
+
+def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None, device) -> tuple[torch.Tensor, str]:
+    """(frames, B, 4, 4) float64: the rig's least-squares bone transforms (:func:`anidress_core.rig.fit_transforms`)
+    of the first ``frames`` (None: all) of the ensemble's mean simulation at ``path``
+    (:func:`anidress_core.stages.simulate.run_simulate_ensemble`), and a line saying what it is. Raises, naming
+    the file, when it is missing or does not fit the rig."""
+    from ..io.sim import read_sim
+    from ..rig import fit_transforms
+
+    if path is None or not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: fit/prior_reference 'sim_ensemble' needs the ensemble's mean simulation of the "
+                                "observed motion (rule simulate_ensemble: results/<scene>/sim_ensemble/seq-<seq>.npz); "
+                                "or set fit/prior_reference: sim")
+    s = read_sim(path)
+    V = art.model.rest.shape[0]
+    frames = s.frames.shape[0] if frames is None else frames
+    if s.frames.ndim != 3 or s.frames.shape[1:] != (V, 3) or s.frames.shape[0] < frames:
+        raise files.ArtifactError(f"{path}: frames {tuple(s.frames.shape)}, the fit needs ({frames}+, {V}, 3) (the rig's "
+                                  "template, every frame of the sequence)")
+    X = torch.as_tensor(s.frames[:frames], device=device, dtype=torch.float64)
+    if not torch.isfinite(X).all():
+        raise files.ArtifactError(f"{path}: non-finite vertices")
+    G = fit_transforms(art.model, X).double()
+    k = [m.get("bend_stiffness") for m in s.meta.get("members", [])]
+    return G, f"{path}: the mean of {len(k)} simulations (bending stiffness {k} J), rig transforms fitted to it"
 
 
 def gt_template_vertices(scene_dir: str | os.PathLike, seq: str, rest: torch.Tensor, frames: int | None = None):

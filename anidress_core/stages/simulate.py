@@ -7,6 +7,9 @@ procedural library and any configured AMASS files, each written as
 ``simulate``: one garment simulation per motion, ``sim/<name>.npz`` holding
 ``frames`` (T, V, 3) float32 and per-frame stability statistics, with the cloth
 parameters in the header (:mod:`anidress_core.io.sim`).
+``simulate_ensemble``: a captured sequence's motion simulated once per bending stiffness of
+``simulate/ensemble_bend_stiffness``, ``sim_ensemble/seq-<sequence>.npz`` holding the mean of the
+members' frames (the fit's L_prior follows it, ``fit/prior_reference: sim_ensemble``).
 """
 from __future__ import annotations
 
@@ -26,7 +29,7 @@ from ..io.scene import load_body, load_sequence_motion, read_scene
 from ..io.sim import SimSequence, write_sim
 from ..io.template import read_template
 
-__all__ = ["motion_names", "run_motion", "run_simulate"]
+__all__ = ["motion_names", "run_motion", "run_simulate", "run_simulate_ensemble"]
 
 log = logging.getLogger("anidress.simulate")
 
@@ -98,3 +101,51 @@ def run_simulate(template_npz: str | os.PathLike, motion_npz: str | os.PathLike,
         substeps=st.substeps, meta={"motion": motion.name, "params": dataclasses.asdict(params),
                                     "recoveries": st.recoveries, "wall_s": st.wall_s}), config=cloth_cfg)
     return res
+
+
+def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.PathLike,
+                          scene_dir: str | os.PathLike, cloth_cfg: dict, bend_stiffness: list[float],
+                          out_npz: str | os.PathLike, progress: bool = True) -> SimSequence:
+    """Simulate one motion once per bending stiffness (J) and write the members' mean to ``out_npz``.
+
+    The cloth of a capture is not the simulator's material: the garment's motion under an unknown
+    bending stiffness is estimated by the mean over an ensemble of stiffnesses (after the
+    stiffness ensemble of Pan et al. 2022, SIGGRAPH; the mean as the fit's L_prior reference is ours,
+    studies/fit section 16). Every other cloth parameter is ``cloth_cfg``'s. ``frames`` (T, V, 3) is the
+    per-vertex mean over the members; the stability statistics per frame are the worst member's; the
+    header's ``members`` lists each member's stiffness, NaN count, recoveries and wall time. Raises when
+    a member's frames hold a non-finite value (no member is dropped silently).
+    """
+    if not bend_stiffness:
+        raise ValueError("simulate_ensemble: simulate/ensemble_bend_stiffness is empty")
+    tpl = read_template(template_npz)
+    motion = read_motion(motion_npz)
+    body = load_body(scene_dir)
+    posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
+    frames, stats, members = [], [], []
+    for k in bend_stiffness:
+        params = sim.ClothParams(**{**cloth_cfg, "bend_stiffness": float(k)})
+        log.info("simulating %s with bending stiffness %g J: %d frames, %d vertices", motion.name, k,
+                 motion.poses.shape[0], tpl.verts.shape[0])
+        res = sim.simulate(tpl.verts, tpl.faces, tpl.band, tpl.body_weights, body.v_template, body.faces,
+                           body.weights, posed.transforms, motion.fps, params, progress=progress)
+        if not np.isfinite(res.frames).all():
+            raise FloatingPointError(f"{motion_npz}: the simulation with bending stiffness {k:g} J has non-finite "
+                                     f"vertices ({int(res.stats.nan_count.sum())} NaN counted)")
+        frames.append(res.frames.astype(np.float64))
+        stats.append(res.stats)
+        members.append({"bend_stiffness": float(k), "nan_count": int(res.stats.nan_count.sum()),
+                        "recoveries": res.stats.recoveries, "wall_s": res.stats.wall_s})
+        log.info("%s, %g J: max stretch %.3f, max penetration %.1f mm, %d recoveries, %.1f s", motion.name, k,
+                 float(res.stats.max_stretch.max()), 1e3 * float(res.stats.max_penetration_m.max()),
+                 len(res.stats.recoveries), res.stats.wall_s)
+    worst = lambda name: np.max(np.stack([getattr(st, name) for st in stats]), axis=0)  # noqa: E731
+    out = SimSequence(frames=np.mean(frames, axis=0).astype(np.float32), faces=tpl.faces, fps=motion.fps,
+                      max_stretch=worst("max_stretch"), p99_stretch=worst("p99_stretch"),
+                      max_penetration_m=worst("max_penetration_m"), nan_count=worst("nan_count"),
+                      substeps=worst("substeps"),
+                      meta={"motion": motion.name, "params": dataclasses.asdict(sim.ClothParams(**cloth_cfg)),
+                            "ensemble": "mean over bend_stiffness", "members": members,
+                            "wall_s": float(sum(m["wall_s"] for m in members))})
+    write_sim(out_npz, out, config={"cloth": cloth_cfg, "ensemble_bend_stiffness": [float(k) for k in bend_stiffness]})
+    return out

@@ -51,7 +51,23 @@ def tiny_skirt(tmp_path_factory):
         "transforms": model.transforms.float().numpy(), "sequences": np.asarray(["seq-walk"]),
         "offsets": np.asarray([0, Y.shape[0]], np.int64), "rmse_per_sequence": np.asarray([model.rmse]),
         "rmse": np.float64(model.rmse)})
+    # the observed motion simulated at two bending stiffnesses, their mean (rule simulate_ensemble): L_prior's reference
+    from anidress_core.stages.simulate import run_motion, run_simulate_ensemble
+
+    run_motion("seq-walk", data, cfg["simulate"], res / "motions" / "seq-walk.npz")
+    run_simulate_ensemble(res / "template.npz", res / "motions" / "seq-walk.npz", data, tiny_cloth(cfg), [1e-4, 1e-3],
+                          ensemble(res), progress=False)
     return data, res
+
+
+def tiny_cloth(cfg: dict) -> dict:
+    """The pipeline's cloth settings with a short settling (a fast simulation of the tiny scene)."""
+    return {**cfg["simulate"]["cloth"], "settle_frames": 4}
+
+
+def ensemble(res) -> "Path":
+    """The tiny scene's ensemble mean simulation of walk."""
+    return res / "sim_ensemble" / "seq-walk.npz"
 
 
 def stored_loss_is_the_weighted_sum(gp) -> None:
@@ -71,7 +87,8 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     seq = data / "walk"
     params = {"views": 3, "max_iters": 4, "max_iters_first": 6}
     args = (data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows")
-    meta = run_fit(*args, seq / "normals", params, res / "walk" / "garment_poses.npz", progress=False)
+    ens = {"sim_ensemble_npz": ensemble(res)}
+    meta = run_fit(*args, seq / "normals", params, res / "walk" / "garment_poses.npz", progress=False, **ens)
     gp = read_garment_poses(res / "walk" / "garment_poses.npz", frames=4, bones=6)
     a = load_garment_poses(res / "walk" / "garment_poses.npz")[0]
     assert gp.transforms.shape == (4, 6, 4, 4) and gp.transforms.dtype == np.float32
@@ -84,14 +101,24 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     assert gp.header["meta"]["weights"]["normal"] == 300.0
     stored_loss_is_the_weighted_sum(gp)
     assert (gp.terms["anchor"] > 0).all() and "texture.png" in meta["anchor_reference"]  # texture refs: from frame 0
-    assert (gp.terms["prior"] > 0).all()  # L_prior towards the simulated sequence, every frame
-    assert gp.header["meta"]["first_frame_start"].startswith("rig transforms of the simulated sequence seq-walk")
+    assert (gp.terms["prior"] > 0).all()  # L_prior towards the ensemble's mean simulation, every frame
+    followed = f"{ensemble(res)}: the mean of 2 simulations (bending stiffness [0.0001, 0.001] J)"
+    assert meta["followed_simulation"].startswith(followed) and meta["first_frame_start"].startswith(followed)
+    # the rig's own simulation instead (one stiffness): no ensemble read
+    meta = run_fit(*args, seq / "normals", params, res / "walk" / "single.npz", ablation="pipeline_single_sim",
+                   progress=False)
+    assert meta["followed_simulation"] == "rig transforms of the simulated sequence seq-walk"
+    assert meta["first_frame_start"].startswith("rig transforms of the simulated sequence seq-walk")
+    # the ensemble asked for and missing: the error names it
+    with pytest.raises(FileNotFoundError, match="sim_ensemble"):
+        run_fit(*args, seq / "normals", params, res / "walk" / "x.npz", progress=False)
     # the fitted transforms reproduce the fitted vertices through the rig (the field stage's contract)
     art = read_rig(res / "rig.npz", dtype=torch.float64)
     x = lbs(art.model.rest, art.model.weights, torch.as_tensor(gp.transforms).double())
     assert float((x - torch.as_tensor(gp.verts).double()).abs().max()) < 1e-4
     # fit/loss: paper switches to the paper's loss; first-seen image references start at frame 1
-    meta = run_fit(*args, seq / "normals", dict(params, loss="paper"), res / "walk" / "paper.npz", progress=False)
+    meta = run_fit(*args, seq / "normals", dict(params, loss="paper"), res / "walk" / "paper.npz", progress=False,
+                   **ens)
     gp = read_garment_poses(res / "walk" / "paper.npz")
     assert meta["loss"] == "paper" and gp.weights["normal"] == 0.1 and (gp.terms["anchor"] == 0).all()
     stored_loss_is_the_weighted_sum(gp)
@@ -100,7 +127,7 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     gp = read_garment_poses(res / "walk" / "start_prior.npz")
     assert gp.terms["prior"][0] > 0 and (gp.terms["prior"][1:] == 0).all() and gp.weights["prior"] == 10.0
     run_fit(*args, seq / "normals", dict(params, anchor_reference="images"), res / "walk" / "images.npz",
-            ablation="pipeline_no_collision", progress=False)
+            ablation="pipeline_no_collision", progress=False, **ens)
     gp = read_garment_poses(res / "walk" / "images.npz")
     assert gp.header["meta"]["loss"] == "pipeline_no_collision" and (gp.terms["collision"] == 0).all()
     assert gp.terms["anchor"][0] == 0 and (gp.terms["anchor"][1:] > 0).all()
@@ -109,11 +136,11 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     tex.rename(tex.with_suffix(".bak"))
     try:
         with pytest.raises(FileNotFoundError, match="texture"):
-            run_fit(*args, seq / "normals", params, res / "walk" / "x.npz", progress=False)
+            run_fit(*args, seq / "normals", params, res / "walk" / "x.npz", progress=False, **ens)
     finally:
         tex.with_suffix(".bak").rename(tex)
     # no normal maps: the normal weight is stored as 0
-    run_fit(*args, None, params, res / "walk" / "no_flow.npz", ablation="paper_no_flow", progress=False)
+    run_fit(*args, None, params, res / "walk" / "no_flow.npz", ablation="paper_no_flow", progress=False, **ens)
     gp = read_garment_poses(res / "walk" / "no_flow.npz")
     assert gp.weights["normal"] == 0 and gp.weights["flow"] == 0
     summ = run_fit_eval(data, "walk", res / "rig.npz", {"full": res / "walk" / "garment_poses.npz",
@@ -139,7 +166,7 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     # a missing mask is named in the error
     with pytest.raises(FileNotFoundError, match="mask"):
         run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "nope", None, None, params,
-                res / "walk" / "x.npz", progress=False)
+                res / "walk" / "x.npz", progress=False, **ens)
 
 
 def test_garment_poses_reader_checks_the_caller_shapes(tmp_path):
@@ -193,7 +220,8 @@ def test_stage_records_what_it_did_about_bad_cues(tiny_skirt, tmp_path):
     files.write_mask(p, np.zeros_like(files.read_mask(p)))
     (flows / cams[0] / "000001.exr").unlink()
     meta = run_fit(data, "walk", res / "rig.npz", res / "template.npz", masks, flows, seq / "normals",
-                   {"views": 3, "max_iters": 4, "max_iters_first": 6}, tmp_path / "gp.npz", progress=False)
+                   {"views": 3, "max_iters": 4, "max_iters_first": 6}, tmp_path / "gp.npz", progress=False,
+                   sim_ensemble_npz=ensemble(res))
     gp = read_garment_poses(tmp_path / "gp.npz", frames=4, bones=6)
     assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
     assert all(np.isfinite(v).all() for v in gp.terms.values())
@@ -222,7 +250,7 @@ def test_stage_proposals_from_the_simulation_database(tiny_skirt, tmp_path):
               "backward": True}
     args = (data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
             seq / "normals", params, tmp_path / "gp.npz")
-    meta = run_fit(*args, progress=False, motions_dir=tmp_path)
+    meta = run_fit(*args, progress=False, motions_dir=tmp_path, sim_ensemble_npz=ensemble(res))
     gp = read_garment_poses(tmp_path / "gp.npz", frames=4, bones=6)
     assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
     assert meta["proposal_database"].startswith("4 simulated frames of ['seq-walk']")
@@ -234,4 +262,26 @@ def test_stage_proposals_from_the_simulation_database(tiny_skirt, tmp_path):
     assert "proposal" not in notes.get("1", {}) and "proposal" not in notes.get("3", {})
     assert meta["config"]["backward"] is True and meta["config"]["proposal_every"] == 2
     with pytest.raises(ValueError, match="motions_dir"):
-        run_fit(*args, progress=False)
+        run_fit(*args, progress=False, sim_ensemble_npz=ensemble(res))
+
+
+def test_the_ensemble_is_the_mean_of_its_members(tiny_skirt, tmp_path):
+    """rule simulate_ensemble: the file holds the per-vertex mean of the simulations at each stiffness (each as
+    rule simulate would make it), its members in the header; an empty list of stiffnesses is an error."""
+    pytest.importorskip("warp")
+    from anidress_core.config import section_defaults
+    from anidress_core.io.sim import read_sim
+    from anidress_core.stages.simulate import run_simulate, run_simulate_ensemble
+
+    data, res = tiny_skirt
+    cloth = tiny_cloth({"simulate": section_defaults("simulate", {})})
+    members = [run_simulate(res / "template.npz", res / "motions" / "seq-walk.npz", data,
+                            {**cloth, "bend_stiffness": k}, tmp_path / f"{k:g}.npz", progress=False).frames
+               for k in (1e-4, 1e-3)]
+    ens = read_sim(ensemble(res))
+    np.testing.assert_allclose(ens.frames, np.mean(np.stack(members).astype(np.float64), axis=0), atol=1e-6)
+    assert [m["bend_stiffness"] for m in ens.meta["members"]] == [1e-4, 1e-3]
+    assert ens.max_stretch.shape == (4,) and np.isfinite(ens.frames).all()
+    with pytest.raises(ValueError, match="ensemble_bend_stiffness"):
+        run_simulate_ensemble(res / "template.npz", res / "motions" / "seq-walk.npz", data, cloth, [],
+                              tmp_path / "e.npz", progress=False)

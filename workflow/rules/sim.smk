@@ -76,3 +76,30 @@ rule simulate:
         "../../envs/anidress.yaml"
     script:
         "../scripts/simulate.py"
+
+
+rule simulate_ensemble:
+    input:
+        template="results/{scene}/template.npz",
+        motion="results/{scene}/motions/seq-{seq}.npz",
+        scene=scene_input,
+        files=scene_inputs_fn(("scene", "body")),
+    output:
+        "results/{scene}/sim_ensemble/seq-{seq}.npz",
+    log:
+        "logs/{scene}/simulate_ensemble/seq-{seq}.log",
+    benchmark:
+        "benchmarks/runs/{scene}/simulate_ensemble/seq-{seq}.tsv"
+    params:
+        cloth=config["simulate"]["cloth"],
+        bend_stiffness=config["simulate"]["ensemble_bend_stiffness"],
+    threads: 1
+    priority: 2  # the garment chain (cues, motions, simulate, rig, fit, then the full field) is the demo's longest: first
+    resources:
+        mem_mb=2000,
+        runtime=120,
+        gpu=0,
+    conda:
+        "../../envs/anidress.yaml"
+    script:
+        "../scripts/simulate_ensemble.py"

@@ -13,7 +13,7 @@ try:
             ablation=None if snakemake.params.ablation == "full" else snakemake.params.ablation,
             cue_source=cues["source"], undistorted_dir=snakemake.input.get("undistorted") or None,
             motions_dir=Path(snakemake.input.motions[0]).parent if snakemake.input.get("motions") else None,
-            body_dir=snakemake.input.get("body") or None)
+            body_dir=snakemake.input.get("body") or None, sim_ensemble_npz=snakemake.input.get("sim_ensemble") or None)
 except Exception:
     log.exception("fit failed")
     raise

@@ -1,11 +1,13 @@
 """L_prior (ours, not in the paper): a proximal term towards a reference pose.
 
 mean_v |P_v (x_v - x_v(ref))|^2 (metres^2), P_v = I, or with ``fit/prior_tangential`` the
-projection I - n_v n_v^T onto the reference surface's tangent plane at v (only the material's
-slide along the surface counts; the images place the surface). The reference
+projection I - n_v n_v^T onto the surface's tangent plane at v (only the material's slide along the
+surface counts; the images place the surface), n_v the vertex normal of the frame's start mesh
+(``fit/prior_tangent_planes: start``) or of the reference (``reference``). The reference
 (``fit/prior_reference``): ``start``, frame 0 only, its start pose (masks and normals cannot
 observe a nearly rotationally symmetric garment sliding about the body, and at frame 0 there is
-no flow); ``sim``, every frame, the rig's simulated pose of the observed motion at that frame.
+no flow); ``sim``, every frame, the rig's simulated pose of the observed motion at that frame;
+``sim_ensemble``, every frame, the mean of the simulations at several bending stiffnesses.
 Weight ``fit/weights/prior`` (0 = off, the paper's loss), times a factor s_v in (0, 1] per vertex
 with ``fit/prior_information`` (:func:`information_scale`; 1 without). Residual sqrt(w s_v / V) P (x - x_ref);
 P is symmetric and idempotent, so its Gauss-Newton block on each vertex is w s_v / V P.

@@ -45,7 +45,8 @@ def fit_cue_dirs(scene, seq):
 
 
 def fit_inputs(wildcards):
-    """Rig, template, scene, the rig's simulated motions and (pipeline cues) the cue rule outputs of one sequence."""
+    """Rig, template, scene, the rig's simulated motions, (pipeline cues) the cue rule outputs of one sequence and
+    (fit/prior_reference sim_ensemble) the ensemble's mean simulation of it."""
     scene, seq = wildcards.scene, wildcards.seq
     if not has_garment(scene):
         raise ValueError(f"scene {scene!r} has no garment (kind tight): nothing to fit")
@@ -65,6 +66,8 @@ def fit_inputs(wildcards):
     # of them reruns the fit either way)
     inp["motions"] = [f"results/{scene}/motions/{m}.npz" for m in sim_motion_names(scene)]
     inp["body"] = body_input(scene, seq)  # refined body poses (helpers/body.smk), or none
+    if scene_section(config, "fit", scene).get("prior_reference", "sim_ensemble") == "sim_ensemble":
+        inp["sim_ensemble"] = f"results/{scene}/sim_ensemble/seq-{seq}.npz"  # L_prior's reference (rule simulate_ensemble)
     return inp
 
 
