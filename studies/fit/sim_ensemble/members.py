@@ -1,0 +1,79 @@
+"""Probe: the observed motion of suite scenes simulated at several bending stiffnesses; each member's and the
+members' mean's vertex RMSE against the ground truth through the rig (``rig.fit_transforms`` of the frames, as
+the fit's L_prior sees a simulation), over the rig floor's, mean over frames. The other cloth parameters are
+config/config.yaml's ``simulate/cloth`` (the pipeline's). ``--true`` adds the scene's own stiffness (an oracle:
+the suite file's ``garment/cloth/bend_stiffness``). Members are written to ``--out`` and reused.
+
+    PYTHONPATH=. .venv/bin/python studies/fit/sim_ensemble/members.py --suite config/fit_suite.yaml \\
+        --bend 1e-4,3e-4,1e-3,3e-3,1e-2 --true --out /tmp/members suite_00 suite_03 > members.txt
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
+
+from anidress_core.geometry import lbs  # noqa: E402
+from anidress_core.io.rig import read_rig  # noqa: E402
+from anidress_core.rig import fit_transforms  # noqa: E402
+from anidress_core.stages.fit import gt_template_vertices  # noqa: E402
+from anidress_core.stages.simulate import run_simulate  # noqa: E402
+
+
+def member_path(out: Path, scene: str, seq: str, bend: float) -> Path:
+    return out / f"{scene}-{seq}-{bend:g}.npz"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--suite", required=True, help="the suite's config overlay (its scenes' true stiffness)")
+    ap.add_argument("--bend", default="1e-4,3e-4,1e-3,3e-3,1e-2", help="the members' bending stiffnesses (J)")
+    ap.add_argument("--true", action="store_true", help="also simulate at the scene's own stiffness (oracle)")
+    ap.add_argument("--out", required=True, help="folder of the members (<scene>-<seq>-<bend>.npz)")
+    ap.add_argument("scenes", nargs="+")
+    a = ap.parse_args()
+    suite = yaml.safe_load(Path(a.suite).read_text())["scenes"]
+    cloth = yaml.safe_load(Path("config/config.yaml").read_text())["simulate"]["cloth"]
+    bends = [float(b) for b in a.bend.split(",")]
+    out = Path(a.out)
+    print(f"# {' '.join(sys.argv)}")
+    print("# vertex RMSE through the rig / rig floor, mean over frames: each member (bending stiffness, J), the "
+          "members' mean ('mean'), the scene's own stiffness ('true', not in the mean)")
+    for scene in a.scenes:
+        seq = next(s["name"] for s in suite[scene]["sequences"] if s.get("role", "train") == "train")
+        true = float(suite[scene]["garment"]["cloth"]["bend_stiffness"])
+        art = read_rig(f"results/{scene}/rig.npz", dtype=torch.float64)
+        Y = gt_template_vertices(f"data/{scene}", seq, art.model.rest)[0]  # (T, V, 3)
+        T = Y.shape[0]
+
+        def rmse(S: torch.Tensor) -> float:  # S (>= T, V, 3) through the rig, against Y, mean over frames
+            X = lbs(art.model.rest, art.model.weights, fit_transforms(art.model, S[:T]).double())
+            return float(((X - Y) ** 2).sum(-1).mean(-1).sqrt().mean())
+
+        floor = rmse(Y)
+
+        def ratio(S: torch.Tensor) -> float:
+            return rmse(S) / floor
+
+        frames = {}
+        for b in bends + ([true] if a.true else []):
+            p = member_path(out, scene, seq, b)
+            if not p.is_file():
+                run_simulate(f"results/{scene}/template.npz", f"results/{scene}/motions/seq-{seq}.npz",
+                             f"data/{scene}", {**cloth, "bend_stiffness": b}, p, progress=False)
+            frames[b] = torch.as_tensor(np.load(p)["frames"]).double()
+        mean = torch.stack([frames[b] for b in bends]).mean(0)
+        cells = [f"{b:g}: {ratio(frames[b]):.2f}" for b in bends] + [f"mean: {ratio(mean):.2f}"]
+        if a.true:
+            cells.append(f"true {true:g}: {ratio(frames[true]):.2f}")
+        print(f"{scene}/{seq}  " + "  ".join(cells), flush=True)
+
+
+if __name__ == "__main__":
+    main()
