@@ -54,8 +54,14 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
     from .config import load_config
     from .stages.simulate import run_simulate
 
-    cloth = load_config(args.config)["simulate"]["cloth"]
-    run_simulate(args.template, args.motion, args.scene_dir, cloth, args.out, progress=not args.quiet)
+    sim = load_config(args.config)["simulate"]
+    if args.ensemble:  # as rule simulate_ensemble: the members' mean
+        from .stages.simulate import run_simulate_ensemble
+
+        run_simulate_ensemble(args.template, args.motion, args.scene_dir, sim["cloth"], sim["ensemble_bend_stiffness"],
+                              args.out, progress=not args.quiet)
+    else:
+        run_simulate(args.template, args.motion, args.scene_dir, sim["cloth"], args.out, progress=not args.quiet)
     print(args.out)
 
 
@@ -145,7 +151,8 @@ def _cmd_fit(args: argparse.Namespace) -> None:
                                                              if (src / "normals").is_dir() else None))
     run_fit(scene, args.seq, args.rig, args.template, args.masks, args.flows, normals, params, args.out,
             ablation=args.ablation, progress=not args.quiet, cue_source="command line",
-            undistorted_dir=args.undistorted, motions_dir=args.motions, body_dir=args.body)
+            undistorted_dir=args.undistorted, motions_dir=args.motions, body_dir=args.body,
+            sim_ensemble_npz=args.sim_ensemble)
     print(args.out)
 
 
@@ -376,6 +383,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("motion", help="motion .npz from `anidress motion`")
     s.add_argument("scene_dir", help="data/<scene> (for its body model)")
     s.add_argument("--config", default="config/config.yaml", help="cloth parameters: simulate/cloth")
+    s.add_argument("--ensemble", action="store_true", help="simulate once per simulate/ensemble_bend_stiffness and "
+                                                           "write the members' mean (rule simulate_ensemble)")
     s.add_argument("-o", "--out", required=True, help="output .npz")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_simulate)
@@ -456,6 +465,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--motions", help="the simulated body motions results/<scene>/motions (rule motions): the "
                                      "proposals' database, needed when fit/proposal_every > 0")
     s.add_argument("--body", help="the sequence's body poses refined by `anidress refine-body` (OUT of it), read instead of its smpl/")
+    s.add_argument("--sim-ensemble", help="`anidress simulate --ensemble` of seq-<seq>: L_prior's reference, needed "
+                                          "with fit/prior_reference sim_ensemble (the default)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_fit)
 

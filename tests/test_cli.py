@@ -50,15 +50,16 @@ def test_fit_command_applies_the_scene_overrides(monkeypatch, tmp_path):
     import anidress_core.stages.fit as stage
 
     seen = {}
-    monkeypatch.setattr(stage, "run_fit", lambda *a, **k: seen.update(params=a[7], ablation=k.get("ablation")))
+    monkeypatch.setattr(stage, "run_fit", lambda *a, **k: seen.update(params=a[7], ablation=k.get("ablation"),
+                                                                      ensemble=k.get("sim_ensemble_npz")))
     scene = tmp_path / "skirt"
     scene.mkdir()
     base = ["fit", str(scene), "walk", "--rig", "r.npz", "--template", "t.npz", "--masks", "m", "-o",
             str(tmp_path / "o.npz"), "--no-normals", "--config", "config/config.yaml"]
     assert main(base) in (0, None)
     assert seen["params"]["anchor_reference"] == "texture"  # config.yaml: scenes/skirt/fit
-    assert main(base + ["--anchor-reference", "images"]) in (0, None)
-    assert seen["params"]["anchor_reference"] == "images"
+    assert main(base + ["--anchor-reference", "images", "--sim-ensemble", "e.npz"]) in (0, None)
+    assert seen["params"]["anchor_reference"] == "images" and seen["ensemble"] == "e.npz"
     other = tmp_path / "custom"  # a scene config.yaml does not define
     other.mkdir()
     assert main(["fit", str(other)] + base[2:]) in (0, None)

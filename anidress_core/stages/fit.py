@@ -20,6 +20,9 @@
 
 * with ``proposal_every`` > 0 the body motions of the rig's simulated sequences
   (``motions_dir``: ``results/<scene>/motions/<name>.npz``, rule motions), the proposals' database;
+* with ``prior_reference: sim_ensemble`` (the default) ``results/<scene>/sim_ensemble/seq-<seq>.npz``
+  (rule simulate_ensemble), the mean of the observed motion simulated at several bending stiffnesses:
+  L_prior's reference and frame 0's start, carried into the rig (:func:`ensemble_transforms`);
 
 and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts,
 the weighted loss and every unweighted term ``loss_<term>`` per frame, with the loss variant

@@ -27,7 +27,7 @@ from tests.workflow.tiny import job_counts
 REPO = Path(__file__).resolve().parents[2]
 CFG = {"run_scenes": ["cap"],
        "scenes": {"cap": {"synthetic": False, "kind": "skirt", "sequences": [{"name": "walk", "frames": 3}]}},
-       "simulate": {"library": [], "amass": ["amass/clip.npz"]}, "field": {"render": {"library": []}}}
+       "simulate": {"library": [], "amass": ["amass/clip.npz"], "ensemble_bend_stiffness": [1.0e-4, 1.0e-3]}, "field": {"render": {"library": []}}}
 DIRECTORY_RULES = {"undistort", "masks", "flows", "render_novel_view", "render_novel_pose", "render_library"}
 # what reads the cameras and images of a distorted sequence, and everything after it (the rig reads no scene file)
 CAMERA_JOBS = {"scene_files": 1, "validate_scene": 1, "undistort": 1, "flows": 1, "normals": 1, "fit": 1, "train_field": 2,
@@ -124,8 +124,8 @@ def test_a_body_file_edit_reruns_its_motion_and_what_reads_the_body(wd):
     people = json.loads(body.read_text())
     people[0]["Th"][0][0] += 0.01  # one centimetre
     with edited(body, json.dumps(people).encode()):
-        assert _jobs(wd) == {"scene_files": 1, "validate_scene": 1, "motions": 1, "simulate": 1, "rig": 1, "flows": 1, "fit": 1,
-                             "train_field": 2, "render_novel_view": 2, "evaluate_field": 2, "report": 1, "all": 1}
+        assert _jobs(wd) == {"scene_files": 1, "validate_scene": 1, "motions": 1, "simulate": 1, "simulate_ensemble": 1,
+                             "rig": 1, "flows": 1, "fit": 1, "train_field": 2, "render_novel_view": 2, "evaluate_field": 2, "report": 1, "all": 1}
 
 
 def test_an_image_edit_reruns_what_reads_the_images(wd):

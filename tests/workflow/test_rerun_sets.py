@@ -12,7 +12,8 @@ from tests.workflow.tiny import RERUN_TRIGGERS, TINY, job_counts, snakemake
 
 # every job of the garment scene (tinyskirt: one training sequence `walk`, library motion `sway`,
 # variants full + body_only) / of the tight scene (tiny: train `walk`, novel pose `jump`, variant full)
-SKIRT_ALL = {"synth": 1, "validate_scene": 1, "template": 1, "motions": 2, "simulate": 2, "rig": 1, "masks": 1,
+SKIRT_ALL = {"synth": 1, "validate_scene": 1, "template": 1, "motions": 2, "simulate": 2, "simulate_ensemble": 1,
+             "rig": 1, "masks": 1,
              "flows": 1, "normals": 1, "fit": 1, "fit_eval": 1, "train_field": 2, "render_novel_view": 2,
              "render_library": 2, "evaluate_field": 2, "report": 1, "all": 1}
 TIGHT_ALL = {"synth": 1, "validate_scene": 1, "masks": 1, "train_field": 1, "render_novel_view": 1,
@@ -52,10 +53,11 @@ CASES = [
     ("scenes/tiny/fit/anchor_reference", "images", set(), {}),  # a tight scene has no fit
     # the stages' sections
     ("template/vertices", 500, {"template"},
-     {"template": 1, "simulate": 2, "rig": 1, "masks": 1, "flows": 1, "fit": 1, "fit_eval": 1, "train_field": 2,
+     {"template": 1, "simulate": 2, "simulate_ensemble": 1, "rig": 1, "masks": 1, "flows": 1, "fit": 1, "fit_eval": 1, "train_field": 2,
       "render_novel_view": 2, "render_library": 2, "evaluate_field": 2, "report": 1, "all": 1}),
-    ("simulate/cloth/damping", 0.6, {"simulate"},
-     {"simulate": 2, "rig": 1, **FIT_DOWN}),
+    ("simulate/cloth/damping", 0.6, {"simulate", "simulate_ensemble"},
+     {"simulate": 2, "simulate_ensemble": 1, "rig": 1, **FIT_DOWN}),
+    ("simulate/ensemble_bend_stiffness", [1.0e-4], {"simulate_ensemble"}, {"simulate_ensemble": 1, **FIT_DOWN}),
     ("simulate/library_frames", 6, {"motions"},  # the library motion only, and the two renders of it
      {"motions": 1, "simulate": 1, "rig": 1, **FIT_DOWN, "render_library": 2}),
     ("rig/iters", 8, {"rig"}, {"rig": 1, **FIT_DOWN}),

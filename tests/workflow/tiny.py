@@ -35,7 +35,8 @@ TINY = {
         },
     },
     "template": {"vertices": 600},
-    "simulate": {"library": ["sway"], "library_frames": 5, "cloth": {"settle_frames": 5}},
+    "simulate": {"library": ["sway"], "library_frames": 5, "cloth": {"settle_frames": 5},
+                 "ensemble_bend_stiffness": [1.0e-4, 1.0e-3]},
     "rig": {"bones": 6, "iters": 10},
     "fit": {"max_iters": 5, "max_iters_first": 10},
     "field": {
