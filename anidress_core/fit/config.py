@@ -154,8 +154,8 @@ class FitConfig:
     10 of 10 tuning scenes, studies/fit/README.md section 16). ``sim`` and ``sim_ensemble`` also give
     frame 0's start (``first_frame_init`` auto / sim) and ``sim_delta``'s motion."""
     prior_tangential: bool
-    """L_prior counts only the offset along the reference surface (its tangent plane at each vertex);
-    the images alone place the surface along its normals."""
+    """L_prior counts only the offset along the surface (its tangent plane at each vertex, from
+    ``prior_tangent_planes``); the images alone place the surface along its normals."""
     prior_information: str
     """L_prior's weight per bone scaled by its share of the Gauss-Newton information along the same
     directions (:func:`anidress_core.fit.terms.prior.information_scale`, at each frame's start):
