@@ -342,7 +342,8 @@ def test_converted_scene_runs_validate_masks_fit(tiny, tmp_path):
     truth = truth[[0, 1, 3, 2]]  # scene.yaml order (train 1, 2, 4; test 3) back to the file order
     iou = ((new > 0) & (truth > 0)).sum() / ((new > 0) | (truth > 0)).sum()
     assert iou > 0.7, iou
-    params = {"views": 2, "max_iters": 2, "max_iters_first": 3, "weights": {"anchor": 0.0}, "threads": 1}
+    params = {"views": 2, "max_iters": 2, "max_iters_first": 3, "weights": {"anchor": 0.0}, "threads": 1,
+              "prior_reference": "sim"}  # the rig's own simulation: no stiffness ensemble in this test
     run_fit(dst, "walk", res / "rig.npz", tmp_path / "template.npz", dst / "walk" / "masks", None, None, params,
             tmp_path / "zju_poses.npz", progress=False)
     run_fit(data, "walk", res / "rig.npz", res / "template.npz", data / "walk" / "gt" / "masks", None, None, params,

@@ -103,8 +103,8 @@ def test_param_change_reruns_exactly_that_stage(tiny_run):
     cfg = copy.deepcopy(TINY)
     cfg["simulate"]["cloth"]["damping"] = 0.6  # every simulation and what reads the rig; not the data, cues
     assert _planned_jobs(tiny_run, cfg) == {          # or the body-only field
-        "simulate": 2, "rig": 1, "fit": 1, "fit_eval": 1, "train_field": 1, "render_novel_view": 1,
-        "render_library": 1, "evaluate_field": 1, "report": 1, "all": 1}
+        "simulate": 2, "simulate_ensemble": 1, "rig": 1, "fit": 1, "fit_eval": 1, "train_field": 1,
+        "render_novel_view": 1, "render_library": 1, "evaluate_field": 1, "report": 1, "all": 1}
     cfg = copy.deepcopy(TINY)
     cfg["rig"]["bones"] = 5
     assert _planned_jobs(tiny_run, cfg) == {
