@@ -1,5 +1,6 @@
 """Probe: L_prior's weight with the stiffness ensemble's mean as its reference. Registers ``prior_<w>`` (the
-pipeline with L_prior's weight w, for w in 3e3, 3e4, 1e5; ``pipeline`` is the defaults, 1e4) and runs the
+pipeline with L_prior's weight w, for w in 3e3, 3e4, 1e5; ``pipeline`` is the defaults: 1e4 when prior_a/b.md ran,
+3e4 since) and runs the
 maintained benchmark (benchmarks/bench_fit.py) with its own arguments, e.g.
 
     PYTHONPATH=. .venv/bin/python studies/fit/sim_ensemble/run.py --suite <half of config/fit_suite.yaml> \\
