@@ -17,6 +17,7 @@ import dataclasses
 import logging
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -79,26 +80,46 @@ def run_motion(name: str, scene_dir: str | os.PathLike, sim_cfg: dict, out_npz: 
     return m
 
 
+class _Inputs(NamedTuple):
+    """What every simulation of one motion reads: the template, the motion, the scene's body posed by it."""
+
+    tpl: object
+    motion: object
+    body: object
+    posed: object
+
+
+def _inputs(template_npz: str | os.PathLike, motion_npz: str | os.PathLike, scene_dir: str | os.PathLike) -> _Inputs:
+    motion = read_motion(motion_npz)
+    body = load_body(scene_dir)
+    return _Inputs(read_template(template_npz), motion, body,
+                   body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes))
+
+
+def _simulate(x: _Inputs, params: sim.ClothParams, progress: bool, what: str) -> sim.SimResult:
+    """The cloth solver on ``x`` with ``params``, logged (``what``: the run's name in the log)."""
+    log.info("simulating %s: %d frames, %d vertices", what, x.motion.poses.shape[0], x.tpl.verts.shape[0])
+    res = sim.simulate(x.tpl.verts, x.tpl.faces, x.tpl.band, x.tpl.body_weights, x.body.v_template, x.body.faces,
+                       x.body.weights, x.posed.transforms, x.motion.fps, params, progress=progress)
+    st = res.stats
+    log.info("%s: %d frames, %d vertices, max stretch %.3f (p99 %.3f), max penetration %.1f mm, NaN %d, "
+             "%d recoveries, %.1f s", what, res.frames.shape[0], res.frames.shape[1],
+             float(st.max_stretch.max()), float(st.p99_stretch.max()), 1e3 * float(st.max_penetration_m.max()),
+             int(st.nan_count.sum()), len(st.recoveries), st.wall_s)
+    return res
+
+
 def run_simulate(template_npz: str | os.PathLike, motion_npz: str | os.PathLike, scene_dir: str | os.PathLike,
                  cloth_cfg: dict, out_npz: str | os.PathLike, progress: bool = True) -> sim.SimResult:
     """Simulate the scene's garment template on one body motion and write ``sim/<motion>.npz``."""
-    tpl = read_template(template_npz)
-    motion = read_motion(motion_npz)
-    body = load_body(scene_dir)
-    posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
+    x = _inputs(template_npz, motion_npz, scene_dir)
     params = sim.ClothParams(**cloth_cfg)
-    log.info("simulating %s: %d frames, %d vertices", motion.name, motion.poses.shape[0], tpl.verts.shape[0])
-    res = sim.simulate(tpl.verts, tpl.faces, tpl.band, tpl.body_weights, body.v_template, body.faces, body.weights,
-                       posed.transforms, motion.fps, params, progress=progress)
+    res = _simulate(x, params, progress, x.motion.name)
     st = res.stats
-    log.info("%s: %d frames, %d vertices, max stretch %.3f (p99 %.3f), max penetration %.1f mm, NaN %d, "
-             "%d recoveries, %.1f s", motion.name, res.frames.shape[0], res.frames.shape[1],
-             float(st.max_stretch.max()), float(st.p99_stretch.max()), 1e3 * float(st.max_penetration_m.max()),
-             int(st.nan_count.sum()), len(st.recoveries), st.wall_s)
     write_sim(out_npz, SimSequence(
-        frames=res.frames.astype(np.float32), faces=tpl.faces, fps=motion.fps, max_stretch=st.max_stretch,
+        frames=res.frames.astype(np.float32), faces=x.tpl.faces, fps=x.motion.fps, max_stretch=st.max_stretch,
         p99_stretch=st.p99_stretch, max_penetration_m=st.max_penetration_m, nan_count=st.nan_count,
-        substeps=st.substeps, meta={"motion": motion.name, "params": dataclasses.asdict(params),
+        substeps=st.substeps, meta={"motion": x.motion.name, "params": dataclasses.asdict(params),
                                     "recoveries": st.recoveries, "wall_s": st.wall_s}), config=cloth_cfg)
     return res
 
@@ -118,17 +139,12 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
     """
     if not bend_stiffness:
         raise ValueError("simulate_ensemble: simulate/ensemble_bend_stiffness is empty")
-    tpl = read_template(template_npz)
-    motion = read_motion(motion_npz)
-    body = load_body(scene_dir)
-    posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
+    x = _inputs(template_npz, motion_npz, scene_dir)
+    tpl, motion = x.tpl, x.motion
     frames, stats, members = [], [], []
     for k in bend_stiffness:
         params = sim.ClothParams(**{**cloth_cfg, "bend_stiffness": float(k)})
-        log.info("simulating %s with bending stiffness %g J: %d frames, %d vertices", motion.name, k,
-                 motion.poses.shape[0], tpl.verts.shape[0])
-        res = sim.simulate(tpl.verts, tpl.faces, tpl.band, tpl.body_weights, body.v_template, body.faces,
-                           body.weights, posed.transforms, motion.fps, params, progress=progress)
+        res = _simulate(x, params, progress, f"{motion.name} at bending stiffness {k:g} J")
         if not np.isfinite(res.frames).all():
             raise FloatingPointError(f"{motion_npz}: the simulation with bending stiffness {k:g} J has non-finite "
                                      f"vertices ({int(res.stats.nan_count.sum())} NaN counted)")
@@ -136,9 +152,6 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
         stats.append(res.stats)
         members.append({"bend_stiffness": float(k), "nan_count": int(res.stats.nan_count.sum()),
                         "recoveries": res.stats.recoveries, "wall_s": res.stats.wall_s})
-        log.info("%s, %g J: max stretch %.3f, max penetration %.1f mm, %d recoveries, %.1f s", motion.name, k,
-                 float(res.stats.max_stretch.max()), 1e3 * float(res.stats.max_penetration_m.max()),
-                 len(res.stats.recoveries), res.stats.wall_s)
     worst = lambda name: np.max(np.stack([getattr(st, name) for st in stats]), axis=0)  # noqa: E731
     out = SimSequence(frames=np.mean(frames, axis=0).astype(np.float32), faces=tpl.faces, fps=motion.fps,
                       max_stretch=worst("max_stretch"), p99_stretch=worst("p99_stretch"),
