@@ -8,6 +8,8 @@ Arrays:
 * per-frame stability statistics, each (T,): ``max_stretch`` and ``p99_stretch``
   (edge length / rest length), ``max_penetration_m`` (deepest free particle inside
   the body, metres), ``nan_count`` (non-finite coordinates), ``substeps``;
+* ``spread`` (T, V) float32, an ensemble's mean only (``sim_ensemble/seq-<seq>.npz``, rule
+  simulate_ensemble): per vertex, the members' RMS distance from their mean, metres;
 
 plus the header (code version, hash of the cloth parameters, ``meta``: motion name,
 cloth parameters, recoveries, wall time).
@@ -51,6 +53,8 @@ class SimSequence:
     """(T,) non-finite vertex coordinates."""
     substeps: np.ndarray | None = None
     """(T,) substeps used for the frame."""
+    spread: np.ndarray | None = None
+    """(T, V) an ensemble's mean only: per vertex, the members' RMS distance from their mean, metres."""
     meta: dict = field(default_factory=dict)
     """Header metadata: ``motion``, ``params`` (cloth), ``recoveries`` (list of dicts), ``wall_s``."""
 
@@ -69,6 +73,8 @@ def write_sim(path: str | os.PathLike, seq: SimSequence, config: Any = None) -> 
     for k in SIM_STATS:
         if getattr(seq, k) is not None:
             arrays[k] = getattr(seq, k)
+    if seq.spread is not None:
+        arrays["spread"] = np.asarray(seq.spread).astype(np.float32)
     files.save_npz(path, arrays, config=config, meta=seq.meta)
 
 
@@ -88,5 +94,9 @@ def read_sim(path: str | os.PathLike) -> SimSequence:
             if a[k].shape != (T,):
                 raise files.ArtifactError(f"{path}: {k} must be ({T},) (one per frame), got {a[k].shape}")
             stats[k] = a[k]
-    return SimSequence(frames=x, faces=faces.astype(np.int64) if faces is not None else None,
+    spread = a.get("spread")
+    if spread is not None and spread.shape != x.shape[:2]:
+        raise files.ArtifactError(f"{path}: spread must be {x.shape[:2]} (one per frame and vertex), got "
+                                  f"{spread.shape}")
+    return SimSequence(frames=x, faces=faces.astype(np.int64) if faces is not None else None, spread=spread,
                        fps=float(a["fps"]) if "fps" in a else None, meta=h.get("meta", {}), **stats)

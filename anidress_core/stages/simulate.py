@@ -133,8 +133,9 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
     bending stiffness is estimated by the mean over an ensemble of stiffnesses (after the
     stiffness ensemble of Pan et al. 2022, SIGGRAPH; the mean as the fit's L_prior reference is ours,
     studies/fit section 16). Every other cloth parameter is ``cloth_cfg``'s. ``frames`` (T, V, 3) is the
-    per-vertex mean over the members; the stability statistics per frame are the worst member's; the
-    header's ``members`` lists each member's stiffness, NaN count, recoveries and wall time. Raises when
+    per-vertex mean over the members, ``spread`` (T, V) the members' RMS distance from it (the fit's
+    L_prior pulls less where they disagree, ``fit/prior_spread_floor``); the stability statistics per
+    frame are the worst member's; the header's ``members`` lists each member's stiffness, NaN count, recoveries and wall time. Raises when
     a member's frames hold a non-finite value (no member is dropped silently).
     """
     if not bend_stiffness:
@@ -153,7 +154,10 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
         members.append({"bend_stiffness": float(k), "nan_count": int(res.stats.nan_count.sum()),
                         "recoveries": res.stats.recoveries, "wall_s": res.stats.wall_s})
     worst = lambda name: np.max(np.stack([getattr(st, name) for st in stats]), axis=0)  # noqa: E731
-    out = SimSequence(frames=np.mean(frames, axis=0).astype(np.float32), faces=tpl.faces, fps=motion.fps,
+    X = np.stack(frames)  # (M, T, V, 3)
+    mean = X.mean(axis=0)
+    out = SimSequence(frames=mean.astype(np.float32), faces=tpl.faces, fps=motion.fps,
+                      spread=np.sqrt(((X - mean) ** 2).sum(-1).mean(0)).astype(np.float32),
                       max_stretch=worst("max_stretch"), p99_stretch=worst("p99_stretch"),
                       max_penetration_m=worst("max_penetration_m"), nan_count=worst("nan_count"),
                       substeps=worst("substeps"),
