@@ -169,6 +169,13 @@ class FitConfig:
     ``reference`` (L_prior's reference mesh; the ensemble's mean is smoother than the cloth, and its
     planes let L_prior pull the surface; studies/fit/README.md section 16). The config's default is
     ``start``; this field's default is what fits made before the setting existed used."""
+    prior_spread_floor: float | None = None
+    """L_prior's weight per vertex from the stiffness ensemble's spread (used with ``prior_reference``
+    sim_ensemble only, and stored as None otherwise; :func:`anidress_core.fit.terms.prior.spread_scale`):
+    the factor 1 / (sigma^2 + sigma_0^2), mean 1 over each frame's vertices, sigma the members' RMS
+    distance from their mean, sigma_0 this value times its median over the sequence; None = one weight
+    for every vertex (studies/fit/README.md section 17). The config's default is set; this
+    field's default is what fits made before the setting existed used."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -185,6 +192,13 @@ class FitConfig:
         if self.prior_tangent_planes not in ("start", "reference"):
             raise ValueError(f"FitConfig.prior_tangent_planes must be 'start' or 'reference', got "
                              f"{self.prior_tangent_planes!r}")
+        if self.prior_spread_floor is not None and not (math.isfinite(self.prior_spread_floor)
+                                                        and self.prior_spread_floor > 0):
+            raise ValueError(f"FitConfig.prior_spread_floor must be None or finite and > 0, got "
+                             f"{self.prior_spread_floor}")
+        if self.prior_spread_floor is not None and not (self.prior_reference == "sim_ensemble"
+                                                        and self.prior_follows_simulation):
+            object.__setattr__(self, "prior_spread_floor", None)  # unused: recorded as None, as it ran
         if self.prior_information not in PRIOR_INFORMATION_TERMS:
             raise ValueError(f"FitConfig.prior_information must be one of {list(PRIOR_INFORMATION_TERMS)}, got "
                              f"{self.prior_information!r}")
@@ -252,6 +266,8 @@ class FitConfig:
             kw[k] = float(kw[k])
         kw["backward"] = bool(kw["backward"])
         kw["prior_tangential"] = bool(kw["prior_tangential"])
+        if kw["prior_spread_floor"] is not None:
+            kw["prior_spread_floor"] = float(kw["prior_spread_floor"])
         kw["loss"] = "pipeline"
         return apply_variant(cls(**kw), loss or p["loss"])
 

@@ -220,8 +220,8 @@ def cue_notes(cues: FrameCues, flow: FlowTargets | None) -> tuple[FrameCues, Flo
 
 def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: FitConfig | None = None,
               flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None,
-              anchor: AnchorRef | None = None, prior_verts: Tensor | None = None, keep_problem: bool = False
-              ) -> FrameFit:
+              anchor: AnchorRef | None = None, prior_verts: Tensor | None = None, keep_problem: bool = False,
+              prior_scale: Tensor | None = None) -> FrameFit:
     """Fit one frame.
 
     init: (B, 4, 4) starting bone transforms (frame t-1's result, or the first frame's
@@ -232,6 +232,9 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     carry images).
     prior_verts: (V, 3) L_prior's reference at this frame (``cfg.prior_reference`` 'sim'); default: at
     the first frame the start (LBS of ``init``), none after it.
+    prior_scale: (V,) L_prior's factor per vertex at this frame (e.g.
+    :func:`anidress_core.fit.terms.prior.spread_scale`), times that of ``cfg.prior_information``; default 1
+    (method rig, with a reference).
     keep_problem: the result keeps its problem and render windows (``problem``, ``crop``; method rig).
     Never returns non-finite poses: steps with a non-finite loss are rejected, and defective
     cues are handled as :func:`cue_notes` says (views with an empty mask dropped; no view left:
@@ -279,6 +282,11 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         pb = make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts, tangent_mesh=planes)
         if cfg.method == "rig" and not notes.get("no_mask"):
             pb = with_prior_information(pb, x_start)
+        if cfg.method == "rig" and prior_scale is not None and pb.prior is not None:
+            s = torch.as_tensor(prior_scale, device=rig.rest.device).double()
+            if s.shape != (rig.rest.shape[0],) or not bool(torch.isfinite(s).all()) or bool((s < 0).any()):
+                raise ValueError(f"fit_frame: prior_scale must be ({rig.rest.shape[0]},), finite and >= 0")
+            pb = pb._replace(prior_scale=s if pb.prior_scale is None else pb.prior_scale * s)
     if notes.get("no_mask") or cfg.method == "nearest":  # the start evaluated, not optimised
         ev = evaluate(pb, x_start)
         res = FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, 0, not notes.get("no_mask"), [ev.loss],
@@ -383,7 +391,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
                  cfg: FitConfig | None = None, progress: bool = True, log=None,
                  anchor_init: AnchorRef | None = None, proposals_of: Callable[[int], "Proposals"] | None = None,
-                 sim_transforms: Tensor | None = None, starts: Tensor | None = None) -> list[FrameFit]:
+                 sim_transforms: Tensor | None = None, starts: Tensor | None = None,
+                 prior_scales: Tensor | None = None) -> list[FrameFit]:
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
 
     cues_of(t) -> :class:`FrameCues` (with ``image`` for L_anchor); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
@@ -407,7 +416,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     change of every bone, ``sim_transforms[t] @ sim_transforms[t-1]^-1 @ G[t-1]`` (sim_transforms:
     (>= T, B, 4, 4), the rig's transforms of the simulation of the observed motion).
     ``cfg.prior_reference == 'sim'`` (method rig): L_prior at every frame t towards the skinned
-    ``sim_transforms[t]``.
+    ``sim_transforms[t]``, its weight per vertex times ``prior_scales[t]`` ((>= T, V), e.g. the ensemble's
+    :func:`anidress_core.fit.terms.prior.spread_scale`; default 1).
     ``starts`` (>= T, B, 4, 4): every frame t starts from ``starts[t]`` instead (the flow alignment and
     the rest as usual; ``init`` is then ``starts[0]``): an oracle for benchmarks, e.g. the ground
     truth's rig floor, to find the loss's own minimum near it.
@@ -426,6 +436,9 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
         S = torch.as_tensor(sim_transforms, device=rig.rest.device).double()
         if cfg.start == "sim_delta":
             delta = S[1:num_frames] @ invert_transform(S[:num_frames - 1])  # (T - 1, B, 4, 4): t-1 -> t
+    if prior_scales is not None and prior_scales.shape[0] < num_frames:
+        raise ValueError(f"fit_sequence: prior_scales must hold all {num_frames} frames, got "
+                         f"{tuple(prior_scales.shape)}")
 
     use_window = cfg.window > 1 and cfg.method == "rig"
     pairs: list = []  # the current window's coupled flow targets (pair_flow), one per frame so far
@@ -463,7 +476,8 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
             pairs.append(None if t % cfg.window == 0 else pair_flow(targets, out[-1].verts, views))
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor,
                         prior_verts=lbs(rig.rest, rig.weights, S[t]) if cfg.prior_follows_simulation else None,
-                        keep_problem=use_window)
+                        keep_problem=use_window,
+                        prior_scale=None if prior_scales is None or not cfg.prior_follows_simulation else prior_scales[t])
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
         if res.notes and log is not None:

@@ -22,7 +22,8 @@
   (``motions_dir``: ``results/<scene>/motions/<name>.npz``, rule motions), the proposals' database;
 * with ``prior_reference: sim_ensemble`` (the default) ``results/<scene>/sim_ensemble/seq-<seq>.npz``
   (rule simulate_ensemble), the mean of the observed motion simulated at several bending stiffnesses:
-  L_prior's reference and frame 0's start, carried into the rig (:func:`ensemble_transforms`);
+  L_prior's reference and frame 0's start, carried into the rig (:func:`ensemble_transforms`), and with
+  ``prior_spread_floor`` its members' spread, L_prior's weight per vertex (:func:`ensemble_prior_scales`);
 
 and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts,
 the weighted loss and every unweighted term ``loss_<term>`` per frame, with the loss variant
@@ -372,13 +373,20 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         sim_transforms = followed.to(device)
         log.info("fit: L_prior%s follows %s", " and the sim_delta start" if cfg.start == "sim_delta" else "",
                  followed_note)
+    prior_scales = None
+    if cfg.prior_follows_simulation and cfg.prior_reference == "sim_ensemble" and cfg.prior_spread_floor is not None:
+        prior_scales = ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device)
+        followed_note += (f"; L_prior's weight per vertex from the members' spread (prior_spread_floor "
+                          f"{cfg.prior_spread_floor:g})")
+        log.info("fit: L_prior's weight per vertex from the ensemble's spread, factor %.2f-%.2f (median %.2f)",
+                 float(prior_scales.min()), float(prior_scales.max()), float(prior_scales.median()))
     # 7. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
     try:
         res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
                                anchor_init=anchor_init, proposals_of=proposals_of, sim_transforms=sim_transforms,
-                               starts=starts)
+                               starts=starts, prior_scales=prior_scales)
     finally:
         reader.close()
     wall_fit = time.perf_counter() - t_fit
@@ -469,6 +477,24 @@ def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None,
     G = fit_transforms(art.model, X).double()
     k = [m.get("bend_stiffness") for m in s.meta.get("members", [])]
     return G, f"{path}: the mean of {len(k)} simulations (bending stiffness {k} J), rig transforms fitted to it"
+
+
+def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) -> torch.Tensor:
+    """(frames, V) float64 L_prior's factor per frame and vertex from the spread stored with the ensemble's mean
+    at ``path`` (:func:`anidress_core.fit.terms.prior.spread_scale` with ``floor``). Raises, naming the file,
+    when it has no spread (written before the spread was stored: rerun rule simulate_ensemble) or a bad one."""
+    from ..fit.terms.prior import spread_scale
+    from ..io.sim import read_sim
+
+    s = read_sim(path)
+    if s.spread is None:
+        raise files.ArtifactError(f"{path}: no 'spread' (the members' spread about their mean; written by rule "
+                                  "simulate_ensemble since fit/prior_spread_floor exists: rerun it), or set "
+                                  "fit/prior_spread_floor: null")
+    if s.spread.shape[0] < frames or not np.isfinite(s.spread).all() or (s.spread < 0).any():
+        raise files.ArtifactError(f"{path}: spread {tuple(s.spread.shape)} must be finite, >= 0 and hold {frames}+ "
+                                  "frames")
+    return spread_scale(torch.as_tensor(s.spread[:frames], dtype=torch.float64), floor)
 
 
 def gt_template_vertices(scene_dir: str | os.PathLike, seq: str, rest: torch.Tensor, frames: int | None = None):

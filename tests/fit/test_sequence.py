@@ -250,6 +250,14 @@ def test_given_starts_and_a_prior_towards_the_simulated_poses():
     slid = err(fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg.replace(prior_tangential=True),
                                 progress=False, anchor_init=ref, sim_transforms=truth))
     assert all(p < 0.8 * c for p, c in zip(slid, chain)), (chain, slid)
+    # a factor per vertex (prior_scales, e.g. the ensemble's spread_scale): 0 everywhere pulls nowhere (the chain)
+    V = rig.rest.shape[0]
+    free = err(fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg, progress=False,
+                                anchor_init=ref, sim_transforms=truth, prior_scales=torch.zeros(T, V)))
+    assert free == pytest.approx(chain, rel=1e-6), (chain, free)
+    with pytest.raises(ValueError, match="prior_scales"):
+        fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg, progress=False,
+                         sim_transforms=truth, prior_scales=torch.ones(T - 1, V))
     with pytest.raises(ValueError, match="simulated"):
         fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg, progress=False)
     with pytest.raises(ValueError, match="starts"):

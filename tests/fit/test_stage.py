@@ -3,6 +3,7 @@ garment_poses.npz reader/writer (anidress_core.io.garment_poses)."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 
 import numpy as np
 import pytest
@@ -104,6 +105,7 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     assert (gp.terms["prior"] > 0).all()  # L_prior towards the ensemble's mean simulation, every frame
     followed = f"{ensemble(res)}: the mean of 2 simulations (bending stiffness [0.0001, 0.001] J)"
     assert meta["followed_simulation"].startswith(followed) and meta["first_frame_start"].startswith(followed)
+    assert "members' spread (prior_spread_floor 1)" in meta["followed_simulation"]  # L_prior's weight per vertex
     # the rig's own simulation instead (one stiffness): no ensemble read
     meta = run_fit(*args, seq / "normals", params, res / "walk" / "single.npz", ablation="pipeline_single_sim",
                    progress=False)
@@ -112,6 +114,14 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     # the ensemble asked for and missing: the error names it
     with pytest.raises(FileNotFoundError, match="sim_ensemble"):
         run_fit(*args, seq / "normals", params, res / "walk" / "x.npz", progress=False)
+    # an ensemble written without its spread (before it was stored): the error names the file and the fix
+    from anidress_core.io.files import ArtifactError
+    from anidress_core.io.sim import read_sim, write_sim
+
+    bare = res / "walk" / "no_spread.npz"
+    write_sim(bare, dataclasses.replace(read_sim(ensemble(res)), spread=None))
+    with pytest.raises(ArtifactError, match=r"no_spread\.npz: no 'spread'.*simulate_ensemble"):
+        run_fit(*args, seq / "normals", params, res / "walk" / "x.npz", progress=False, sim_ensemble_npz=bare)
     # the fitted transforms reproduce the fitted vertices through the rig (the field stage's contract)
     art = read_rig(res / "rig.npz", dtype=torch.float64)
     x = lbs(art.model.rest, art.model.weights, torch.as_tensor(gp.transforms).double())
@@ -267,7 +277,8 @@ def test_stage_proposals_from_the_simulation_database(tiny_skirt, tmp_path):
 
 def test_the_ensemble_is_the_mean_of_its_members(tiny_skirt, tmp_path):
     """rule simulate_ensemble: the file holds the per-vertex mean of the simulations at each stiffness (each as
-    rule simulate would make it), its members in the header; an empty list of stiffnesses is an error."""
+    rule simulate would make it) and their spread about it, its members in the header; an empty list of
+    stiffnesses is an error."""
     pytest.importorskip("warp")
     from anidress_core.config import section_defaults
     from anidress_core.io.sim import read_sim
@@ -279,7 +290,11 @@ def test_the_ensemble_is_the_mean_of_its_members(tiny_skirt, tmp_path):
                             {**cloth, "bend_stiffness": k}, tmp_path / f"{k:g}.npz", progress=False).frames
                for k in (1e-4, 1e-3)]
     ens = read_sim(ensemble(res))
-    np.testing.assert_allclose(ens.frames, np.mean(np.stack(members).astype(np.float64), axis=0), atol=1e-6)
+    X = np.stack(members).astype(np.float64)
+    np.testing.assert_allclose(ens.frames, X.mean(0), atol=1e-6)
+    # and the members' spread about it, per frame and vertex (L_prior's weight with fit/prior_spread_floor)
+    assert ens.spread.shape == ens.frames.shape[:2] and float(ens.spread.max()) > 0
+    np.testing.assert_allclose(ens.spread, np.sqrt(((X - X.mean(0)) ** 2).sum(-1).mean(0)), atol=1e-6)
     assert [m["bend_stiffness"] for m in ens.meta["members"]] == [1e-4, 1e-3]
     assert ens.max_stretch.shape == (4,) and np.isfinite(ens.frames).all()
     with pytest.raises(ValueError, match="ensemble_bend_stiffness"):

@@ -207,6 +207,27 @@ def test_prior_information_scale():
     assert float(scales[30.0][v].mean()) < float(scales[3.0][v].mean())
 
 
+def test_prior_spread_scale():
+    """spread_scale: mean 1 over each frame's vertices, lower where the ensemble's members disagree more, s0
+    the floor times the median spread (a uniform spread or none at all: 1 everywhere); a bad spread raises."""
+    from anidress_core.fit.terms.prior import spread_scale
+
+    sig = torch.tensor([[0.0, 0.01, 0.02, 0.04], [0.03, 0.03, 0.03, 0.03]], dtype=torch.float64)
+    s = spread_scale(sig, 1.0)
+    torch.testing.assert_close(s.mean(1), torch.ones(2, dtype=torch.float64))
+    assert bool((s[0, 1:] < s[0, :-1]).all())  # more spread, less weight
+    torch.testing.assert_close(s[1], torch.ones(4, dtype=torch.float64))
+    s0 = float(sig.median())  # 0.03: the ratio of two vertices' factors is (sig_j^2 + s0^2) / (sig_i^2 + s0^2)
+    assert float(s[0, 0] / s[0, 3]) == pytest.approx((0.04 ** 2 + s0 ** 2) / s0 ** 2)
+    assert float(spread_scale(sig, 2.0)[0, 0] / spread_scale(sig, 2.0)[0, 3]) < float(s[0, 0] / s[0, 3])  # softer
+    torch.testing.assert_close(spread_scale(torch.zeros(3, 5), 1.0), torch.ones(3, 5, dtype=torch.float64))
+    for bad in (torch.full((2, 3), float("nan")), -torch.ones(2, 3)):
+        with pytest.raises(ValueError, match="finite"):
+            spread_scale(bad, 1.0)
+    with pytest.raises(ValueError, match="floor"):
+        spread_scale(sig, 0.0)
+
+
 def test_anchor():
     """L_anchor on an image whose chromaticity is linear (r + g + b constant, no blur): the bilinear
     sample and the central differences of image_features are exact, so H is the IRLS J^T W J."""

@@ -91,3 +91,27 @@ def information_scale(pb: "Problem", info: Tensor) -> Tensor:
     p = float(pb.w_prior)
     s_b = p / (p + i_b.clamp_min(0))
     return (W @ s_b).clamp(0, 1)
+
+
+def spread_scale(spread: Tensor, floor: float) -> Tensor:
+    """(T, V) float64 L_prior's factor per frame and vertex from an ensemble's spread (ours).
+
+    spread: (T, V) the members' RMS distance from their mean (metres; rule simulate_ensemble).
+    s_tv = 1 / (sigma_tv^2 + sigma_0^2), scaled to a mean of 1 over each frame's vertices, sigma_0 =
+    ``floor`` times the median of sigma over the sequence: where the members agree their mean pulls
+    harder, where they disagree less, and each frame's total weight is that of a uniform L_prior (the
+    spread predicts the mean's error: Spearman 0.48-0.77 per tuning scene, studies/fit/README.md
+    section 17). A sequence whose members all agree (median 0) gets 1 everywhere.
+    """
+    if spread.ndim != 2:
+        raise ValueError(f"spread_scale: spread must be (T, V), got {tuple(spread.shape)}")
+    if not floor > 0:
+        raise ValueError(f"spread_scale: floor must be > 0, got {floor}")
+    if not bool(torch.isfinite(spread).all()) or bool((spread < 0).any()):
+        raise ValueError("spread_scale: spread must be finite and >= 0")
+    s2 = spread.double() ** 2
+    s0 = floor * float(s2.sqrt().median())
+    if s0 <= 0:
+        return torch.ones_like(s2)
+    s = 1.0 / (s2 + s0 ** 2)
+    return s / s.mean(1, keepdim=True)
