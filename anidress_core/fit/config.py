@@ -174,8 +174,8 @@ class FitConfig:
     sim_ensemble only, and stored as None otherwise; :func:`anidress_core.fit.terms.prior.spread_scale`):
     the factor 1 / (sigma^2 + sigma_0^2), mean 1 over each frame's vertices, sigma the members' RMS
     distance from their mean, sigma_0 this value times its median over the sequence; None = one weight
-    for every vertex (studies/fit/README.md section 17). The config's default is set; this
-    field's default is what fits made before the setting existed used."""
+    for every vertex (studies/fit/README.md section 17). The config's default is 1.0; this field's
+    default is what fits made before the setting existed used."""
 
     def __post_init__(self):
         from .variants import VARIANTS

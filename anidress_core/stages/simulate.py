@@ -135,8 +135,9 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
     studies/fit section 16). Every other cloth parameter is ``cloth_cfg``'s. ``frames`` (T, V, 3) is the
     per-vertex mean over the members, ``spread`` (T, V) the members' RMS distance from it (the fit's
     L_prior pulls less where they disagree, ``fit/prior_spread_floor``); the stability statistics per
-    frame are the worst member's; the header's ``members`` lists each member's stiffness, NaN count, recoveries and wall time. Raises when
-    a member's frames hold a non-finite value (no member is dropped silently).
+    frame are the worst member's; the header's ``members`` lists each member's stiffness, NaN count,
+    recoveries and wall time. Raises when a member's frames hold a non-finite value (no member is
+    dropped silently).
     """
     if not bend_stiffness:
         raise ValueError("simulate_ensemble: simulate/ensemble_bend_stiffness is empty")
