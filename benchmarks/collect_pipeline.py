@@ -40,8 +40,8 @@ def _rule_of(rel: Path) -> tuple[str, str]:
     """(rule, instance) of a benchmark file path relative to benchmarks/runs/<scene>."""
     parts = rel.with_suffix("").parts
     name = parts[-1]
-    if parts[0] == "simulate":
-        return "simulate", name
+    if parts[0] in ("simulate", "simulate_ensemble"):
+        return parts[0], name
     if name in ("synth", "template", "rig", "validate_scene"):
         return name, ""
     if len(parts) >= 3 and parts[1] in ("full", "body_only"):

@@ -161,3 +161,16 @@ def test_fit_reuse_fills_a_setting_added_since_only_at_its_legacy_value():
     for name, off in (("pipeline_no_stretch", True), ("paper", True), ("pipeline", False)):
         used = dataclasses.asdict(FitConfig.from_config({}, name))
         assert (with_new_settings(stored_before(FitConfig.from_config({}, name)), used) == used) is off, name
+
+
+def test_collect_pipeline_names_the_rule_of_each_benchmark_file():
+    """benchmarks/runs/<scene>/...: the rule of a benchmark file from its path (the ensemble's jobs under their rule,
+    not under their sequence's name)."""
+    from pathlib import Path
+
+    from benchmarks.collect_pipeline import _rule_of
+
+    assert _rule_of(Path("simulate/seq-walk.tsv")) == ("simulate", "seq-walk")
+    assert _rule_of(Path("simulate_ensemble/seq-walk.tsv")) == ("simulate_ensemble", "seq-walk")
+    assert _rule_of(Path("rig.tsv")) == ("rig", "")
+    assert _rule_of(Path("walk/full/train.tsv")) == ("train_field", "walk/full/train")
