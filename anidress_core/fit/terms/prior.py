@@ -8,8 +8,9 @@ surface counts; the images place the surface), n_v the vertex normal of the fram
 observe a nearly rotationally symmetric garment sliding about the body, and at frame 0 there is
 no flow); ``sim``, every frame, the rig's simulated pose of the observed motion at that frame;
 ``sim_ensemble``, every frame, the mean of the simulations at several bending stiffnesses.
-Weight ``fit/weights/prior`` (0 = off, the paper's loss), times a factor s_v in (0, 1] per vertex
-with ``fit/prior_information`` (:func:`information_scale`; 1 without). Residual sqrt(w s_v / V) P (x - x_ref);
+Weight ``fit/weights/prior`` (0 = off, the paper's loss), times a factor s_v per vertex: with
+``fit/prior_information`` in (0, 1] (:func:`information_scale`), with ``fit/prior_spread_floor`` the
+ensemble's (:func:`spread_scale`, mean 1), their product, 1 without. Residual sqrt(w s_v / V) P (x - x_ref);
 P is symmetric and idempotent, so its Gauss-Newton block on each vertex is w s_v / V P.
 """
 from __future__ import annotations
