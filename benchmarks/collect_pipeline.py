@@ -36,7 +36,7 @@ def _tsv(path: Path) -> dict:
     return {"wall_s": float(r["s"]), "cpu_s": float(r["cpu_time"]), "max_rss_mb": float(r["max_rss"])}
 
 
-def _rule_of(rel: Path) -> tuple[str, str]:
+def rule_of(rel: Path) -> tuple[str, str]:
     """(rule, instance) of a benchmark file path relative to benchmarks/runs/<scene>."""
     parts = rel.with_suffix("").parts
     name = parts[-1]
@@ -61,7 +61,7 @@ def _scene_sections(scene: str) -> tuple[list[str], list[dict], int, float, floa
     runs = ROOT / "benchmarks" / "runs" / scene
     jobs = []
     for p in sorted(runs.rglob("*.tsv")):
-        rule, inst = _rule_of(p.relative_to(runs))
+        rule, inst = rule_of(p.relative_to(runs))
         jobs.append({"rule": rule, "instance": inst, **_tsv(p)})
     per_rule: dict[str, dict] = {}
     for j in jobs:

@@ -168,9 +168,9 @@ def test_collect_pipeline_names_the_rule_of_each_benchmark_file():
     not under their sequence's name)."""
     from pathlib import Path
 
-    from benchmarks.collect_pipeline import _rule_of
+    from benchmarks.collect_pipeline import rule_of
 
-    assert _rule_of(Path("simulate/seq-walk.tsv")) == ("simulate", "seq-walk")
-    assert _rule_of(Path("simulate_ensemble/seq-walk.tsv")) == ("simulate_ensemble", "seq-walk")
-    assert _rule_of(Path("rig.tsv")) == ("rig", "")
-    assert _rule_of(Path("walk/full/train.tsv")) == ("train_field", "walk/full/train")
+    assert rule_of(Path("simulate/seq-walk.tsv")) == ("simulate", "seq-walk")
+    assert rule_of(Path("simulate_ensemble/seq-walk.tsv")) == ("simulate_ensemble", "seq-walk")
+    assert rule_of(Path("rig.tsv")) == ("rig", "")
+    assert rule_of(Path("walk/full/train.tsv")) == ("train_field", "walk/full/train")
