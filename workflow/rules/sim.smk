@@ -93,6 +93,8 @@ rule simulate_ensemble:
     params:
         cloth=config["simulate"]["cloth"],
         bend_stiffness=config["simulate"]["ensemble_bend_stiffness"],
+        # the arrays the file holds: files written before `spread` existed are remade (params rerun trigger)
+        arrays=["frames", "spread"],
     threads: 1
     priority: 2  # the garment chain (cues, motions, simulate, rig, fit, then the full field) is the demo's longest: first
     resources:
