@@ -374,7 +374,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         log.info("fit: L_prior%s follows %s", " and the sim_delta start" if cfg.start == "sim_delta" else "",
                  followed_note)
     prior_scales = None
-    if cfg.prior_follows_simulation and cfg.prior_reference == "sim_ensemble" and cfg.prior_spread_floor is not None:
+    if cfg.prior_spread_floor is not None:  # set only where L_prior follows the ensemble (FitConfig)
         prior_scales = ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device)
         followed_note += (f"; L_prior's weight per vertex from the members' spread (prior_spread_floor "
                           f"{cfg.prior_spread_floor:g})")
@@ -491,10 +491,12 @@ def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) ->
         raise files.ArtifactError(f"{path}: no 'spread' (the members' spread about their mean; written by rule "
                                   "simulate_ensemble since fit/prior_spread_floor exists: rerun it), or set "
                                   "fit/prior_spread_floor: null")
-    if s.spread.shape[0] < frames or not np.isfinite(s.spread).all() or (s.spread < 0).any():
-        raise files.ArtifactError(f"{path}: spread {tuple(s.spread.shape)} must be finite, >= 0 and hold {frames}+ "
-                                  "frames")
-    return spread_scale(torch.as_tensor(s.spread[:frames], dtype=torch.float64), floor)
+    if s.spread.shape[0] < frames:
+        raise files.ArtifactError(f"{path}: spread {tuple(s.spread.shape)} must hold {frames}+ frames")
+    try:
+        return spread_scale(torch.as_tensor(s.spread[:frames], dtype=torch.float64), floor)
+    except ValueError as e:  # a non-finite or negative spread: named with its file
+        raise files.ArtifactError(f"{path}: {e}") from e
 
 
 def gt_template_vertices(scene_dir: str | os.PathLike, seq: str, rest: torch.Tensor, frames: int | None = None):
