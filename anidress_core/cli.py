@@ -59,7 +59,7 @@ def _cmd_simulate(args: argparse.Namespace) -> None:
         from .stages.simulate import run_simulate_ensemble
 
         run_simulate_ensemble(args.template, args.motion, args.scene_dir, sim["cloth"], sim["ensemble_bend_stiffness"],
-                              args.out, progress=not args.quiet)
+                              args.out, progress=not args.quiet, settle_frames=sim["ensemble_settle_frames"])
     else:
         run_simulate(args.template, args.motion, args.scene_dir, sim["cloth"], args.out, progress=not args.quiet)
     print(args.out)
@@ -384,7 +384,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scene_dir", help="data/<scene> (for its body model)")
     s.add_argument("--config", default="config/config.yaml", help="cloth parameters: simulate/cloth")
     s.add_argument("--ensemble", action="store_true", help="simulate once per simulate/ensemble_bend_stiffness and "
-                                                           "write the members' mean (rule simulate_ensemble)")
+                                                           "ensemble_settle_frames and write the members' mean "
+                                                           "(rule simulate_ensemble)")
     s.add_argument("-o", "--out", required=True, help="output .npz")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_simulate)

@@ -66,7 +66,8 @@ SIM_DESCRIPTION = ("reference, no fit: the rig driven by its simulated poses of 
 #: the reference that is no fit either: the rig driven by the stiffness ensemble's mean simulation
 SIM_ENSEMBLE = "sim_ensemble"
 SIM_ENSEMBLE_DESCRIPTION = ("reference, no fit: the rig driven by the mean of the simulations of the sequence at "
-                            "simulate/ensemble_bend_stiffness (results/<scene>/sim_ensemble/seq-<sequence>.npz, "
+                            "simulate/ensemble_bend_stiffness x ensemble_settle_frames "
+                            "(results/<scene>/sim_ensemble/seq-<sequence>.npz, "
                             "rig.fit_transforms of its frames: L_prior's reference; no fps)")
 SIM_REFS = (SIM, SIM_ENSEMBLE)
 #: the bound that is no method: the pipeline with every frame started from the rig floor (an oracle)
@@ -193,9 +194,10 @@ def ensemble_npz(scene: str, seq: str) -> str:
     return f"results/{scene}/sim_ensemble/seq-{seq}.npz"
 
 
-def reusable(path: Path, method: str, params: dict) -> bool:
+def reusable(path: Path, method: str, params: dict, ensemble: str | None = None) -> bool:
     """Whether ``path`` holds a fit of variant ``method`` made with exactly ``params`` and the same
-    settings as used (``FitConfig`` of the variant now; the header's ``config``)."""
+    settings as used (``FitConfig`` of the variant now; the header's ``config``), and, where the variant
+    follows the stiffness ensemble, one with the same members as the file ``ensemble`` now."""
     if not path.is_file():
         return False
     from anidress_core.config import section_defaults
@@ -207,6 +209,14 @@ def reusable(path: Path, method: str, params: dict) -> bool:
     oracle = method == OPTIMUM
     # and the settings as used the same as the variant's now (a default changed since changes them)
     used = dataclasses.asdict(FitConfig.from_config(params, OPTIMUM_OF if oracle else method))
+    # what the fit read of the ensemble (L_prior's reference, frame 0's start) says which members it had
+    read = " ".join(meta.get(k) or "" for k in ("followed_simulation", "first_frame_start"))
+    if "simulations (bending stiffness" in read:
+        from anidress_core.io.sim import read_sim
+        from anidress_core.stages.fit import ensemble_note
+
+        if ensemble is None or not Path(ensemble).is_file() or ensemble_note(read_sim(ensemble).meta) not in read:
+            return False
     return (meta.get("loss") == (OPTIMUM_OF if oracle else method) and bool(meta.get("starts")) == oracle
             and full(meta.get("params")) == full(params)
             and key(with_new_settings(meta.get("config") or {}, used)) == key(used))
@@ -357,7 +367,7 @@ def main() -> None:
                         p = dict(params, views=nv)
                         if args.frames:
                             p["frames"] = args.frames
-                        if not (args.reuse and reusable(out, method, p)):
+                        if not (args.reuse and reusable(out, method, p, ensemble_npz(scene, seq))):
                             t0 = time.perf_counter()
                             oracle = method == OPTIMUM
                             run_fit(f"data/{scene}", seq, rig, f"results/{scene}/template.npz", dirs["masks"],

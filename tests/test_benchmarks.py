@@ -163,6 +163,35 @@ def test_fit_reuse_fills_a_setting_added_since_only_at_its_legacy_value():
         assert (with_new_settings(stored_before(FitConfig.from_config({}, name)), used) == used) is off, name
 
 
+def test_fit_reuse_needs_the_same_ensemble_members(tmp_path, monkeypatch):
+    """bench_fit --reuse: a stored fit that followed the stiffness ensemble stands for the variant only while the
+    ensemble file has the same members (a change of simulate/ensemble_* remakes the file, not the fit's settings)."""
+    import dataclasses
+
+    import numpy as np
+
+    import benchmarks.bench_fit as bf
+    from anidress_core.fit import FitConfig
+    from anidress_core.io.sim import SimSequence, write_sim
+    from anidress_core.stages.fit import ensemble_note
+
+    def members(settles):
+        return {"members": [{"bend_stiffness": k, "settle_frames": n} for k in (1e-4, 1e-3) for n in settles]}
+
+    ens = tmp_path / "seq-walk.npz"
+    write_sim(ens, SimSequence(frames=np.zeros((2, 3, 3), np.float32), meta=members([30])))
+    cfg = dataclasses.asdict(FitConfig.from_config({}, "pipeline"))
+    stored = {"loss": "pipeline", "params": {}, "config": cfg, "starts": None,
+              "followed_simulation": f"{ens}: {ensemble_note(members([30]))}, rig transforms fitted to it"}
+    fit = tmp_path / "garment_poses.npz"
+    fit.write_bytes(b"")
+    monkeypatch.setattr(bf, "load_garment_poses", lambda path: (None, {"meta": stored}))
+    assert bf.reusable(fit, "pipeline", {}, str(ens))
+    write_sim(ens, SimSequence(frames=np.zeros((2, 3, 3), np.float32), meta=members([20, 40])))
+    assert not bf.reusable(fit, "pipeline", {}, str(ens))
+    assert not bf.reusable(fit, "pipeline", {}, None)
+
+
 def test_collect_pipeline_names_the_rule_of_each_benchmark_file():
     """benchmarks/runs/<scene>/...: the rule of a benchmark file from its path (the ensemble's jobs under their rule,
     not under their sequence's name)."""

@@ -24,7 +24,7 @@ from tests.test_import_zju import write_zju_capture
 from tests.workflow.tiny import job_counts
 
 REPO = Path(__file__).resolve().parents[1]
-SETTINGS = {"template": {"vertices": 300}, "simulate": {"library": [], "cloth": {"settle_frames": 3}, "ensemble_bend_stiffness": [1.0e-4, 1.0e-3]},
+SETTINGS = {"template": {"vertices": 300}, "simulate": {"library": [], "cloth": {"settle_frames": 3}, "ensemble_bend_stiffness": [1.0e-4, 1.0e-3], "ensemble_settle_frames": []},
             "rig": {"bones": 4, "iters": 3}, "field": {"render": {"library": []}},
             "fit": {"max_iters": 2, "max_iters_first": 3, "views": 2}}
 

@@ -475,8 +475,18 @@ def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None,
     if not torch.isfinite(X).all():
         raise files.ArtifactError(f"{path}: non-finite vertices")
     G = fit_transforms(art.model, X).double()
-    k = [m.get("bend_stiffness") for m in s.meta.get("members", [])]
-    return G, f"{path}: the mean of {len(k)} simulations (bending stiffness {k} J), rig transforms fitted to it"
+    return G, f"{path}: {ensemble_note(s.meta)}, rig transforms fitted to it"
+
+
+def ensemble_note(meta: dict) -> str:
+    """What an ensemble file's members are, from its header's ``meta`` (:func:`read_sim`'s): the line the fit
+    records as the simulation it followed, and by which benchmarks.bench_fit tells whether a stored fit followed
+    the same ensemble."""
+    ms = meta.get("members", [])
+    k = sorted({m.get("bend_stiffness") for m in ms})
+    n = sorted({m.get("settle_frames") for m in ms if m.get("settle_frames") is not None})
+    return (f"the mean of {len(ms)} simulations (bending stiffness {k} J"
+            + (f", settle frames {n}" if n else "") + ")")
 
 
 def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) -> torch.Tensor:

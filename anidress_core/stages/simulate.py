@@ -8,8 +8,8 @@ procedural library and any configured AMASS files, each written as
 ``frames`` (T, V, 3) float32 and per-frame stability statistics, with the cloth
 parameters in the header (:mod:`anidress_core.io.sim`).
 ``simulate_ensemble``: a captured sequence's motion simulated once per bending stiffness of
-``simulate/ensemble_bend_stiffness``, ``sim_ensemble/seq-<sequence>.npz`` holding the mean of the
-members' frames (the fit's L_prior follows it, ``fit/prior_reference: sim_ensemble``).
+``simulate/ensemble_bend_stiffness`` and settle length of ``simulate/ensemble_settle_frames``,
+``sim_ensemble/seq-<sequence>.npz`` holding the mean of the members' frames and their spread (the fit's L_prior follows it, ``fit/prior_reference: sim_ensemble``).
 """
 from __future__ import annotations
 
@@ -126,34 +126,46 @@ def run_simulate(template_npz: str | os.PathLike, motion_npz: str | os.PathLike,
 
 def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.PathLike,
                           scene_dir: str | os.PathLike, cloth_cfg: dict, bend_stiffness: list[float],
-                          out_npz: str | os.PathLike, progress: bool = True) -> SimSequence:
-    """Simulate one motion once per bending stiffness (J) and write the members' mean to ``out_npz``.
+                          out_npz: str | os.PathLike, progress: bool = True,
+                          settle_frames: list[int] | None = None) -> SimSequence:
+    """Simulate one motion once per bending stiffness (J) and settle length and write the members' mean to
+    ``out_npz``.
 
-    The cloth of a capture is not the simulator's material: the garment's motion under an unknown
-    bending stiffness is estimated by the mean over an ensemble of stiffnesses (after the
-    stiffness ensemble of Pan et al. 2022, SIGGRAPH; the mean as the fit's L_prior reference is ours,
-    studies/fit section 16). Every other cloth parameter is ``cloth_cfg``'s. ``frames`` (T, V, 3) is the
+    The cloth of a capture is not the simulator's material, and its state when the capture starts is
+    unknown: the garment's motion is estimated by the mean over an ensemble of bending stiffnesses
+    (after the stiffness ensemble of Pan et al. 2022, SIGGRAPH; the mean as the fit's L_prior reference
+    is ours, studies/fit section 16), each started by ``settle_frames`` frames of blending from the
+    T-pose into the first pose (``ClothParams.settle_frames``; several lengths give several states at
+    frame 0, studies/fit section 18; None or [] = ``cloth_cfg``'s alone). Members: every stiffness at
+    every settle length. Every other cloth parameter is ``cloth_cfg``'s. ``frames`` (T, V, 3) is the
     per-vertex mean over the members, ``spread`` (T, V) the members' RMS distance from it (the fit's
     L_prior pulls less where they disagree, ``fit/prior_spread_floor``); the stability statistics per
-    frame are the worst member's; the header's ``members`` lists each member's stiffness, NaN count,
-    recoveries and wall time. Raises when a member's frames hold a non-finite value (no member is
-    dropped silently).
+    frame are the worst member's; the header's ``members`` lists each member's stiffness, settle
+    length, NaN count, recoveries and wall time. Raises when a member's frames hold a non-finite value
+    (no member is dropped silently).
     """
     if not bend_stiffness:
         raise ValueError("simulate_ensemble: simulate/ensemble_bend_stiffness is empty")
+    base = sim.ClothParams(**cloth_cfg)
+    settles = [int(n) for n in settle_frames] if settle_frames else [base.settle_frames]
+    if any(n < 0 for n in settles):
+        raise ValueError(f"simulate_ensemble: simulate/ensemble_settle_frames must be >= 0, got {settles}")
     x = _inputs(template_npz, motion_npz, scene_dir)
     tpl, motion = x.tpl, x.motion
     frames, stats, members = [], [], []
     for k in bend_stiffness:
-        params = sim.ClothParams(**{**cloth_cfg, "bend_stiffness": float(k)})
-        res = _simulate(x, params, progress, f"{motion.name} at bending stiffness {k:g} J")
-        if not np.isfinite(res.frames).all():
-            raise FloatingPointError(f"{motion_npz}: the simulation with bending stiffness {k:g} J has non-finite "
-                                     f"vertices ({int(res.stats.nan_count.sum())} NaN counted)")
-        frames.append(res.frames.astype(np.float64))
-        stats.append(res.stats)
-        members.append({"bend_stiffness": float(k), "nan_count": int(res.stats.nan_count.sum()),
-                        "recoveries": res.stats.recoveries, "wall_s": res.stats.wall_s})
+        for n in settles:
+            params = dataclasses.replace(base, bend_stiffness=float(k), settle_frames=n)
+            res = _simulate(x, params, progress, f"{motion.name} at bending stiffness {k:g} J, {n} settle frames")
+            if not np.isfinite(res.frames).all():
+                raise FloatingPointError(f"{motion_npz}: the simulation with bending stiffness {k:g} J, {n} settle "
+                                         f"frames has non-finite vertices ({int(res.stats.nan_count.sum())} NaN "
+                                         "counted)")
+            frames.append(res.frames.astype(np.float64))
+            stats.append(res.stats)
+            members.append({"bend_stiffness": float(k), "settle_frames": n,
+                            "nan_count": int(res.stats.nan_count.sum()), "recoveries": res.stats.recoveries,
+                            "wall_s": res.stats.wall_s})
     worst = lambda name: np.max(np.stack([getattr(st, name) for st in stats]), axis=0)  # noqa: E731
     X = np.stack(frames)  # (M, T, V, 3)
     mean = X.mean(axis=0)
@@ -162,8 +174,9 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
                       max_stretch=worst("max_stretch"), p99_stretch=worst("p99_stretch"),
                       max_penetration_m=worst("max_penetration_m"), nan_count=worst("nan_count"),
                       substeps=worst("substeps"),
-                      meta={"motion": motion.name, "params": dataclasses.asdict(sim.ClothParams(**cloth_cfg)),
-                            "ensemble": "mean over bend_stiffness", "members": members,
+                      meta={"motion": motion.name, "params": dataclasses.asdict(base),
+                            "ensemble": "mean over bend_stiffness x settle_frames", "members": members,
                             "wall_s": float(sum(m["wall_s"] for m in members))})
-    write_sim(out_npz, out, config={"cloth": cloth_cfg, "ensemble_bend_stiffness": [float(k) for k in bend_stiffness]})
+    write_sim(out_npz, out, config={"cloth": cloth_cfg, "ensemble_bend_stiffness": [float(k) for k in bend_stiffness],
+                                    "ensemble_settle_frames": settles})
     return out

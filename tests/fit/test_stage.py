@@ -103,7 +103,7 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     stored_loss_is_the_weighted_sum(gp)
     assert (gp.terms["anchor"] > 0).all() and "texture.png" in meta["anchor_reference"]  # texture refs: from frame 0
     assert (gp.terms["prior"] > 0).all()  # L_prior towards the ensemble's mean simulation, every frame
-    followed = f"{ensemble(res)}: the mean of 2 simulations (bending stiffness [0.0001, 0.001] J)"
+    followed = f"{ensemble(res)}: the mean of 2 simulations (bending stiffness [0.0001, 0.001] J, settle frames [4])"
     assert meta["followed_simulation"].startswith(followed) and meta["first_frame_start"].startswith(followed)
     assert "members' spread (prior_spread_floor 1)" in meta["followed_simulation"]  # L_prior's weight per vertex
     # the rig's own simulation instead (one stiffness): no ensemble read
@@ -300,3 +300,32 @@ def test_the_ensemble_is_the_mean_of_its_members(tiny_skirt, tmp_path):
     with pytest.raises(ValueError, match="ensemble_bend_stiffness"):
         run_simulate_ensemble(res / "template.npz", res / "motions" / "seq-walk.npz", data, cloth, [],
                               tmp_path / "e.npz", progress=False)
+
+
+def test_the_ensemble_has_every_stiffness_at_every_settle_length(tiny_skirt, tmp_path):
+    """simulate/ensemble_settle_frames: one member per stiffness and settle length (several garment states at
+    frame 0), each as rule simulate makes it with that cloth/settle_frames; the header and the fit's note name
+    them; a negative length is an error."""
+    pytest.importorskip("warp")
+    from anidress_core.config import section_defaults
+    from anidress_core.io.sim import read_sim
+    from anidress_core.stages.fit import ensemble_note
+    from anidress_core.stages.simulate import run_simulate, run_simulate_ensemble
+
+    data, res = tiny_skirt
+    cloth = tiny_cloth({"simulate": section_defaults("simulate", {})})
+    motion = res / "motions" / "seq-walk.npz"
+    members = [run_simulate(res / "template.npz", motion, data, {**cloth, "bend_stiffness": 1e-3, "settle_frames": n},
+                            tmp_path / f"{n}.npz", progress=False).frames for n in (2, 6)]
+    assert not np.allclose(members[0], members[1], atol=1e-4)  # another start, another motion
+    out = run_simulate_ensemble(res / "template.npz", motion, data, cloth, [1e-3], tmp_path / "e.npz",
+                                progress=False, settle_frames=[2, 6])
+    np.testing.assert_allclose(read_sim(tmp_path / "e.npz").frames, np.stack(members).astype(np.float64).mean(0),
+                               atol=1e-6)
+    assert [(m["bend_stiffness"], m["settle_frames"]) for m in out.meta["members"]] == [(1e-3, 2), (1e-3, 6)]
+    assert ensemble_note(out.meta) == "the mean of 2 simulations (bending stiffness [0.001] J, settle frames [2, 6])"
+    # [] (or None): the cloth's own settle length alone, as before
+    assert [m["settle_frames"] for m in read_sim(ensemble(res)).meta["members"]] == [4, 4]
+    with pytest.raises(ValueError, match="ensemble_settle_frames"):
+        run_simulate_ensemble(res / "template.npz", motion, data, cloth, [1e-3], tmp_path / "f.npz", progress=False,
+                              settle_frames=[-1])

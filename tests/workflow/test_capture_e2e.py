@@ -40,7 +40,7 @@ SCENE = {"kind": "skirt", "image_size": [48, 40], "fps": 3.0, "cameras": {"count
 # tiny stage settings (as tests/workflow/tiny.py and tests/test_import_zju_workflow.py)
 SETTINGS = {"template": {"vertices": 300},
             "simulate": {"library": ["sway"], "library_frames": 5, "cloth": {"settle_frames": 3},
-                         "ensemble_bend_stiffness": [1.0e-4, 1.0e-3]},
+                         "ensemble_bend_stiffness": [1.0e-4, 1.0e-3], "ensemble_settle_frames": []},
             "rig": {"bones": 4, "iters": 3}, "fit": {"max_iters": 2, "max_iters_first": 3},
             "field": {"train": {"steps": 20, "rays_per_step": 256, "images_per_step": 4, "checkpoint_every": 10},
                       "render": {"frame_stride": 2, "library": ["sway"], "library_frame_stride": 2}}}

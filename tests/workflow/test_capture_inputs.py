@@ -27,7 +27,7 @@ from tests.workflow.tiny import job_counts
 REPO = Path(__file__).resolve().parents[2]
 CFG = {"run_scenes": ["cap"],
        "scenes": {"cap": {"synthetic": False, "kind": "skirt", "sequences": [{"name": "walk", "frames": 3}]}},
-       "simulate": {"library": [], "amass": ["amass/clip.npz"], "ensemble_bend_stiffness": [1.0e-4, 1.0e-3]}, "field": {"render": {"library": []}}}
+       "simulate": {"library": [], "amass": ["amass/clip.npz"], "ensemble_bend_stiffness": [1.0e-4, 1.0e-3], "ensemble_settle_frames": []}, "field": {"render": {"library": []}}}
 DIRECTORY_RULES = {"undistort", "masks", "flows", "render_novel_view", "render_novel_pose", "render_library"}
 # what reads the cameras and images of a distorted sequence, and everything after it (the rig reads no scene file)
 CAMERA_JOBS = {"scene_files": 1, "validate_scene": 1, "undistort": 1, "flows": 1, "normals": 1, "fit": 1, "train_field": 2,

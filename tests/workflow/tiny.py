@@ -36,7 +36,7 @@ TINY = {
     },
     "template": {"vertices": 600},
     "simulate": {"library": ["sway"], "library_frames": 5, "cloth": {"settle_frames": 5},
-                 "ensemble_bend_stiffness": [1.0e-4, 1.0e-3]},
+                 "ensemble_bend_stiffness": [1.0e-4, 1.0e-3], "ensemble_settle_frames": [3, 6]},
     "rig": {"bones": 6, "iters": 10},
     "fit": {"max_iters": 5, "max_iters_first": 10},
     "field": {

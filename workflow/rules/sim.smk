@@ -93,6 +93,7 @@ rule simulate_ensemble:
     params:
         cloth=config["simulate"]["cloth"],
         bend_stiffness=config["simulate"]["ensemble_bend_stiffness"],
+        settle_frames=config["simulate"]["ensemble_settle_frames"],
         # the arrays the file holds: files written before `spread` existed are remade (params rerun trigger)
         arrays=["frames", "spread"],
     threads: 1
