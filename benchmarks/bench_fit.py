@@ -62,7 +62,8 @@ SUITE_WORST_8, SUITE_DRIFT = 2.5, 1.3
 #: the reference that is no fit: the rig driven by its simulated poses of the sequence
 SIM = "sim"
 SIM_DESCRIPTION = ("reference, no fit: the rig driven by its simulated poses of the sequence "
-                   "(rig.transforms_of('seq-<sequence>'), the cloth simulator alone; no fps)")
+                   "(rig.transforms_of('seq-<sequence>'), the cloth simulator alone, started by simulate/cloth/"
+                   "settle_frames as rule synth starts a synthetic scene's truth, which a capture does not give; no fps)")
 #: the reference that is no fit either: the rig driven by the stiffness ensemble's mean simulation
 SIM_ENSEMBLE = "sim_ensemble"
 SIM_ENSEMBLE_DESCRIPTION = ("reference, no fit: the rig driven by the mean of the simulations of the sequence at "
