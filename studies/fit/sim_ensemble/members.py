@@ -2,7 +2,10 @@
 members' mean's vertex RMSE against the ground truth through the rig (``rig.fit_transforms`` of the frames, as
 the fit's L_prior sees a simulation), over the rig floor's, mean over frames. The other cloth parameters are
 config/config.yaml's ``simulate/cloth`` (the pipeline's). ``--true`` adds the scene's own stiffness (an oracle:
-the suite file's ``garment/cloth/bend_stiffness``). Members are written to ``--out`` and reused.
+the suite file's ``garment/cloth/bend_stiffness``). ``--vary NAME=V1,V2`` simulates every stiffness again with
+the cloth parameter NAME at each value (e.g. ``damping``, ``friction``, ``settle_frames``: members that differ in
+more than the stiffness) and adds the mean over the stiffnesses at each value ('mean@NAMEvalue'), at all the
+values ('mean@NAMEv1+v2') and at them and the config's value ('mean+NAME'). Members are written to ``--out`` and reused.
 
     PYTHONPATH=. .venv/bin/python studies/fit/sim_ensemble/members.py --suite config/fit_suite.yaml \\
         --bend 1e-4,3e-4,1e-3,3e-3,1e-2 --true --out /tmp/members suite_00 suite_03 > members.txt
@@ -26,8 +29,9 @@ from anidress_core.stages.fit import gt_template_vertices  # noqa: E402
 from anidress_core.stages.simulate import run_simulate  # noqa: E402
 
 
-def member_path(out: Path, scene: str, seq: str, bend: float) -> Path:
-    return out / f"{scene}-{seq}-{bend:g}.npz"
+def member_path(out: Path, scene: str, seq: str, bend: float, extra: tuple[str, float] | None = None) -> Path:
+    tag = "" if extra is None else f"-{extra[0]}{extra[1]:g}"
+    return out / f"{scene}-{seq}-{bend:g}{tag}.npz"
 
 
 def main() -> None:
@@ -36,6 +40,8 @@ def main() -> None:
     ap.add_argument("--bend", default="1e-4,3e-4,1e-3,3e-3,1e-2", help="the members' bending stiffnesses (J)")
     ap.add_argument("--true", action="store_true", help="also simulate at the scene's own stiffness (oracle)")
     ap.add_argument("--out", required=True, help="folder of the members (<scene>-<seq>-<bend>.npz)")
+    ap.add_argument("--vary", action="append", default=[],
+                    help="NAME=V1,V2: every stiffness also at these values of cloth parameter NAME (repeatable)")
     ap.add_argument("scenes", nargs="+")
     a = ap.parse_args()
     suite = yaml.safe_load(Path(a.suite).read_text())["scenes"]
@@ -70,6 +76,24 @@ def main() -> None:
             frames[b] = torch.as_tensor(np.load(p)["frames"]).double()
         mean = torch.stack([frames[b] for b in bends]).mean(0)
         cells = [f"{b:g}: {ratio(frames[b]):.2f}" for b in bends] + [f"mean: {ratio(mean):.2f}"]
+        for v in a.vary:
+            name, vals = v.split("=")
+            extra = []
+            for val in (float(x) for x in vals.split(",")):
+                at = []
+                for b in bends:
+                    p = member_path(out, scene, seq, b, (name, val))
+                    if not p.is_file():
+                        kind = int if name == "settle_frames" else float
+                        run_simulate(f"results/{scene}/template.npz", f"results/{scene}/motions/seq-{seq}.npz",
+                                     f"data/{scene}", {**cloth, "bend_stiffness": b, name: kind(val)}, p,
+                                     progress=False)
+                    at.append(torch.as_tensor(np.load(p)["frames"]).double())
+                cells.append(f"mean@{name}{val:g}: {ratio(torch.stack(at).mean(0)):.2f}")
+                extra += at
+            every = torch.stack([frames[b] for b in bends] + extra).mean(0)
+            cells.append(f"mean@{name}{vals.replace(',', '+')}: {ratio(torch.stack(extra).mean(0)):.2f}")
+            cells.append(f"mean+{name}: {ratio(every):.2f}")
         if a.true:
             cells.append(f"true {true:g}: {ratio(frames[true]):.2f}")
         print(f"{scene}/{seq}  " + "  ".join(cells), flush=True)
