@@ -13,8 +13,9 @@ truth is not the rig's own soft material, 1e-4 J) and the normal degradation (bl
 noise 0.03-0.08).
 
     .venv/bin/python -m benchmarks.fit_suite --seed 24 --prefix heldout --out config/fit_heldout.yaml
-    snakemake --workflow-profile profiles/default --configfile config/config.yaml config/fit_heldout.yaml \\
-        $(.venv/bin/python -m benchmarks.fit_suite --seed 24 --prefix heldout --targets)  # scenes, rigs, cues
+    snakemake --workflow-profile profiles/default \\
+        $(.venv/bin/python -m benchmarks.fit_suite --seed 24 --prefix heldout --targets) \\
+        --configfile config/config.yaml config/fit_heldout.yaml  # scenes, rigs, ensembles, cues
     .venv/bin/python -m benchmarks.bench_fit --suite config/fit_heldout.yaml              # benchmarks/fit.md
 
 The field suite (config/field_suite.yaml: ``--seed 25 --prefix field --count 4 --novel-pose``) adds a
@@ -86,13 +87,15 @@ def overlay(scenes: dict, seed: int, prefix: str = "suite", novel_pose: bool = F
 
 
 def targets(scenes: dict) -> list[str]:
-    """What bench_fit reads of each scene: the rig (with the simulation of its sequence) and the cues;
+    """What bench_fit reads of each scene: the rig (with the simulation of its sequence), the simulation
+    ensemble's mean of the sequence (L_prior's reference) and the cues;
     for a scene with a novel-pose sequence also what benchmarks/collect_field_suite.py reads: the
     pipeline's fit evaluation of every sequence and the field's metrics of both variants."""
     out = []
     for name, s in scenes.items():
         seq = s["sequences"][0]["name"]
-        out += [f"results/{name}/rig.npz", f"results/{name}/{seq}/masks", f"results/{name}/{seq}/flows"]
+        out += [f"results/{name}/rig.npz", f"results/{name}/sim_ensemble/seq-{seq}.npz",
+                f"results/{name}/{seq}/masks", f"results/{name}/{seq}/flows"]
         if len(s["sequences"]) > 1:
             out += [f"results/{name}/{q['name']}/fit_metrics.csv" for q in s["sequences"]]
             out += [f"results/{name}/{seq}/{v}/metrics_summary.json" for v in ("full", "body_only")]

@@ -108,6 +108,7 @@ def test_fit_suite_novel_pose_adds_a_held_out_sequence_and_changes_nothing_else(
     out = targets(novel)
     assert f"results/{name}/{held['name']}/fit_metrics.csv" in out
     assert f"results/{name}/{train['name']}/body_only/metrics_summary.json" in out
+    assert f"results/{name}/sim_ensemble/seq-{train['name']}.npz" in out  # L_prior's reference
 
 
 def _field_run(root: Path, scene: str, train: str, novel: str, psnr: dict) -> None:
