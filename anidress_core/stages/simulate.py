@@ -9,7 +9,8 @@ procedural library and any configured AMASS files, each written as
 parameters in the header (:mod:`anidress_core.io.sim`).
 ``simulate_ensemble``: a captured sequence's motion simulated once per bending stiffness of
 ``simulate/ensemble_bend_stiffness`` and settle length of ``simulate/ensemble_settle_frames``,
-``sim_ensemble/seq-<sequence>.npz`` holding the mean of the members' frames and their spread (the fit's L_prior follows it, ``fit/prior_reference: sim_ensemble``).
+``sim_ensemble/seq-<sequence>.npz`` holding the mean of the members' frames and their spread
+(the fit's L_prior follows it, ``fit/prior_reference: sim_ensemble``).
 """
 from __future__ import annotations
 
