@@ -478,6 +478,10 @@ def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None,
     return G, f"{path}: {ensemble_note(s.meta)}, rig transforms fitted to it"
 
 
+#: the words of every :func:`ensemble_note`, by which a fit's header says it read an ensemble file
+ENSEMBLE_NOTE_MARK = "simulations (bending stiffness"
+
+
 def ensemble_note(meta: dict) -> str:
     """What an ensemble file's members are, from its header's ``meta`` (:func:`read_sim`'s): the line the fit
     records as the simulation it followed, and by which benchmarks.bench_fit tells whether a stored fit followed
@@ -485,7 +489,7 @@ def ensemble_note(meta: dict) -> str:
     ms = meta.get("members", [])
     k = sorted({m.get("bend_stiffness") for m in ms})
     n = sorted({m.get("settle_frames") for m in ms if m.get("settle_frames") is not None})
-    return (f"the mean of {len(ms)} simulations (bending stiffness {k} J"
+    return (f"the mean of {len(ms)} {ENSEMBLE_NOTE_MARK} {k} J"
             + (f", settle frames {n}" if n else "") + ")")
 
 
