@@ -32,6 +32,7 @@ import platform
 import sys
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -195,11 +196,17 @@ def ensemble_npz(scene: str, seq: str) -> str:
     return f"results/{scene}/sim_ensemble/seq-{seq}.npz"
 
 
-def reusable(path: Path, method: str, params: dict, ensemble: str | None = None) -> bool:
+def reusable(path: Path, method: str, params: dict, ensemble: str | None = None,
+             inputs: Sequence[str | os.PathLike | None] = ()) -> bool:
     """Whether ``path`` holds a fit of variant ``method`` made with exactly ``params`` and the same
     settings as used (``FitConfig`` of the variant now; the header's ``config``), and, where the variant
-    follows the stiffness ensemble, one with the same members as the file ``ensemble`` now."""
+    follows the stiffness ensemble, one with the same members as the file ``ensemble`` now and not older
+    than it; and not older than any of ``inputs`` (the scene's data folder, rig, cue folders: a scene
+    made again, e.g. with other ground-truth cloth, outdates its stored fits as Snakemake would)."""
     if not path.is_file():
+        return False
+    made = path.stat().st_mtime_ns
+    if any(p is not None and Path(p).exists() and Path(p).stat().st_mtime_ns > made for p in inputs):
         return False
     from anidress_core.config import section_defaults
 
@@ -217,7 +224,8 @@ def reusable(path: Path, method: str, params: dict, ensemble: str | None = None)
     if ENSEMBLE_NOTE_MARK in read:
         from anidress_core.io.sim import read_sim
 
-        if ensemble is None or not Path(ensemble).is_file() or ensemble_note(read_sim(ensemble).meta) not in read:
+        if (ensemble is None or not Path(ensemble).is_file() or Path(ensemble).stat().st_mtime_ns > made
+                or ensemble_note(read_sim(ensemble).meta) not in read):
             return False
     return (meta.get("loss") == (OPTIMUM_OF if oracle else method) and bool(meta.get("starts")) == oracle
             and full(meta.get("params")) == full(params)
@@ -369,7 +377,8 @@ def main() -> None:
                         p = dict(params, views=nv)
                         if args.frames:
                             p["frames"] = args.frames
-                        if not (args.reuse and reusable(out, method, p, ensemble_npz(scene, seq))):
+                        inputs = (f"data/{scene}", rig, dirs["masks"], dirs["flows"], dirs["normals"])
+                        if not (args.reuse and reusable(out, method, p, ensemble_npz(scene, seq), inputs)):
                             t0 = time.perf_counter()
                             oracle = method == OPTIMUM
                             run_fit(f"data/{scene}", seq, rig, f"results/{scene}/template.npz", dirs["masks"],
