@@ -10,7 +10,10 @@ garment (skirt, dress), fabric (plain one-colour fabrics in at least a third of 
 denim, floral), the training motion (every library motion, run, jump and twirl included), the
 scene seed, the ground-truth fabric's bending stiffness (log-uniform 3e-4 .. 1e-2 J, so the
 truth is not the rig's own soft material, 1e-4 J) and the normal degradation (blur 1-3 px,
-noise 0.03-0.08).
+noise 0.03-0.08). The truth's other cloth settings are drawn too (:data:`TRUTH_CLOTH`), from a
+stream of their own: its damping, its friction against the body and its state at frame 0 (the
+settle length), which a capture does not share with the pipeline's simulations (solver defaults
+0.5 1/s, 0.3, 30 frames).
 
     .venv/bin/python -m benchmarks.fit_suite --seed 24 --prefix heldout --out config/fit_heldout.yaml
     snakemake --workflow-profile profiles/default \\
@@ -40,28 +43,39 @@ TUNING_SUITE = ROOT / "config" / "fit_suite.yaml"
 MOTIONS = ("walk", "run", "twirl", "sway", "dance", "arms_up", "jump")
 FABRICS = ("plain", "floral", "plaid", "denim")
 FRAMES = 40
+#: ranges of the ground truth's cloth settings drawn per scene besides the stiffness (anidress_core.sim.ClothParams):
+#: damping 1/s (log-uniform), friction against the body (uniform), settle frames (uniform integer: how the garment
+#: starts the sequence). The pipeline simulates with the solver's 0.5, 0.3 and 30 (its ensemble: 20 and 40 frames).
+TRUTH_CLOTH = {"damping": (0.2, 2.0), "friction": (0.1, 0.6), "settle_frames": (15, 60)}
 
 
 def draw(count: int = 10, seed: int = 23, prefix: str = "suite", novel_pose: bool = False) -> dict:
     """``count`` scene sections ``<prefix>_00`` ..: every library motion at least once (for count >= 7),
-    garments alternating, plain fabric on every third scene, the rest drawn. ``novel_pose``: each scene
-    also gets a held-out sequence of another library motion (role novel_pose, for the field), drawn
-    from a separate stream so the scenes are otherwise those drawn without it."""
+    garments alternating, plain fabric on every third scene, the rest drawn. The truth's damping,
+    friction and settle length (:data:`TRUTH_CLOTH`) come from a stream of their own, so the rest of
+    a scene is what the same seed drew before they were. ``novel_pose``: each scene also gets a
+    held-out sequence of another library motion (role novel_pose, for the field), drawn from a
+    separate stream so the scenes are otherwise those drawn without it."""
     rng = random.Random(seed)
     rng_novel = random.Random(seed + 7919)
+    rng_cloth = random.Random(seed + 104729)
     motions = list(MOTIONS) + [rng.choice(MOTIONS) for _ in range(max(0, count - len(MOTIONS)))]
     rng.shuffle(motions)
     scenes = {}
     for i in range(count):
         fabric = "plain" if i % 3 == 0 else rng.choice(FABRICS[1:])
         bend = math.exp(rng.uniform(math.log(3e-4), math.log(1e-2)))
+        (d0, d1), (f0, f1), (s0, s1) = (TRUTH_CLOTH[k] for k in ("damping", "friction", "settle_frames"))
+        cloth = {"bend_stiffness": float(f"{bend:.3g}"),
+                 "damping": float(f"{math.exp(rng_cloth.uniform(math.log(d0), math.log(d1))):.3g}"),
+                 "friction": round(rng_cloth.uniform(f0, f1), 2), "settle_frames": rng_cloth.randint(s0, s1)}
         scenes[f"{prefix}_{i:02d}"] = {
             "synthetic": True,
             "kind": ("skirt", "dress")[i % 2],
             "seed": 1000 + seed * 100 + i,
             "image_size": [256, 256],
             "sequences": [{"name": motions[i], "motion": motions[i], "frames": FRAMES, "role": "train"}],
-            "garment": {"vertices": 3000, "texture": fabric, "cloth": {"bend_stiffness": float(f"{bend:.3g}")}},
+            "garment": {"vertices": 3000, "texture": fabric, "cloth": cloth},
             "predicted_normals": {"blur_px": round(rng.uniform(1.0, 3.0), 2),
                                   "noise_std": round(rng.uniform(0.03, 0.08), 3)},
         }

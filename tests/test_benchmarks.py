@@ -111,6 +111,27 @@ def test_fit_suite_novel_pose_adds_a_held_out_sequence_and_changes_nothing_else(
     assert f"results/{name}/sim_ensemble/seq-{train['name']}.npz" in out  # L_prior's reference
 
 
+def test_fit_suite_draws_the_truths_cloth_apart_from_the_solvers_and_the_schema_takes_it():
+    import dataclasses
+
+    from anidress_core.config import _schema, default_schema_path, validate_config
+    from anidress_core.sim import ClothParams
+    from benchmarks.fit_suite import TRUTH_CLOTH, draw
+
+    scenes = draw(10, seed=31)
+    solver = ClothParams()
+    for key, (lo, hi) in TRUTH_CLOTH.items():
+        values = [sc["garment"]["cloth"][key] for sc in scenes.values()]
+        assert all(lo <= v <= hi for v in values), (key, values)
+        assert len(set(values)) > 5 and any(v != getattr(solver, key) for v in values)  # drawn, not the solver's
+    assert all(isinstance(sc["garment"]["cloth"]["settle_frames"], int) for sc in scenes.values())
+    assert draw(10, seed=31) == scenes and draw(10, seed=32) != scenes  # deterministic in the seed
+    filled = validate_config({"run_scenes": list(scenes), "scenes": scenes}, _schema(str(default_schema_path())))
+    cloth = filled["scenes"]["suite_00"]["garment"]["cloth"]
+    assert {k: cloth[k] for k in TRUTH_CLOTH} == {k: scenes["suite_00"]["garment"]["cloth"][k] for k in TRUTH_CLOTH}
+    assert set(TRUTH_CLOTH) <= {f.name for f in dataclasses.fields(ClothParams)}
+
+
 def _field_run(root: Path, scene: str, train: str, novel: str, psnr: dict) -> None:
     for seq, rmse in ((train, [2.0] * 10 + [3.0] * 10), (novel, [4.0] * 20)):
         d = root / "results" / scene / seq
@@ -191,6 +212,28 @@ def test_fit_reuse_needs_the_same_ensemble_members(tmp_path, monkeypatch):
     write_sim(ens, SimSequence(frames=np.zeros((2, 3, 3), np.float32), meta=members([20, 40])))
     assert not bf.reusable(fit, "pipeline", {}, str(ens))
     assert not bf.reusable(fit, "pipeline", {}, None)
+
+
+def test_fit_reuse_refuses_a_fit_older_than_its_scene(tmp_path, monkeypatch):
+    """bench_fit --reuse: a scene made again (other ground-truth cloth, new cues or rig) outdates its stored fits,
+    as Snakemake would; the ensemble outdates only the fits that followed it."""
+    import dataclasses
+    import os
+
+    import benchmarks.bench_fit as bf
+    from anidress_core.fit import FitConfig
+
+    stored = {"loss": "pipeline_no_sim_prior", "params": {}, "starts": None,
+              "config": dataclasses.asdict(FitConfig.from_config({}, "pipeline_no_sim_prior"))}
+    monkeypatch.setattr(bf, "load_garment_poses", lambda path: (None, {"meta": stored}))
+    data, masks, ens, fit = (tmp_path / n for n in ("data", "masks", "seq-walk.npz", "garment_poses.npz"))
+    data.mkdir(), masks.mkdir(), ens.write_bytes(b""), fit.write_bytes(b"")
+    for p, t in ((data, 100), (masks, 100), (ens, 300), (fit, 200)):
+        os.utime(p, ns=(t * 10**9, t * 10**9))
+    inputs = (str(data), str(masks), None, str(tmp_path / "absent"))
+    assert bf.reusable(fit, "pipeline_no_sim_prior", {}, str(ens), inputs)  # a newer ensemble it did not read
+    os.utime(masks, ns=(250 * 10**9, 250 * 10**9))
+    assert not bf.reusable(fit, "pipeline_no_sim_prior", {}, str(ens), inputs)
 
 
 def test_collect_pipeline_names_the_rule_of_each_benchmark_file():
