@@ -64,7 +64,8 @@ SUITE_WORST_8, SUITE_DRIFT = 2.5, 1.3
 SIM = "sim"
 SIM_DESCRIPTION = ("reference, no fit: the rig driven by its simulated poses of the sequence "
                    "(rig.transforms_of('seq-<sequence>'), the cloth simulator alone, started by simulate/cloth/"
-                   "settle_frames as rule synth starts a synthetic scene's truth, which a capture does not give; no fps)")
+                   "settle_frames as rule synth starts the demo scenes' truth; the suites draw their truth's start; "
+                   "no fps)")
 #: the reference that is no fit either: the rig driven by the stiffness ensemble's mean simulation
 SIM_ENSEMBLE = "sim_ensemble"
 SIM_ENSEMBLE_DESCRIPTION = ("reference, no fit: the rig driven by the mean of the simulations of the sequence at "

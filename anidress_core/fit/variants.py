@@ -65,15 +65,16 @@ VARIANTS: dict[str, Variant] = {
                                                          weights={"prior": 10.0})),
     "pipeline_single_sim": Variant("the pipeline with L_prior's reference and frame 0's start from the rig's own "
                                    "simulation of the observed motion, one bending stiffness (fit/prior_reference sim), "
-                                   "not the stiffness ensemble's mean; that simulation starts as a synthetic scene's "
-                                   "truth does (simulate/cloth/settle_frames), the ensemble's members do not",
+                                   "not the stiffness ensemble's mean; that simulation starts after "
+                                   "simulate/cloth/settle_frames, as the demo scenes' truth does (the suites draw "
+                                   "their truth's start)",
                                    lambda c: c.replace(prior_reference="sim")),
     "pipeline_uniform_prior": Variant("the pipeline with one L_prior weight for every vertex, not weighted by the "
                                       "stiffness ensemble's spread (fit/prior_spread_floor null)",
                                       lambda c: c.replace(prior_spread_floor=None)),
     "pipeline_previous": Variant("the pipeline's defaults before the stiffness ensemble (to 2026-12-05): L_prior "
-                                 "weight 1e4 towards the rig's own simulation of the observed motion (started as a "
-                                 "synthetic scene's truth is), its tangent planes at that reference",
+                                 "weight 1e4 towards the rig's own simulation of the observed motion (started as the "
+                                 "demo scenes' truth is, not the suites'), its tangent planes at that reference",
                                  lambda c: c.replace(prior_reference="sim", prior_tangent_planes="reference",
                                                      weights={"prior": 1e4})),
     "pipeline_prior_anchor_info": Variant("the pipeline with L_prior's weight per bone scaled by its share of the "
