@@ -114,7 +114,9 @@ def test_fit_suite_novel_pose_adds_a_held_out_sequence_and_changes_nothing_else(
 def test_fit_suite_draws_the_truths_cloth_apart_from_the_solvers_and_the_schema_takes_it():
     import dataclasses
 
-    from anidress_core.config import _schema, default_schema_path, validate_config
+    import yaml
+
+    from anidress_core.config import default_schema_path, validate_config
     from anidress_core.sim import ClothParams
     from benchmarks.fit_suite import TRUTH_CLOTH, draw
 
@@ -126,7 +128,8 @@ def test_fit_suite_draws_the_truths_cloth_apart_from_the_solvers_and_the_schema_
         assert len(set(values)) > 5 and any(v != getattr(solver, key) for v in values)  # drawn, not the solver's
     assert all(isinstance(sc["garment"]["cloth"]["settle_frames"], int) for sc in scenes.values())
     assert draw(10, seed=31) == scenes and draw(10, seed=32) != scenes  # deterministic in the seed
-    filled = validate_config({"run_scenes": list(scenes), "scenes": scenes}, _schema(str(default_schema_path())))
+    schema = yaml.safe_load(default_schema_path().read_text())
+    filled = validate_config({"run_scenes": list(scenes), "scenes": scenes}, schema)
     cloth = filled["scenes"]["suite_00"]["garment"]["cloth"]
     assert {k: cloth[k] for k in TRUTH_CLOTH} == {k: scenes["suite_00"]["garment"]["cloth"][k] for k in TRUTH_CLOTH}
     assert set(TRUTH_CLOTH) <= {f.name for f in dataclasses.fields(ClothParams)}
