@@ -207,7 +207,8 @@ def reusable(path: Path, method: str, params: dict, ensemble: str | None = None,
     if not path.is_file():
         return False
     made = path.stat().st_mtime_ns
-    if any(p is not None and Path(p).exists() and Path(p).stat().st_mtime_ns > made for p in inputs):
+    newer = lambda p: p is not None and Path(p).exists() and Path(p).stat().st_mtime_ns > made  # noqa: E731
+    if any(newer(p) for p in inputs):
         return False
     from anidress_core.config import section_defaults
 
@@ -225,7 +226,7 @@ def reusable(path: Path, method: str, params: dict, ensemble: str | None = None,
     if ENSEMBLE_NOTE_MARK in read:
         from anidress_core.io.sim import read_sim
 
-        if (ensemble is None or not Path(ensemble).is_file() or Path(ensemble).stat().st_mtime_ns > made
+        if (ensemble is None or not Path(ensemble).is_file() or newer(ensemble)
                 or ensemble_note(read_sim(ensemble).meta) not in read):
             return False
     return (meta.get("loss") == (OPTIMUM_OF if oracle else method) and bool(meta.get("starts")) == oracle

@@ -61,11 +61,11 @@ def draw(count: int = 10, seed: int = 23, prefix: str = "suite", novel_pose: boo
     rng_cloth = random.Random(seed + 104729)
     motions = list(MOTIONS) + [rng.choice(MOTIONS) for _ in range(max(0, count - len(MOTIONS)))]
     rng.shuffle(motions)
+    (d0, d1), (f0, f1), (s0, s1) = (TRUTH_CLOTH[k] for k in ("damping", "friction", "settle_frames"))
     scenes = {}
     for i in range(count):
         fabric = "plain" if i % 3 == 0 else rng.choice(FABRICS[1:])
         bend = math.exp(rng.uniform(math.log(3e-4), math.log(1e-2)))
-        (d0, d1), (f0, f1), (s0, s1) = (TRUTH_CLOTH[k] for k in ("damping", "friction", "settle_frames"))
         cloth = {"bend_stiffness": float(f"{bend:.3g}"),
                  "damping": float(f"{math.exp(rng_cloth.uniform(math.log(d0), math.log(d1))):.3g}"),
                  "friction": round(rng_cloth.uniform(f0, f1), 2), "settle_frames": rng_cloth.randint(s0, s1)}
