@@ -4,8 +4,9 @@ the fit's L_prior sees a simulation), over the rig floor's, mean over frames. Th
 config/config.yaml's ``simulate/cloth`` (the pipeline's). ``--true`` adds the scene's own stiffness (an oracle:
 the suite file's ``garment/cloth/bend_stiffness``). ``--vary NAME=V1,V2`` simulates every stiffness again with
 the cloth parameter NAME at each value (e.g. ``damping``, ``friction``, ``settle_frames``: members that differ in
-more than the stiffness) and adds the mean over the stiffnesses at each value ('mean@NAMEvalue'), at all the
-values ('mean@NAMEv1+v2') and at them and the config's value ('mean+NAME'). Members are written to ``--out`` and reused.
+more than the stiffness; ``NAME=V1,V2:NAME2=W1,W2`` at every combination, tagged ``NAMEv-NAME2w``) and adds the
+mean over the stiffnesses at each value ('mean@NAMEvalue'), at all the values ('mean@<spec>') and at them and the
+config's value ('mean+<spec>'). Members are written to ``--out`` and reused.
 
     PYTHONPATH=. .venv/bin/python studies/fit/sim_ensemble/members.py --suite config/fit_suite.yaml \\
         --bend 1e-4,3e-4,1e-3,3e-3,1e-2 --true --out /tmp/members suite_00 suite_03 > members.txt
@@ -29,9 +30,18 @@ from anidress_core.stages.fit import gt_template_vertices  # noqa: E402
 from anidress_core.stages.simulate import run_simulate  # noqa: E402
 
 
-def member_path(out: Path, scene: str, seq: str, bend: float, extra: tuple[str, float] | None = None) -> Path:
-    tag = "" if extra is None else f"-{extra[0]}{extra[1]:g}"
+def member_path(out: Path, scene: str, seq: str, bend: float, extra: tuple[tuple[str, float], ...] = ()) -> Path:
+    tag = "".join(f"-{name}{val:g}" for name, val in extra)
     return out / f"{scene}-{seq}-{bend:g}{tag}.npz"
+
+
+def combinations(spec: str) -> list[tuple[tuple[str, float], ...]]:
+    """``NAME=V1,V2[:NAME2=W1,W2]`` -> every combination of the values, as ((NAME, v), (NAME2, w)) tuples."""
+    combos: list[tuple[tuple[str, float], ...]] = [()]
+    for part in spec.split(":"):
+        name, vals = part.split("=")
+        combos = [c + ((name, float(v)),) for c in combos for v in vals.split(",")]
+    return combos
 
 
 def main() -> None:
@@ -41,7 +51,8 @@ def main() -> None:
     ap.add_argument("--true", action="store_true", help="also simulate at the scene's own stiffness (oracle)")
     ap.add_argument("--out", required=True, help="folder of the members (<scene>-<seq>-<bend>.npz)")
     ap.add_argument("--vary", action="append", default=[],
-                    help="NAME=V1,V2: every stiffness also at these values of cloth parameter NAME (repeatable)")
+                    help="NAME=V1,V2[:NAME2=W1,W2]: every stiffness also at these values of cloth parameter NAME "
+                         "(at every combination with NAME2's; repeatable)")
     ap.add_argument("scenes", nargs="+")
     a = ap.parse_args()
     suite = yaml.safe_load(Path(a.suite).read_text())["scenes"]
@@ -77,23 +88,22 @@ def main() -> None:
         mean = torch.stack([frames[b] for b in bends]).mean(0)
         cells = [f"{b:g}: {ratio(frames[b]):.2f}" for b in bends] + [f"mean: {ratio(mean):.2f}"]
         for v in a.vary:
-            name, vals = v.split("=")
             extra = []
-            for val in (float(x) for x in vals.split(",")):
+            for combo in combinations(v):
                 at = []
                 for b in bends:
-                    p = member_path(out, scene, seq, b, (name, val))
+                    p = member_path(out, scene, seq, b, combo)
                     if not p.is_file():
-                        kind = int if name == "settle_frames" else float
+                        params = {name: int(val) if name == "settle_frames" else val for name, val in combo}
                         run_simulate(f"results/{scene}/template.npz", f"results/{scene}/motions/seq-{seq}.npz",
-                                     f"data/{scene}", {**cloth, "bend_stiffness": b, name: kind(val)}, p,
-                                     progress=False)
+                                     f"data/{scene}", {**cloth, "bend_stiffness": b, **params}, p, progress=False)
                     at.append(torch.as_tensor(np.load(p)["frames"]).double())
-                cells.append(f"mean@{name}{val:g}: {ratio(torch.stack(at).mean(0)):.2f}")
+                tag = "-".join(f"{name}{val:g}" for name, val in combo)
+                cells.append(f"mean@{tag}: {ratio(torch.stack(at).mean(0)):.2f}")
                 extra += at
             every = torch.stack([frames[b] for b in bends] + extra).mean(0)
-            cells.append(f"mean@{name}{vals.replace(',', '+')}: {ratio(torch.stack(extra).mean(0)):.2f}")
-            cells.append(f"mean+{name}: {ratio(every):.2f}")
+            cells.append(f"mean@{v}: {ratio(torch.stack(extra).mean(0)):.2f}")
+            cells.append(f"mean+{v}: {ratio(every):.2f}")
         if a.true:
             cells.append(f"true {true:g}: {ratio(frames[true]):.2f}")
         print(f"{scene}/{seq}  " + "  ".join(cells), flush=True)
