@@ -21,10 +21,12 @@ import numpy as np
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from anidress_core.io.sim import read_sim, write_sim  # noqa: E402
 from anidress_core.fit.variants import VARIANTS, Variant  # noqa: E402
 from benchmarks import bench_fit  # noqa: E402
+from members import member_path  # noqa: E402
 
 MEMBERS, ENSEMBLES = Path(os.environ["MEMBERS"]), Path(os.environ["ENSEMBLES"])
 TAGS = os.environ.get("TAGS", "").split(",")
@@ -40,7 +42,7 @@ def ensemble_npz(scene: str, seq: str) -> str:
         X = []
         for b in BENDS:
             for tag in TAGS:
-                p = MEMBERS / f"{scene}-{seq}-{b:g}{'-' + tag if tag else ''}.npz"
+                p = member_path(MEMBERS, scene, seq, b, tag)
                 if not p.is_file():
                     raise SystemExit(f"{p}: no such member (members.py --vary makes it)")
                 X.append(np.load(p)["frames"].astype(np.float64))

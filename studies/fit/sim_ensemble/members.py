@@ -6,7 +6,9 @@ the suite file's ``garment/cloth/bend_stiffness``). ``--vary NAME=V1,V2`` simula
 the cloth parameter NAME at each value (e.g. ``damping``, ``friction``, ``settle_frames``: members that differ in
 more than the stiffness; ``NAME=V1,V2:NAME2=W1,W2`` at every combination, tagged ``NAMEv-NAME2w``) and adds the
 mean over the stiffnesses at each value ('mean@NAMEvalue'), at all the values ('mean@<spec>') and at them and the
-config's value ('mean+<spec>'). Members are written to ``--out`` and reused.
+config's value ('mean+<spec>'). ``--subset NAME=TAG1,TAG2`` adds the mean of members already in ``--out`` with
+those tags at every stiffness ('' = the config's cloth), as ensemble_from.py's ``TAGS``. Members are written to
+``--out`` and reused.
 
     PYTHONPATH=. .venv/bin/python studies/fit/sim_ensemble/members.py --suite config/fit_suite.yaml \\
         --bend 1e-4,3e-4,1e-3,3e-3,1e-2 --true --out /tmp/members suite_00 suite_03 > members.txt
@@ -30,9 +32,14 @@ from anidress_core.stages.fit import gt_template_vertices  # noqa: E402
 from anidress_core.stages.simulate import run_simulate  # noqa: E402
 
 
-def member_path(out: Path, scene: str, seq: str, bend: float, extra: tuple[tuple[str, float], ...] = ()) -> Path:
-    tag = "".join(f"-{name}{val:g}" for name, val in extra)
-    return out / f"{scene}-{seq}-{bend:g}{tag}.npz"
+def member_path(out: Path, scene: str, seq: str, bend: float, tag: str = "") -> Path:
+    """A member's file: ``tag`` names what differs from the config's cloth ('' none; see :func:`tag_of`)."""
+    return out / f"{scene}-{seq}-{bend:g}{'-' + tag if tag else ''}.npz"
+
+
+def tag_of(combo: tuple[tuple[str, float], ...]) -> str:
+    """((NAME, v), (NAME2, w)) -> ``NAMEv-NAME2w``, the tag of a member's file and of its mean's column."""
+    return "-".join(f"{name}{val:g}" for name, val in combo)
 
 
 def combinations(spec: str) -> list[tuple[tuple[str, float], ...]]:
@@ -53,6 +60,8 @@ def main() -> None:
     ap.add_argument("--vary", action="append", default=[],
                     help="NAME=V1,V2[:NAME2=W1,W2]: every stiffness also at these values of cloth parameter NAME "
                          "(at every combination with NAME2's; repeatable)")
+    ap.add_argument("--subset", action="append", default=[],
+                    help="NAME=TAG1,TAG2: the mean of the stored members with these tags (repeatable)")
     ap.add_argument("scenes", nargs="+")
     a = ap.parse_args()
     suite = yaml.safe_load(Path(a.suite).read_text())["scenes"]
@@ -92,18 +101,22 @@ def main() -> None:
             for combo in combinations(v):
                 at = []
                 for b in bends:
-                    p = member_path(out, scene, seq, b, combo)
+                    p = member_path(out, scene, seq, b, tag_of(combo))
                     if not p.is_file():
                         params = {name: int(val) if name == "settle_frames" else val for name, val in combo}
                         run_simulate(f"results/{scene}/template.npz", f"results/{scene}/motions/seq-{seq}.npz",
                                      f"data/{scene}", {**cloth, "bend_stiffness": b, **params}, p, progress=False)
                     at.append(torch.as_tensor(np.load(p)["frames"]).double())
-                tag = "-".join(f"{name}{val:g}" for name, val in combo)
-                cells.append(f"mean@{tag}: {ratio(torch.stack(at).mean(0)):.2f}")
+                cells.append(f"mean@{tag_of(combo)}: {ratio(torch.stack(at).mean(0)):.2f}")
                 extra += at
             every = torch.stack([frames[b] for b in bends] + extra).mean(0)
             cells.append(f"mean@{v}: {ratio(torch.stack(extra).mean(0)):.2f}")
             cells.append(f"mean+{v}: {ratio(every):.2f}")
+        for spec in a.subset:
+            name, tags = spec.split("=")
+            at = [torch.as_tensor(np.load(member_path(out, scene, seq, b, t))["frames"]).double()
+                  for b in bends for t in tags.split(",")]
+            cells.append(f"{name}: {ratio(torch.stack(at).mean(0)):.2f}")
         if a.true:
             cells.append(f"true {true:g}: {ratio(frames[true]):.2f}")
         print(f"{scene}/{seq}  " + "  ".join(cells), flush=True)
