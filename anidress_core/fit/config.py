@@ -176,6 +176,14 @@ class FitConfig:
     distance from their mean, sigma_0 this value times its median over the sequence; None = one weight
     for every vertex (studies/fit/README.md section 17). The config's default is 1.0; this field's
     default is what fits made before the setting existed used."""
+    prior_member_temperature: float | None = None
+    """With ``prior_reference`` sim_ensemble: L_prior's reference (and frame 0's start) the members' mean
+    weighted per frame by how well each explains the images, and the spread about it
+    (:func:`anidress_core.fit.terms.prior.member_weights`: softmax of the members' L_silhouette + L_normal
+    over this times their standard deviation; 0 = the best member alone); None = the plain mean
+    (studies/fit/README.md section 21)."""
+    prior_member_window: int = 5
+    """Frames either side of t whose member scores are summed for frame t's weights."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -199,6 +207,15 @@ class FitConfig:
         if self.prior_spread_floor is not None and not (self.prior_reference == "sim_ensemble"
                                                         and self.prior_follows_simulation):
             object.__setattr__(self, "prior_spread_floor", None)  # unused: recorded as None, as it ran
+        if self.prior_member_temperature is not None and not (math.isfinite(self.prior_member_temperature)
+                                                              and self.prior_member_temperature >= 0):
+            raise ValueError(f"FitConfig.prior_member_temperature must be None or finite and >= 0, got "
+                             f"{self.prior_member_temperature}")
+        if int(self.prior_member_window) != self.prior_member_window or self.prior_member_window < 0:
+            raise ValueError(f"FitConfig.prior_member_window must be an integer >= 0, got {self.prior_member_window}")
+        if self.prior_member_temperature is not None and not (self.prior_reference == "sim_ensemble"
+                                                              and self.prior_follows_simulation):
+            object.__setattr__(self, "prior_member_temperature", None)  # unused: recorded as None, as it ran
         if self.prior_information not in PRIOR_INFORMATION_TERMS:
             raise ValueError(f"FitConfig.prior_information must be one of {list(PRIOR_INFORMATION_TERMS)}, got "
                              f"{self.prior_information!r}")
@@ -259,7 +276,8 @@ class FitConfig:
         kw["vertex"] = VertexSettings(float(kw["vertex"]["lr"]), int(kw["vertex"]["max_iters"]),
                                       int(kw["vertex"]["patience"]))
         for k in ("max_iters", "max_iters_first", "flow_margin_px", "flow_align_iters", "crop_margin", "smooth_passes",
-                  "proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine", "window", "window_iters"):
+                  "proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine", "window", "window_iters",
+                  "prior_member_window"):
             kw[k] = int(kw[k])
         for k in ("rel_tol", "step_tol", "damping", "visibility_depth_tol", "image_blur", "anchor_scale",
                   "collision_clearance", "collision_radius", "proposal_velocity_weight"):
@@ -268,6 +286,8 @@ class FitConfig:
         kw["prior_tangential"] = bool(kw["prior_tangential"])
         if kw["prior_spread_floor"] is not None:
             kw["prior_spread_floor"] = float(kw["prior_spread_floor"])
+        if kw["prior_member_temperature"] is not None:
+            kw["prior_member_temperature"] = float(kw["prior_member_temperature"])
         kw["loss"] = "pipeline"
         return apply_variant(cls(**kw), loss or p["loss"])
 

@@ -10,6 +10,8 @@ Arrays:
   the body, metres), ``nan_count`` (non-finite coordinates), ``substeps``;
 * ``spread`` (T, V) float32, an ensemble's mean only (``sim_ensemble/seq-<seq>.npz``, rule
   simulate_ensemble): per vertex, the members' RMS distance from their mean, metres;
+* ``members`` (M, T, V, 3) float32, an ensemble's mean only: every member's frames (the fit weighs
+  them by the images with ``fit/prior_member_temperature``);
 
 plus the header (code version, hash of the cloth parameters, ``meta``: motion name,
 cloth parameters, recoveries, wall time).
@@ -55,6 +57,8 @@ class SimSequence:
     """(T,) substeps used for the frame."""
     spread: np.ndarray | None = None
     """(T, V) an ensemble's mean only: per vertex, the members' RMS distance from their mean, metres."""
+    members: np.ndarray | None = None
+    """(M, T, V, 3) float32 an ensemble's mean only: every member's frames, world, metres."""
     meta: dict = field(default_factory=dict)
     """Header metadata: ``motion``, ``params`` (cloth), ``recoveries`` (list of dicts), ``wall_s``."""
 
@@ -75,6 +79,8 @@ def write_sim(path: str | os.PathLike, seq: SimSequence, config: Any = None) -> 
             arrays[k] = getattr(seq, k)
     if seq.spread is not None:
         arrays["spread"] = np.asarray(seq.spread).astype(np.float32)
+    if seq.members is not None:
+        arrays["members"] = np.asarray(seq.members).astype(np.float32)
     files.save_npz(path, arrays, config=config, meta=seq.meta)
 
 
@@ -98,5 +104,10 @@ def read_sim(path: str | os.PathLike) -> SimSequence:
     if spread is not None and spread.shape != x.shape[:2]:
         raise files.ArtifactError(f"{path}: spread must be {x.shape[:2]} (one per frame and vertex), got "
                                   f"{spread.shape}")
+    members = a.get("members")
+    if members is not None and (members.ndim != 4 or members.shape[1:] != x.shape):
+        raise files.ArtifactError(f"{path}: members must be (M, {', '.join(map(str, x.shape))}) (every member's "
+                                  f"frames), got {members.shape}")
     return SimSequence(frames=x, faces=faces.astype(np.int64) if faces is not None else None, spread=spread,
+                       members=members,
                        fps=float(a["fps"]) if "fps" in a else None, meta=h.get("meta", {}), **stats)

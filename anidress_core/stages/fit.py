@@ -24,6 +24,7 @@
   (rule simulate_ensemble), the mean of the observed motion simulated at several bending stiffnesses:
   L_prior's reference and frame 0's start, carried into the rig (:func:`ensemble_transforms`), and with
   ``prior_spread_floor`` its members' spread, L_prior's weight per vertex (:func:`ensemble_prior_scales`);
+  with ``prior_member_temperature`` its members weighted per frame by the images instead (:func:`weighted_ensemble`);
 
 and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts,
 the weighted loss and every unweighted term ``loss_<term>`` per frame, with the loss variant
@@ -337,6 +338,20 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():
             raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
+    # 4b. the ensemble's members weighted per frame by the images, if on: L_prior's reference and frame 0's start
+    member_spread, wts, wall_weights, cpu_weights = None, None, 0.0, 0.0
+    if cfg.prior_member_temperature is not None:  # set only where L_prior follows the ensemble (FitConfig)
+        t_w, c_w = time.perf_counter(), time.process_time()
+        followed, member_spread, wts = weighted_ensemble(sim_ensemble_npz, art, rig, views, reader.cues, T, cfg, device)
+        followed_note += (f"; its {wts.shape[0]} members weighted per frame by the images (prior_member_temperature "
+                          f"{cfg.prior_member_temperature:g}, window {cfg.prior_member_window})")
+        if starts is None and start in ("auto", "sim"):
+            G0 = followed[0]
+            start_used = f"{followed_note}, frame 0"
+        wall_weights, cpu_weights = time.perf_counter() - t_w, time.process_time() - c_w  # counted as the fit's
+        log.info("fit: L_prior follows the ensemble's members weighted by the images: largest weight per frame "
+                 "%.2f-%.2f (median %.2f; equal weights %.2f)", float(wts.max(0).values.min()),
+                 float(wts.max(0).values.max()), float(wts.max(0).values.median()), 1.0 / wts.shape[0])
     # 5. L_anchor's references: from the images (first frame each vertex is seen) or the template's texture
     anchor_init, anchor_note = None, None
     if w.anchor > 0 and cfg.anchor_reference == "texture":
@@ -375,7 +390,12 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
                  followed_note)
     prior_scales = None
     if cfg.prior_spread_floor is not None:  # set only where L_prior follows the ensemble (FitConfig)
-        prior_scales = ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device)
+        if member_spread is not None:  # the spread about the weighted mean
+            from ..fit.terms.prior import spread_scale
+
+            prior_scales = spread_scale(member_spread, cfg.prior_spread_floor).to(device)
+        else:
+            prior_scales = ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device)
         followed_note += (f"; L_prior's weight per vertex from the members' spread (prior_spread_floor "
                           f"{cfg.prior_spread_floor:g})")
         log.info("fit: L_prior's weight per vertex from the ensemble's spread, factor %.2f-%.2f (median %.2f)",
@@ -389,8 +409,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
                                starts=starts, prior_scales=prior_scales)
     finally:
         reader.close()
-    wall_fit = time.perf_counter() - t_fit
-    cpu_fit = time.process_time() - c_fit
+    wall_fit = time.perf_counter() - t_fit + wall_weights
+    cpu_fit = time.process_time() - c_fit + cpu_weights
     L = max(len(r.curve) for r in res)
     curve = np.full((T, L), np.nan)
     for t, r in enumerate(res):
@@ -417,6 +437,9 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
         "proposal_database": db_note,
         "followed_simulation": followed_note if sim_transforms is not None else None,
+        # (M, T) each ensemble member's weight per frame (fit/prior_member_temperature), in the file's order
+        "member_weights": None if wts is None else np.round(wts.cpu().numpy(), 4).tolist(),
+        "wall_member_weights_s": wall_weights,
         "starts": None if starts is None else "given per frame (oracle)",
         "frame_notes": {str(t): r.notes for t, r in enumerate(res) if r.notes},  # what was done about bad cues
         # (anidress_core.fit.FrameFit.notes: views dropped, frames kept at their start, NaN pixels, no flow)
@@ -476,6 +499,39 @@ def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None,
         raise files.ArtifactError(f"{path}: non-finite vertices")
     G = fit_transforms(art.model, X).double()
     return G, f"{path}: {ensemble_note(s.meta)}, rig transforms fitted to it"
+
+
+def weighted_ensemble(path: str | os.PathLike, art, rig, views, cues_of, frames: int, cfg, device
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ensemble's members at ``path`` weighted per frame by how well each explains the images
+    (``fit/prior_member_temperature``, studies/fit/README.md section 21): each member's rig pose
+    (:func:`anidress_core.rig.fit_transforms` of its frames) scored on every frame's cues by L_silhouette +
+    L_normal (:func:`anidress_core.fit.proposals.score_poses`, the other terms off), weighted by
+    :func:`anidress_core.fit.terms.prior.member_weights`, averaged by
+    :func:`anidress_core.fit.terms.prior.weighted_members`. Returns the rig transforms of the weighted mean
+    (frames, B, 4, 4) float64, the spread about it (frames, V) and the weights (M, frames). Raises, naming
+    the file, when it holds no members (written before they were stored: rerun rule simulate_ensemble)."""
+    from ..fit.proposals import score_poses
+    from ..fit.terms.prior import member_weights, weighted_members
+    from ..io.sim import read_sim
+    from ..rig import fit_transforms
+
+    s = read_sim(path)
+    if s.members is None:
+        raise files.ArtifactError(f"{path}: no 'members' (every member's frames; written by rule simulate_ensemble "
+                                  "since fit/prior_member_temperature exists: rerun it), or set "
+                                  "fit/prior_member_temperature: null")
+    if s.members.shape[1] < frames:
+        raise files.ArtifactError(f"{path}: members {tuple(s.members.shape)} must hold {frames}+ frames")
+    X = torch.as_tensor(s.members[:, :frames], device=device, dtype=torch.float64)  # (M, T, V, 3)
+    if not torch.isfinite(X).all():
+        raise files.ArtifactError(f"{path}: non-finite member vertices")
+    G = torch.stack([fit_transforms(art.model, x).double() for x in X])  # (M, T, B, 4, 4)
+    scfg = cfg.replace(weights={"flow": 0.0, "anchor": 0.0, "stretch": 0.0, "collision": 0.0})
+    scores = torch.stack([score_poses(rig, views, cues_of(t), G[:, t], scfg) for t in range(frames)], 1)  # (M, T)
+    w = member_weights(scores, cfg.prior_member_temperature, cfg.prior_member_window).to(device)
+    mean, spread = weighted_members(X, w)
+    return fit_transforms(art.model, mean).double(), spread, w
 
 
 #: the words of every :func:`ensemble_note`, by which a fit's header says it read an ensemble file

@@ -140,7 +140,8 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
     frame 0, studies/fit section 18; None or [] = ``cloth_cfg``'s alone). Members: every stiffness at
     every settle length. Every other cloth parameter is ``cloth_cfg``'s. ``frames`` (T, V, 3) is the
     per-vertex mean over the members, ``spread`` (T, V) the members' RMS distance from it (the fit's
-    L_prior pulls less where they disagree, ``fit/prior_spread_floor``); the stability statistics per
+    L_prior pulls less where they disagree, ``fit/prior_spread_floor``), ``members`` (M, T, V, 3) every
+    member's frames (``fit/prior_member_temperature`` weighs them); the stability statistics per
     frame are the worst member's; the header's ``members`` lists each member's stiffness, settle
     length, NaN count, recoveries and wall time. Raises when a member's frames hold a non-finite value
     (no member is dropped silently).
@@ -172,6 +173,7 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
     mean = X.mean(axis=0)
     out = SimSequence(frames=mean.astype(np.float32), faces=tpl.faces, fps=motion.fps,
                       spread=np.sqrt(((X - mean) ** 2).sum(-1).mean(0)).astype(np.float32),
+                      members=X.astype(np.float32),
                       max_stretch=worst("max_stretch"), p99_stretch=worst("p99_stretch"),
                       max_penetration_m=worst("max_penetration_m"), nan_count=worst("nan_count"),
                       substeps=worst("substeps"),

@@ -296,10 +296,52 @@ def test_the_ensemble_is_the_mean_of_its_members(tiny_skirt, tmp_path):
     assert ens.spread.shape == ens.frames.shape[:2] and float(ens.spread.max()) > 0
     np.testing.assert_allclose(ens.spread, np.sqrt(((X - X.mean(0)) ** 2).sum(-1).mean(0)), atol=1e-6)
     assert [m["bend_stiffness"] for m in ens.meta["members"]] == [1e-4, 1e-3]
+    np.testing.assert_allclose(ens.members, X, atol=1e-6)  # and every member's frames, in that order
     assert ens.max_stretch.shape == (4,) and np.isfinite(ens.frames).all()
     with pytest.raises(ValueError, match="ensemble_bend_stiffness"):
         run_simulate_ensemble(res / "template.npz", res / "motions" / "seq-walk.npz", data, cloth, [],
                               tmp_path / "e.npz", progress=False)
+
+
+def test_stage_weighs_the_members_by_the_images(tiny_skirt, tmp_path):
+    """fit/prior_member_temperature: of two members, the ground truth and the truth moved 5 cm sideways, the
+    images weigh the truth more on every frame (the best alone at temperature 0), the header records the
+    weights and the note says so; an ensemble file without its members is an error naming it."""
+    pytest.importorskip("warp")
+    import dataclasses
+
+    from anidress_core.io.files import ArtifactError
+    from anidress_core.io.garment_poses import load_garment_poses
+    from anidress_core.io.rig import read_rig
+    from anidress_core.io.sim import read_sim, write_sim
+    from anidress_core.stages.fit import gt_template_vertices, run_fit
+
+    data, res = tiny_skirt
+    seq = data / "walk"
+    Y = gt_template_vertices(data, "walk", read_rig(res / "rig.npz", dtype=torch.float64).model.rest)[0].numpy()
+    X = np.stack([Y + np.array([0.05, 0.0, 0.0]), Y])  # (2, T, V, 3): member 1 is the truth
+    ens = tmp_path / "ens.npz"
+    write_sim(ens, dataclasses.replace(read_sim(ensemble(res)), frames=X.mean(0), members=X,
+                                       spread=np.sqrt(((X - X.mean(0)) ** 2).sum(-1).mean(0))))
+    args = (data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
+            seq / "normals")
+    params = {"views": 3, "max_iters": 2, "max_iters_first": 2}
+    for temp in (0.0, 1.0):
+        meta = run_fit(*args, {**params, "prior_member_temperature": temp}, tmp_path / f"t{temp:g}.npz",
+                       progress=False, sim_ensemble_npz=ens)
+        w = np.asarray(load_garment_poses(tmp_path / f"t{temp:g}.npz")[1]["meta"]["member_weights"])
+        assert w.shape == (2, 4) and np.allclose(w.sum(0), 1, atol=1e-3)
+        assert (w[1] == 1).all() if temp == 0 else (w[1] > 0.5).all()
+        assert "members weighted per frame by the images" in meta["followed_simulation"]
+        assert "weighted per frame" in meta["first_frame_start"]
+    # the plain mean by default: no weights
+    meta = run_fit(*args, params, tmp_path / "plain.npz", progress=False, sim_ensemble_npz=ens)
+    assert meta["member_weights"] is None and "weighted" not in meta["followed_simulation"]
+    bare = tmp_path / "no_members.npz"
+    write_sim(bare, dataclasses.replace(read_sim(ens), members=None))
+    with pytest.raises(ArtifactError, match=r"no_members\.npz: no 'members'.*simulate_ensemble"):
+        run_fit(*args, {**params, "prior_member_temperature": 1.0}, tmp_path / "x.npz", progress=False,
+                sim_ensemble_npz=bare)
 
 
 def test_the_ensemble_has_every_stiffness_at_every_settle_length(tiny_skirt, tmp_path):

@@ -228,6 +228,51 @@ def test_prior_spread_scale():
         spread_scale(sig, 0.0)
 
 
+def test_member_weights():
+    """member_weights: each frame's weights sum to 1, the lower-scored member weighs more, a window sums the
+    neighbouring frames' scores, temperature 0 is the best member alone, equal scores equal weights, a higher
+    temperature flatter weights; bad scores or settings raise."""
+    from anidress_core.fit.terms.prior import member_weights
+
+    s = torch.tensor([[1.0, 1.0, 5.0, 1.0], [2.0, 2.0, 1.0, 2.0], [3.0, 3.0, 3.0, 3.0]], dtype=torch.float64)
+    w = member_weights(s, 1.0, 0)
+    torch.testing.assert_close(w.sum(0), torch.ones(4, dtype=torch.float64))
+    assert bool((w[0, [0, 1, 3]] > w[1, [0, 1, 3]]).all()) and bool((w[1, [0, 1, 3]] > w[2, [0, 1, 3]]).all())
+    assert float(w[1, 2]) > float(w[0, 2])  # frame 2 alone: member 1 explains it best
+    # frames 1-3 summed, member 0's one bad frame counts less: 7 against 5 and 9, not 5 against 1 and 3
+    assert float(member_weights(s, 1.0, 1)[0, 2]) > float(w[0, 2])
+    # slow reference of the window: the scores of frames t-k..t+k summed, the ends repeated
+    k = 1
+    ref = torch.stack([s[:, [min(max(u, 0), 3) for u in range(t - k, t + k + 1)]].sum(1) for t in range(4)], 1)
+    z = (ref - ref.min(0).values) / ref.std(0)
+    torch.testing.assert_close(member_weights(s, 1.0, k), torch.softmax(-z, 0))
+    torch.testing.assert_close(member_weights(s, 0.0, 0)[:, 2], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    assert float(member_weights(s, 4.0, 0).max()) < float(w.max())  # hotter, flatter
+    torch.testing.assert_close(member_weights(torch.ones(3, 2), 1.0, 2), torch.full((3, 2), 1 / 3, dtype=torch.float64))
+    torch.testing.assert_close(member_weights(s[:1], 1.0, 2), torch.ones(1, 4, dtype=torch.float64))
+    for bad, kw in ((torch.full((2, 3), float("nan")), {}), (s, {"temperature": -1.0}), (s, {"window": 1.5})):
+        with pytest.raises(ValueError, match="member_weights"):
+            member_weights(bad, **{"temperature": 1.0, "window": 0, **kw})
+
+
+def test_weighted_members():
+    """weighted_members: equal weights give the plain mean and RMS spread (rule simulate_ensemble's), one-hot
+    weights that member and no spread; shapes are checked."""
+    from anidress_core.fit.terms.prior import weighted_members
+
+    X = torch.randn(3, 4, 5, 3, dtype=torch.float64)
+    mean, spread = weighted_members(X, torch.full((3, 4), 1 / 3, dtype=torch.float64))
+    torch.testing.assert_close(mean, X.mean(0))
+    torch.testing.assert_close(spread, ((X - X.mean(0)) ** 2).sum(-1).mean(0).sqrt())
+    one = torch.zeros(3, 4, dtype=torch.float64)
+    one[1] = 1
+    mean, spread = weighted_members(X, one)
+    torch.testing.assert_close(mean, X[1])
+    torch.testing.assert_close(spread, torch.zeros(4, 5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="weighted_members"):
+        weighted_members(X, torch.ones(3, 5))
+
+
 def test_anchor():
     """L_anchor on an image whose chromaticity is linear (r + g + b constant, no blur): the bilinear
     sample and the central differences of image_features are exact, so H is the IRLS J^T W J."""

@@ -51,6 +51,14 @@ def test_variant_configs():
     assert c.flow == 0 and c.normal == 0.1 and c.anchor == 0 and c.collision == 0 and c.prior == 0
     with pytest.raises(ValueError, match="unknown fit loss variant"):
         fit.FitConfig.from_config({}, "nope")
+    # the ensemble's members weighted by the images: a setting of L_prior's ensemble reference only
+    assert base.prior_member_temperature is None and base.prior_member_window == 5
+    assert fit.FitConfig.from_config({}, "pipeline_image_weights").prior_member_temperature == 1.0
+    assert fit.FitConfig.from_config({"prior_member_temperature": 1, "prior_reference": "sim"}).prior_member_temperature \
+        is None  # unused: recorded as None, as it ran
+    for bad in ({"prior_member_temperature": -1.0}, {"prior_member_window": 1.5}):
+        with pytest.raises(ValueError, match="prior_member"):
+            base.replace(**bad)
 
 
 def test_which_settings_read_the_simulation_of_the_observed_motion():

@@ -134,19 +134,22 @@ def test_sim_round_trip(tmp_path):
     seq = SimSequence(frames=RNG.normal(size=(T, V, 3)).astype(np.float32),
                       faces=RNG.integers(0, V, size=(6, 3)).astype(np.int64), fps=25.0,
                       meta={"motion": "lib-twirl", "recoveries": [{"frame": 2, "reason": "stretch"}], "wall_s": 1.0},
-                      spread=RNG.random((T, V)).astype(np.float32), **stats)
+                      spread=RNG.random((T, V)).astype(np.float32),
+                      members=RNG.normal(size=(2, T, V, 3)).astype(np.float32), **stats)
     write_sim(tmp_path / "lib-twirl.npz", seq, config={"stretch": 1.0})
     back = read_sim(tmp_path / "lib-twirl.npz")
     np.testing.assert_array_equal(back.frames, seq.frames)
     np.testing.assert_array_equal(back.faces, seq.faces)
     np.testing.assert_array_equal(back.spread, seq.spread)
+    np.testing.assert_array_equal(back.members, seq.members)
     assert back.fps == 25.0 and back.meta == seq.meta and back.num_frames == T
     for k in SIM_STATS:
         np.testing.assert_array_equal(getattr(back, k), stats[k])
     # only the frames: the other fields read as None
     write_sim(tmp_path / "bare.npz", SimSequence(frames=seq.frames))
     bare = read_sim(tmp_path / "bare.npz")
-    assert bare.faces is None and bare.fps is None and bare.spread is None and all(getattr(bare, k) is None for k in SIM_STATS)
+    assert bare.faces is None and bare.fps is None and bare.spread is None and bare.members is None
+    assert all(getattr(bare, k) is None for k in SIM_STATS)
 
 
 def test_sim_malformed_names_file_and_field(tmp_path):
@@ -159,6 +162,9 @@ def test_sim_malformed_names_file_and_field(tmp_path):
         read_sim(p)
     files.save_npz(p, {"frames": np.zeros((3, 5, 3), np.float32), "spread": np.ones((3, 4))})
     with pytest.raises(files.ArtifactError, match=r"bad_sim\.npz: spread must be \(3, 5\)"):
+        read_sim(p)
+    files.save_npz(p, {"frames": np.zeros((3, 5, 3), np.float32), "members": np.ones((2, 3, 4, 3))})
+    with pytest.raises(files.ArtifactError, match=r"bad_sim\.npz: members must be \(M, 3, 5, 3\)"):
         read_sim(p)
     files.save_npz(p, {"faces": np.zeros((2, 3), np.int64)})
     with pytest.raises(files.ArtifactError, match=r"bad_sim\.npz: missing arrays \['frames'\]"):

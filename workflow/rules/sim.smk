@@ -94,8 +94,9 @@ rule simulate_ensemble:
         cloth=config["simulate"]["cloth"],
         bend_stiffness=config["simulate"]["ensemble_bend_stiffness"],
         settle_frames=config["simulate"]["ensemble_settle_frames"],
-        # the arrays the file holds: files written before `spread` existed are remade (params rerun trigger)
-        arrays=["frames", "spread"],
+        # the arrays the file holds: files written before `spread` or `members` existed are remade (params
+        # rerun trigger)
+        arrays=["frames", "spread", "members"],
     threads: 1
     priority: 2  # the garment chain (cues, motions, simulate, rig, fit, then the full field) is the demo's longest: first
     resources:
