@@ -241,6 +241,13 @@ def test_stage_records_what_it_did_about_bad_cues(tiny_skirt, tmp_path):
     assert list(windows) == ["3"] and windows["3"]["frames"] == 4  # the default fit/window 5, four frames
     assert windows["3"]["loss"] <= windows["3"]["chain_loss"]
     assert {t: n for t, n in notes.items() if n} == {"1": {"no_flow": True}, "2": {"views_dropped": [1]}}
+    # the members weighted by the same images: finite weights, poses and losses
+    meta = run_fit(data, "walk", res / "rig.npz", res / "template.npz", masks, flows, seq / "normals",
+                   {"views": 3, "max_iters": 2, "max_iters_first": 2, "prior_member_temperature": 1.0},
+                   tmp_path / "gw.npz", progress=False, sim_ensemble_npz=ensemble(res))
+    gp = read_garment_poses(tmp_path / "gw.npz", frames=4, bones=6)
+    assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
+    assert np.isfinite(meta["member_weights"]).all() and np.shape(meta["member_weights"]) == (2, 4)
 
 
 def test_stage_proposals_from_the_simulation_database(tiny_skirt, tmp_path):
