@@ -181,8 +181,7 @@ class FitConfig:
     weighted per frame by how well each explains the images, and the spread about it
     (:func:`anidress_core.fit.terms.prior.member_weights`: softmax of the members' L_silhouette + L_normal
     over this times their standard deviation; 0 = the best member alone); None = the plain mean
-    (studies/fit/README.md section 21). The config's default is 1.0; this field's default is what fits
-    made before the setting existed used."""
+    (studies/fit/README.md section 21)."""
     prior_member_window: int = 5
     """Frames either side of t whose member scores are summed for frame t's weights."""
 

@@ -6,8 +6,8 @@ rules ``fit`` and ``fit_ablation``, the CLI).
   temporal filter, no window refinement); ``pipeline_single_sim``: L_prior following one simulation
   (the rig's) instead of the stiffness ensemble's mean; ``pipeline_previous``: the defaults before it; ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_sim_delta``: the pipeline with a part that is
   off by default turned on, as are ``pipeline_prior_anchor_info``, ``pipeline_prior_info`` (L_prior weighted
-  per bone by the image terms' information); ``pipeline_plain_mean``: the ensemble's members not weighted by
-  the images; ``pipeline_image_anchor``: without the garment texture.
+  per bone by the image terms' information) and ``pipeline_image_weights`` (the ensemble's members weighted
+  per frame by the images); ``pipeline_image_anchor``: without the garment texture.
 * ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
   lowest pipeline loss.
 * ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress, supplementary), none
@@ -73,9 +73,10 @@ VARIANTS: dict[str, Variant] = {
     "pipeline_uniform_prior": Variant("the pipeline with one L_prior weight for every vertex, not weighted by the "
                                       "stiffness ensemble's spread (fit/prior_spread_floor null)",
                                       lambda c: c.replace(prior_spread_floor=None)),
-    "pipeline_plain_mean": Variant("the pipeline with L_prior's reference and frame 0's start the ensemble's plain "
-                                   "mean, its members not weighted by the images (fit/prior_member_temperature null)",
-                                   lambda c: c.replace(prior_member_temperature=None)),
+    "pipeline_image_weights": Variant("the pipeline with L_prior's reference and frame 0's start the ensemble's members "
+                                      "weighted per frame by how well each explains the images, not their plain mean "
+                                      "(fit/prior_member_temperature 1)",
+                                      lambda c: c.replace(prior_member_temperature=1.0)),
     "pipeline_previous": Variant("the pipeline's defaults before the stiffness ensemble (to 2026-12-05): L_prior "
                                  "weight 1e4 towards the rig's own simulation of the observed motion (started as the "
                                  "demo scenes' truth is, not the suites'), its tangent planes at that reference",

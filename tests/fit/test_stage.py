@@ -121,8 +121,7 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     bare = res / "walk" / "no_spread.npz"
     write_sim(bare, dataclasses.replace(read_sim(ensemble(res)), spread=None))
     with pytest.raises(ArtifactError, match=r"no_spread\.npz: no 'spread'.*simulate_ensemble"):
-        run_fit(*args, seq / "normals", {**params, "prior_member_temperature": None}, res / "walk" / "x.npz",
-                progress=False, sim_ensemble_npz=bare)  # the plain mean's spread is the file's
+        run_fit(*args, seq / "normals", params, res / "walk" / "x.npz", progress=False, sim_ensemble_npz=bare)
     # the fitted transforms reproduce the fitted vertices through the rig (the field stage's contract)
     art = read_rig(res / "rig.npz", dtype=torch.float64)
     x = lbs(art.model.rest, art.model.weights, torch.as_tensor(gp.transforms).double())
@@ -242,7 +241,12 @@ def test_stage_records_what_it_did_about_bad_cues(tiny_skirt, tmp_path):
     assert list(windows) == ["3"] and windows["3"]["frames"] == 4  # the default fit/window 5, four frames
     assert windows["3"]["loss"] <= windows["3"]["chain_loss"]
     assert {t: n for t, n in notes.items() if n} == {"1": {"no_flow": True}, "2": {"views_dropped": [1]}}
-    # the members weighted by the same images (the default): finite weights
+    # the members weighted by the same images: finite weights, poses and losses
+    meta = run_fit(data, "walk", res / "rig.npz", res / "template.npz", masks, flows, seq / "normals",
+                   {"views": 3, "max_iters": 2, "max_iters_first": 2, "prior_member_temperature": 1.0},
+                   tmp_path / "gw.npz", progress=False, sim_ensemble_npz=ensemble(res))
+    gp = read_garment_poses(tmp_path / "gw.npz", frames=4, bones=6)
+    assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
     assert np.isfinite(meta["member_weights"]).all() and np.shape(meta["member_weights"]) == (2, 4)
 
 
@@ -307,9 +311,9 @@ def test_the_ensemble_is_the_mean_of_its_members(tiny_skirt, tmp_path):
 
 
 def test_stage_weighs_the_members_by_the_images(tiny_skirt, tmp_path):
-    """fit/prior_member_temperature (1 by default): of two members, the ground truth and the truth moved 5 cm
-    sideways, the images weigh the truth more on every frame (the best alone at temperature 0), the header
-    records the weights and the note says so; an ensemble file without its members is an error naming it."""
+    """fit/prior_member_temperature: of two members, the ground truth and the truth moved 5 cm sideways, the
+    images weigh the truth more on every frame (the best alone at temperature 0), the header records the
+    weights and the note says so; an ensemble file without its members is an error naming it."""
     pytest.importorskip("warp")
     import dataclasses
 
@@ -337,9 +341,8 @@ def test_stage_weighs_the_members_by_the_images(tiny_skirt, tmp_path):
         assert (w[1] == 1).all() if temp == 0 else (w[1] > 0.5).all()
         assert "members weighted per frame by the images" in meta["followed_simulation"]
         assert "weighted per frame" in meta["first_frame_start"]
-    # the plain mean (fit/prior_member_temperature null): no weights
-    meta = run_fit(*args, {**params, "prior_member_temperature": None}, tmp_path / "plain.npz", progress=False,
-                   sim_ensemble_npz=ens)
+    # the plain mean by default: no weights
+    meta = run_fit(*args, params, tmp_path / "plain.npz", progress=False, sim_ensemble_npz=ens)
     assert meta["member_weights"] is None and "weighted" not in meta["followed_simulation"]
     bare = tmp_path / "no_members.npz"
     write_sim(bare, dataclasses.replace(read_sim(ens), members=None))

@@ -52,8 +52,8 @@ def test_variant_configs():
     with pytest.raises(ValueError, match="unknown fit loss variant"):
         fit.FitConfig.from_config({}, "nope")
     # the ensemble's members weighted by the images: a setting of L_prior's ensemble reference only
-    assert base.prior_member_temperature == 1.0 and base.prior_member_window == 5
-    assert fit.FitConfig.from_config({}, "pipeline_plain_mean").prior_member_temperature is None
+    assert base.prior_member_temperature is None and base.prior_member_window == 5
+    assert fit.FitConfig.from_config({}, "pipeline_image_weights").prior_member_temperature == 1.0
     assert fit.FitConfig.from_config({"prior_member_temperature": 1, "prior_reference": "sim"}).prior_member_temperature \
         is None  # unused: recorded as None, as it ran
     for bad in ({"prior_member_temperature": -1.0}, {"prior_member_window": 1.5}):
