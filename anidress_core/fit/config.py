@@ -180,8 +180,10 @@ class FitConfig:
     """With ``prior_reference`` sim_ensemble: L_prior's reference (and frame 0's start) the members' mean
     weighted per frame by how well each explains the images, and the spread about it
     (:func:`anidress_core.fit.terms.prior.member_weights`: softmax of the members' L_silhouette + L_normal
-    over this times their standard deviation; 0 = the best member alone); None = the plain mean
-    (studies/fit/README.md section 21)."""
+    over this times their standard deviation; 0 = the best member alone); None = the plain mean. None by
+    default: held-out, it is better with L_anchor's references from the garment texture (8 views 2.47 ->
+    2.38x the rig floor) and worse with references from the images, as on a capture without a texture
+    (2.59 -> 2.79x; studies/fit/README.md section 21)."""
     prior_member_window: int = 5
     """Frames either side of t whose member scores are summed for frame t's weights."""
 

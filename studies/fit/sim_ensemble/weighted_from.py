@@ -7,7 +7,8 @@ config's ``simulate/ensemble_bend_stiffness`` with each tag of ``TAGS``, default
 Each member's rig poses (``rig.fit_transforms`` of its frames) are scored on every frame's cues by
 L_silhouette + L_normal (``anidress_core.fit.proposals.score_poses``, the other terms off) and weighted by
 ``anidress_core.fit.terms.prior.member_weights``; the reference is their weighted mean, L_prior's weight per vertex
-from their weighted spread (``weighted_members``). ``SCORES=<folder>`` keeps the scores for ``screen``.
+from their weighted spread (``weighted_members``). ``SCORES=<folder>`` keeps the scores for ``screen``;
+``START=mean`` starts frame 0 from the plain mean's pose (L_prior still follows the weighted mean).
 
 Before each fit it prints, on the scene's ground truth (a screen, not read by the fit): the vertex RMSE through the
 rig over the rig floor of the plain mean, of the weighted mean at ALPHA 0, 0.5, 1, 2, and of the per-frame member
@@ -43,6 +44,7 @@ MEMBERS = Path(os.environ["MEMBERS"])
 TAGS = os.environ.get("TAGS", "settle_frames20,settle_frames40").split(",")
 ALPHA = float(os.environ.get("ALPHA", "1"))
 SMOOTH = int(os.environ.get("SMOOTH", "2"))
+START = os.environ.get("START", "weighted")  # frame 0's start: the weighted mean's, or 'mean' the plain mean's
 SCORES = Path(os.environ["SCORES"]) if os.environ.get("SCORES") else None  # the members' scores, kept and reused
 BENDS = [float(b) for b in yaml.safe_load(Path("config/config.yaml").read_text())["simulate"]
          ["ensemble_bend_stiffness"]]
@@ -107,7 +109,7 @@ def fit_sequence(rig, views, num_frames, cues_of, flow_of, init, cfg=None, **kw)
     print("weighted_from:", json.dumps({"scene": _current["scene"], "alpha": ALPHA, "smooth": SMOOTH,
                                         "weight_max_median": round(float(w.max(0).values.median()), 3),
                                         **screen(model, X, scores, ((ALPHA, SMOOTH),))}), flush=True)
-    return _fit_sequence(rig, views, num_frames, cues_of, flow_of, S[0], cfg,
+    return _fit_sequence(rig, views, num_frames, cues_of, flow_of, init if START == "mean" else S[0], cfg,
                          **{**kw, "sim_transforms": S, "prior_scales": scales})
 
 
@@ -141,6 +143,6 @@ def screen_grid(suite: str, views: int) -> None:
 if __name__ == "__main__" and sys.argv[1:2] == ["screen"]:
     screen_grid(sys.argv[2], int(sys.argv[3]))
 elif __name__ == "__main__":
-    bench_fit.PROG = (f"MEMBERS={MEMBERS} TAGS={','.join(TAGS)} ALPHA={ALPHA:g} SMOOTH={SMOOTH} "
+    bench_fit.PROG = (f"MEMBERS={MEMBERS} TAGS={','.join(TAGS)} ALPHA={ALPHA:g} SMOOTH={SMOOTH} START={START} "
                       "PYTHONPATH=. .venv/bin/python studies/fit/sim_ensemble/weighted_from.py")
     bench_fit.main()
