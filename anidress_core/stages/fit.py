@@ -513,17 +513,10 @@ def weighted_ensemble(path: str | os.PathLike, art, rig, views, cues_of, frames:
     the file, when it holds no members (written before they were stored: rerun rule simulate_ensemble)."""
     from ..fit.proposals import score_poses
     from ..fit.terms.prior import member_weights, weighted_members
-    from ..io.sim import read_sim
     from ..rig import fit_transforms
 
-    s = read_sim(path)
-    if s.members is None:
-        raise files.ArtifactError(f"{path}: no 'members' (every member's frames; written by rule simulate_ensemble "
-                                  "since fit/prior_member_temperature exists: rerun it), or set "
-                                  "fit/prior_member_temperature: null")
-    if s.members.shape[1] < frames:
-        raise files.ArtifactError(f"{path}: members {tuple(s.members.shape)} must hold {frames}+ frames")
-    X = torch.as_tensor(s.members[:, :frames], device=device, dtype=torch.float64)  # (M, T, V, 3)
+    members = ensemble_array(path, "members", "every member's frames", "fit/prior_member_temperature", frames)
+    X = torch.as_tensor(members, device=device, dtype=torch.float64)  # (M, T, V, 3)
     if not torch.isfinite(X).all():
         raise files.ArtifactError(f"{path}: non-finite member vertices")
     G = torch.stack([fit_transforms(art.model, x).double() for x in X])  # (M, T, B, 4, 4)
@@ -549,22 +542,31 @@ def ensemble_note(meta: dict) -> str:
             + (f", settle frames {n}" if n else "") + ")")
 
 
+def ensemble_array(path: str | os.PathLike, name: str, what: str, setting: str, frames: int) -> np.ndarray:
+    """The first ``frames`` frames of the array ``name`` ('spread' (T, V) or 'members' (M, T, V, 3)) stored
+    with the ensemble's mean at ``path``. Raises, naming the file, when the file lacks it (written before the
+    array was stored: rerun rule simulate_ensemble, or set ``setting`` to null) or holds fewer frames."""
+    from ..io.sim import read_sim
+
+    a = getattr(read_sim(path), name)
+    if a is None:
+        raise files.ArtifactError(f"{path}: no '{name}' ({what}; written by rule simulate_ensemble since {setting} "
+                                  f"exists: rerun it), or set {setting}: null")
+    axis = 1 if name == "members" else 0  # the frames' axis
+    if a.shape[axis] < frames:
+        raise files.ArtifactError(f"{path}: {name} {tuple(a.shape)} must hold {frames}+ frames")
+    return a[:, :frames] if axis else a[:frames]
+
+
 def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) -> torch.Tensor:
     """(frames, V) float64 L_prior's factor per frame and vertex from the spread stored with the ensemble's mean
     at ``path`` (:func:`anidress_core.fit.terms.prior.spread_scale` with ``floor``). Raises, naming the file,
     when it has no spread (written before the spread was stored: rerun rule simulate_ensemble) or a bad one."""
     from ..fit.terms.prior import spread_scale
-    from ..io.sim import read_sim
 
-    s = read_sim(path)
-    if s.spread is None:
-        raise files.ArtifactError(f"{path}: no 'spread' (the members' spread about their mean; written by rule "
-                                  "simulate_ensemble since fit/prior_spread_floor exists: rerun it), or set "
-                                  "fit/prior_spread_floor: null")
-    if s.spread.shape[0] < frames:
-        raise files.ArtifactError(f"{path}: spread {tuple(s.spread.shape)} must hold {frames}+ frames")
+    spread = ensemble_array(path, "spread", "the members' spread about their mean", "fit/prior_spread_floor", frames)
     try:
-        return spread_scale(torch.as_tensor(s.spread[:frames], dtype=torch.float64), floor)
+        return spread_scale(torch.as_tensor(spread, dtype=torch.float64), floor)
     except ValueError as e:  # a non-finite or negative spread: named with its file
         raise files.ArtifactError(f"{path}: {e}") from e
 
