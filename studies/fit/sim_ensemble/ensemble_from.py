@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from anidress_core.io.sim import read_sim, write_sim  # noqa: E402
 from anidress_core.fit.variants import VARIANTS, Variant  # noqa: E402
 from benchmarks import bench_fit  # noqa: E402
-from members import member_path  # noqa: E402
+from members import load_members  # noqa: E402
 
 MEMBERS, ENSEMBLES = Path(os.environ["MEMBERS"]), Path(os.environ["ENSEMBLES"])
 TAGS = os.environ.get("TAGS", "").split(",")
@@ -39,14 +39,7 @@ def ensemble_npz(scene: str, seq: str) -> str:
     """The ensemble of MEMBERS x TAGS, written once next to the pipeline's file's header."""
     out = ENSEMBLES / scene / f"seq-{seq}.npz"
     if not out.is_file():
-        X = []
-        for b in BENDS:
-            for tag in TAGS:
-                p = member_path(MEMBERS, scene, seq, b, tag)
-                if not p.is_file():
-                    raise SystemExit(f"{p}: no such member (members.py --vary makes it)")
-                X.append(np.load(p)["frames"].astype(np.float64))
-        X = np.stack(X)  # (M, T, V, 3)
+        X = load_members(MEMBERS, scene, seq, BENDS, TAGS, "members.py --vary makes it")  # (M, T, V, 3)
         mean = X.mean(0)
         base = read_sim(bench_fit.ensemble_npz.__wrapped__(scene, seq))
         out.parent.mkdir(parents=True, exist_ok=True)

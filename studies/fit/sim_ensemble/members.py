@@ -37,6 +37,19 @@ def member_path(out: Path, scene: str, seq: str, bend: float, tag: str = "") -> 
     return out / f"{scene}-{seq}-{bend:g}{'-' + tag if tag else ''}.npz"
 
 
+def load_members(out: Path, scene: str, seq: str, bends: list[float], tags: list[str], hint: str) -> np.ndarray:
+    """(M, T, V, 3) float64 the members at every stiffness of ``bends`` with each tag of ``tags``, in that order;
+    a missing one stops the probe, naming its file and ``hint`` (how to make it)."""
+    X = []
+    for b in bends:
+        for tag in tags:
+            p = member_path(out, scene, seq, b, tag)
+            if not p.is_file():
+                raise SystemExit(f"{p}: no such member ({hint})")
+            X.append(np.load(p)["frames"].astype(np.float64))
+    return np.stack(X)
+
+
 def tag_of(combo: tuple[tuple[str, float], ...]) -> str:
     """((NAME, v), (NAME2, w)) -> ``NAMEv-NAME2w``, the tag of a member's file and of its mean's column."""
     return "-".join(f"{name}{val:g}" for name, val in combo)

@@ -24,7 +24,6 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 import yaml
 
@@ -38,7 +37,7 @@ from anidress_core.geometry import lbs  # noqa: E402
 from anidress_core.rig import fit_transforms  # noqa: E402
 from anidress_core.stages import fit as stage  # noqa: E402
 from benchmarks import bench_fit  # noqa: E402
-from members import member_path  # noqa: E402
+from members import load_members  # noqa: E402
 
 MEMBERS = Path(os.environ["MEMBERS"])
 TAGS = os.environ.get("TAGS", "settle_frames20,settle_frames40").split(",")
@@ -48,6 +47,7 @@ START = os.environ.get("START", "weighted")  # frame 0's start: the weighted mea
 SCORES = Path(os.environ["SCORES"]) if os.environ.get("SCORES") else None  # the members' scores, kept and reused
 BENDS = [float(b) for b in yaml.safe_load(Path("config/config.yaml").read_text())["simulate"]
          ["ensemble_bend_stiffness"]]
+HINT = "members.py --vary settle_frames=20,40 makes it"
 _fit_sequence = FIT.fit_sequence
 _current: dict = {}  # the scene being fitted: its members and rig model
 
@@ -56,15 +56,9 @@ def member_transforms(path, art, frames, device):
     """Stands in for the stage's ensemble_transforms: records the scene's members; returns the mean's as usual
     (replaced in fit_sequence once the cues are there)."""
     scene, seq = Path(path).parts[-3], Path(path).stem[len("seq-"):]
-    X = []
-    for b in BENDS:
-        for tag in TAGS:
-            p = member_path(MEMBERS, scene, seq, b, tag)
-            if not p.is_file():
-                raise SystemExit(f"{p}: no such member (members.py --vary settle_frames=20,40 makes it)")
-            X.append(np.load(p)["frames"][:frames].astype(np.float64))
+    X = load_members(MEMBERS, scene, seq, BENDS, TAGS, HINT)[:, :frames]
     _current.clear()
-    _current.update(scene=scene, seq=seq, model=art.model, X=torch.as_tensor(np.stack(X)))
+    _current.update(scene=scene, seq=seq, model=art.model, X=torch.as_tensor(X))
     return member_transforms.__wrapped__(path, art, frames, device)
 
 
@@ -132,8 +126,7 @@ def screen_grid(suite: str, views: int) -> None:
             continue
         scores = torch.load(p)
         art = read_rig(f"results/{scene}/rig.npz", dtype=torch.float64)
-        X = torch.as_tensor(np.stack([np.load(member_path(MEMBERS, scene, seq, b, tag))["frames"][:scores.shape[1]]
-                                      for b in BENDS for tag in TAGS]).astype(np.float64))
+        X = torch.as_tensor(load_members(MEMBERS, scene, seq, BENDS, TAGS, HINT)[:, :scores.shape[1]])
         _current.update(scene=scene, seq=seq)
         r = screen(art.model, X, scores, grid)
         cells = " ".join(f"{r[f'a{a:g}/s{s}']:.2f}" for a, s in grid)
