@@ -5,7 +5,8 @@ much of the fit's error is the cues', how much the optimiser's? Registers ``prio
 (the pipeline with L_prior's weight w, for w in 0, 1000; ``pipeline`` is the defaults), ``it15_fa10`` (15 loss
 evaluations per frame t > 0 and 10 Gauss-Newton steps of the flow alignment, instead of 5 and 3) and
 ``p0_it15_fa10`` (that without L_prior), ``it15_fa10_tol1e-2`` (that stopping when a step gains less than
-1 % instead of 0.1 %), and runs the maintained benchmark
+1 % instead of 0.1 %), ``images_only`` (the pipeline without L_prior and L_flow: the per-frame image loss), and
+with ``OPTIMUM_OF=<variant>`` makes the ``optimum`` row that variant started on the rig floor; runs the maintained benchmark
 (benchmarks/bench_fit.py) with its own arguments and ``--cues pipeline`` (with ``GT_FLOWS=1`` the flows
 swapped). E.g.
 
@@ -34,6 +35,8 @@ V.VARIANTS["p0_it15_fa10"] = V.Variant("the pipeline without L_prior, 15 loss ev
 V.VARIANTS["it15_fa10_tol1e-2"] = V.Variant("the pipeline with up to 15 loss evaluations per frame t > 0, 10 "
                                            "flow-alignment steps, converged below a 1 % gain per step",
                                            lambda c: c.replace(max_iters=15, flow_align_iters=10, rel_tol=1e-2))
+V.VARIANTS["images_only"] = V.Variant("the pipeline without L_prior and L_flow (the per-frame image loss)",
+                                      lambda c: c.replace(weights={"prior": 0.0, "flow": 0.0}))
 _pipeline_cues = bench_fit.cue_dirs
 
 
@@ -67,5 +70,10 @@ if __name__ == "__main__":
     if swap:
         bench_fit.cue_dirs = cue_dirs
     env = ("GT_FLOWS=1 " if swap == ("flows",) else f"GT_CUES={','.join(swap)} ") if swap else ""
+    of = os.environ.get("OPTIMUM_OF")
+    if of:
+        bench_fit.OPTIMUM_DESCRIPTION = bench_fit.OPTIMUM_DESCRIPTION.replace(f"`{bench_fit.OPTIMUM_OF}`", f"`{of}`")
+        bench_fit.OPTIMUM_OF = of
+        env += f"OPTIMUM_OF={of} "
     bench_fit.PROG = f"{env}PYTHONPATH=. .venv/bin/python studies/fit/cues_limit/run.py"
     bench_fit.main()
