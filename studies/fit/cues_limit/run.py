@@ -6,8 +6,8 @@ much of the fit's error is the cues', how much the optimiser's? Registers ``prio
 evaluations per frame t > 0 and 10 Gauss-Newton steps of the flow alignment, instead of 5 and 3) and
 ``p0_it15_fa10`` (that without L_prior), ``it15_fa10_tol1e-2`` (that stopping when a step gains less than
 1 % instead of 0.1 %), ``images_only`` (the pipeline without L_prior and L_flow: the per-frame image loss), and
-with ``OPTIMUM_OF=<variant>`` makes the ``optimum`` row that variant started on the rig floor; runs the maintained benchmark
-(benchmarks/bench_fit.py) with its own arguments and ``--cues pipeline`` (with ``GT_FLOWS=1`` the flows
+with ``OPTIMUM_OF=<variant>`` makes the ``optimum`` row that variant started on the rig floor; runs the maintained
+benchmark (benchmarks/bench_fit.py) with its own arguments and ``--cues pipeline`` (with ``GT_FLOWS=1`` the flows
 swapped). E.g.
 
     GT_FLOWS=1 PYTHONPATH=. .venv/bin/python studies/fit/cues_limit/run.py --suite <half of config/fit_suite.yaml> \\
