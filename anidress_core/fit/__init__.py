@@ -6,13 +6,19 @@ minimising a weighted sum of loss terms over bone increments with Levenberg-Marq
 
     L = w_silhouette L_silhouette + w_normal L_normal + w_flow L_flow     (paper: 2.0, 0.1, 3.0)
       + w_anchor L_anchor + w_prior L_prior + w_collision L_collision     (ours)
+      + w_stretch L_stretch                                              (ours)
+
+The settings are :class:`FitConfig`'s, read from config section ``fit`` (defaults: the schema,
+workflow/schemas/config.schema.yaml; each key explained in config/config.yaml). Why each term and
+setting is there, as measured: studies/fit/README.md, its Conclusions first.
 
 Modules: :mod:`.config` (:class:`FitConfig`, the config section ``fit``), :mod:`.variants`
 (the loss variants: ``pipeline``, ``paper``, their ablations), :mod:`.problem` (rig, views,
 cues, render windows), :mod:`.terms` (one module per loss term: value, Gauss-Newton block,
 autograd reference), :mod:`.objective` (the loss and its Gauss-Newton system), :mod:`.lm`
 (Levenberg-Marquardt), :mod:`.jacobians` (bone increments), :mod:`.sequence` (frames and
-sequences), :mod:`.proposals` (candidate poses from the simulation database, scored by the
+sequences: the forward chain), :mod:`.window` (windows of chained frames refined jointly, L_flow
+coupling their poses), :mod:`.proposals` (candidate poses from the simulation database, scored by the
 loss), :mod:`.images` (image sampling).
 """
 from __future__ import annotations
@@ -35,8 +41,9 @@ from .variants import PAPER_WEIGHTS, VARIANTS, apply_variant
 __all__ = [
     "FitConfig", "LossWeights", "VertexSettings", "VARIANTS", "PAPER_WEIGHTS", "apply_variant",
     "RigParts", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem", "Evaluation", "evaluate",
-    "gauss_newton_system", "loss_terms", "total_loss", "with_prior_information", "TERMS", "TERM_NAMES", "LMResult", "levenberg_marquardt",
-    "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "backward_pass", "cue_notes", "flow_align", "smooth_transforms", "flow_targets",
+    "gauss_newton_system", "loss_terms", "total_loss", "with_prior_information", "TERMS", "TERM_NAMES", "LMResult",
+    "levenberg_marquardt", "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "backward_pass", "cue_notes",
+    "flow_align", "smooth_transforms", "flow_targets",
     "AnchorRef", "update_anchor", "texture_anchor", "texture_blur_texels", "Contacts", "body_contacts",
     "chromaticity", "image_features", "blurred", "sample", "sample_blurred", "contour_length", "occluder_depth",
     "downsample", "Crop", "crop_window", "crop_frame", "uncrop_fragments", "JACOBIAN_DTYPE", "apply_increment",
