@@ -38,8 +38,8 @@ def main() -> None:
             print(f"| {s} | " + " | ".join(f"{rows[(s, views)][0]:.2f}" if (s, views) in rows else "--"
                                            for _, rows in cols) + " |")
         for name, fn in (("median", statistics.median), ("worst", max)):
-            print(f"| {name} | " + " | ".join(f"{fn(v[0] for k, v in rows.items() if k[1] == views):.2f}"
-                                             for _, rows in cols) + " |")
+            vals = [[v[0] for k, v in rows.items() if k[1] == views] for _, rows in cols]
+            print(f"| {name} | " + " | ".join(f"{fn(v):.2f}" if v else "--" for v in vals) + " |")
         print(f"| drift > {DRIFT_TARGET} | " + " | ".join(
             f"{sum(v[1] > DRIFT_TARGET for k, v in rows.items() if k[1] == views)} of "
             f"{sum(k[1] == views for k in rows)}" for _, rows in cols) + " |")
