@@ -227,7 +227,7 @@ def reusable(path: Path, method: str, params: dict, ensemble: str | None = None,
         from anidress_core.io.sim import read_sim
 
         if (ensemble is None or not Path(ensemble).is_file() or newer(ensemble)
-                or ensemble_note(read_sim(ensemble).meta) not in read):
+                or ensemble_note(read_sim(ensemble, members=False).meta) not in read):
             return False
     return (meta.get("loss") == (OPTIMUM_OF if oracle else method) and bool(meta.get("starts")) == oracle
             and full(meta.get("params")) == full(params)

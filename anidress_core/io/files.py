@@ -257,13 +257,15 @@ def save_npz(path: str | os.PathLike, arrays: Mapping[str, Any], config: Any = N
             (np.savez_compressed if compress else np.savez)(fh, **payload)
 
 
-def load_npz(path: str | os.PathLike, required: tuple[str, ...] = ()) -> tuple[dict[str, np.ndarray], dict]:
-    """Load an npz artifact -> (arrays, header). ``required`` names arrays that must exist."""
+def load_npz(path: str | os.PathLike, required: tuple[str, ...] = (),
+             skip: tuple[str, ...] = ()) -> tuple[dict[str, np.ndarray], dict]:
+    """Load an npz artifact -> (arrays, header). ``required`` names arrays that must exist; ``skip`` names arrays
+    left unread (the caller does not need them)."""
     path = Path(path)
     _require(path)
     try:
         with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
+            arrays = {k: z[k] for k in z.files if k not in skip}
     except Exception as e:
         raise ArtifactError(f"{path}: not a readable npz file ({e})") from e
     raw = arrays.pop(HEADER_KEY, None)

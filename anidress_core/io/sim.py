@@ -84,9 +84,11 @@ def write_sim(path: str | os.PathLike, seq: SimSequence, config: Any = None) -> 
     files.save_npz(path, arrays, config=config, meta=seq.meta)
 
 
-def read_sim(path: str | os.PathLike) -> SimSequence:
-    """Read ``sim/<motion>.npz``; a missing ``frames`` or a wrong shape raises ArtifactError naming the file and the field."""
-    a, h = files.load_npz(path, required=("frames",))
+def read_sim(path: str | os.PathLike, members: bool = True) -> SimSequence:
+    """Read ``sim/<motion>.npz``; a missing ``frames`` or a wrong shape raises ArtifactError naming the file and the field.
+    ``members=False`` leaves an ensemble's ``members`` (M, T, V, 3) unread (``SimSequence.members`` None): the
+    largest array, which only the member weighting uses."""
+    a, h = files.load_npz(path, required=("frames",), skip=() if members else ("members",))
     x = a["frames"]
     if x.ndim != 3 or x.shape[-1] != 3:
         raise files.ArtifactError(f"{path}: frames must be (T, V, 3), got {x.shape}")

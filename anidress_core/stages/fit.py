@@ -488,7 +488,7 @@ def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None,
         raise FileNotFoundError(f"{path}: fit/prior_reference 'sim_ensemble' needs the ensemble's mean simulation of the "
                                 "observed motion (rule simulate_ensemble: results/<scene>/sim_ensemble/seq-<seq>.npz); "
                                 "or set fit/prior_reference: sim")
-    s = read_sim(path)
+    s = read_sim(path, members=False)
     V = art.model.rest.shape[0]
     frames = s.frames.shape[0] if frames is None else frames
     if s.frames.ndim != 3 or s.frames.shape[1:] != (V, 3) or s.frames.shape[0] < frames:
@@ -548,7 +548,7 @@ def ensemble_array(path: str | os.PathLike, name: str, what: str, setting: str, 
     array was stored: rerun rule simulate_ensemble, or set ``setting`` to null) or holds fewer frames."""
     from ..io.sim import read_sim
 
-    a = getattr(read_sim(path), name)
+    a = getattr(read_sim(path, members=name == "members"), name)
     if a is None:
         raise files.ArtifactError(f"{path}: no '{name}' ({what}; written by rule simulate_ensemble since {setting} "
                                   f"exists: rerun it), or set {setting}: null")

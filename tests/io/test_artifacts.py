@@ -145,6 +145,12 @@ def test_sim_round_trip(tmp_path):
     assert back.fps == 25.0 and back.meta == seq.meta and back.num_frames == T
     for k in SIM_STATS:
         np.testing.assert_array_equal(getattr(back, k), stats[k])
+    # members=False: the members left unread, every other field as stored
+    light = read_sim(tmp_path / "lib-twirl.npz", members=False)
+    assert light.members is None
+    np.testing.assert_array_equal(light.frames, seq.frames)
+    np.testing.assert_array_equal(light.spread, seq.spread)
+    assert light.meta == seq.meta
     # only the frames: the other fields read as None
     write_sim(tmp_path / "bare.npz", SimSequence(frames=seq.frames))
     bare = read_sim(tmp_path / "bare.npz")
