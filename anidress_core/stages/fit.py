@@ -511,7 +511,6 @@ def weighted_ensemble(path: str | os.PathLike, art, rig, views, cues_of, frames:
     :func:`anidress_core.fit.terms.prior.weighted_members`. Returns the rig transforms of the weighted mean
     (frames, B, 4, 4) float64, the spread about it (frames, V) and the weights (M, frames). Raises, naming
     the file, when it holds no members (written before they were stored: rerun rule simulate_ensemble)."""
-    from ..fit.proposals import score_poses
     from ..fit.terms.prior import member_weights, weighted_members
     from ..rig import fit_transforms
 
@@ -519,12 +518,23 @@ def weighted_ensemble(path: str | os.PathLike, art, rig, views, cues_of, frames:
     X = torch.as_tensor(members, device=device, dtype=torch.float64)  # (M, T, V, 3)
     if not torch.isfinite(X).all():
         raise files.ArtifactError(f"{path}: non-finite member vertices")
-    G = torch.stack([fit_transforms(art.model, x).double() for x in X])  # (M, T, B, 4, 4)
-    scfg = cfg.replace(weights={"flow": 0.0, "anchor": 0.0, "stretch": 0.0, "collision": 0.0})
-    scores = torch.stack([score_poses(rig, views, cues_of(t), G[:, t], scfg) for t in range(frames)], 1)  # (M, T)
+    scores = member_scores(X, art.model, rig, views, cues_of, cfg)
     w = member_weights(scores, cfg.prior_member_temperature, cfg.prior_member_window).to(device)
     mean, spread = weighted_members(X, w)
     return fit_transforms(art.model, mean).double(), spread, w
+
+
+def member_scores(members: torch.Tensor, model, rig, views, cues_of, cfg) -> torch.Tensor:
+    """(M, T) each member's image loss per frame, lower is better: the rig pose of its frames ``members``
+    (M, T, V, 3) (:func:`anidress_core.rig.fit_transforms` with ``model``) scored on frame t's cues
+    ``cues_of(t)`` by L_silhouette + L_normal at ``cfg``'s weights (:func:`anidress_core.fit.proposals.score_poses`,
+    the other terms off): the scores :func:`anidress_core.fit.terms.prior.member_weights` weighs."""
+    from ..fit.proposals import score_poses
+    from ..rig import fit_transforms
+
+    G = torch.stack([fit_transforms(model, x).double() for x in members])  # (M, T, B, 4, 4)
+    scfg = cfg.replace(weights={"flow": 0.0, "anchor": 0.0, "stretch": 0.0, "collision": 0.0})
+    return torch.stack([score_poses(rig, views, cues_of(t), G[:, t], scfg) for t in range(members.shape[1])], 1)
 
 
 #: the words of every :func:`ensemble_note`, by which a fit's header says it read an ensemble file

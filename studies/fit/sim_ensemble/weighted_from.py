@@ -5,7 +5,7 @@ config's ``simulate/ensemble_bend_stiffness`` with each tag of ``TAGS``, default
 ``settle_frames20,settle_frames40``), temperature ``ALPHA`` (default 1) and window ``SMOOTH`` (default 2).
 
 Each member's rig poses (``rig.fit_transforms`` of its frames) are scored on every frame's cues by
-L_silhouette + L_normal (``anidress_core.fit.proposals.score_poses``, the other terms off) and weighted by
+L_silhouette + L_normal (the stage's ``member_scores``) and weighted by
 ``anidress_core.fit.terms.prior.member_weights``; the reference is their weighted mean, L_prior's weight per vertex
 from their weighted spread (``weighted_members``). ``SCORES=<folder>`` keeps the scores for ``screen``;
 ``START=mean`` starts frame 0 from the plain mean's pose (L_prior still follows the weighted mean).
@@ -31,7 +31,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from anidress_core import fit as FIT  # noqa: E402
-from anidress_core.fit.proposals import score_poses  # noqa: E402
 from anidress_core.fit.terms.prior import member_weights, spread_scale, weighted_members  # noqa: E402
 from anidress_core.geometry import lbs  # noqa: E402
 from anidress_core.rig import fit_transforms  # noqa: E402
@@ -85,14 +84,11 @@ def fit_sequence(rig, views, num_frames, cues_of, flow_of, init, cfg=None, **kw)
     if kw.get("starts") is not None or kw.get("sim_transforms") is None:
         return _fit_sequence(rig, views, num_frames, cues_of, flow_of, init, cfg, **kw)
     model, X = _current["model"], _current["X"][:, :num_frames]
-    scfg = cfg.replace(weights={"flow": 0.0, "anchor": 0.0, "stretch": 0.0, "collision": 0.0})
-    G = torch.stack([fit_transforms(model, x).double() for x in X])  # (M, T, B, 4, 4)
     cache = SCORES / f"{_current['scene']}-{_current['seq']}-{views.K.shape[0]}v.pt" if SCORES else None
     if cache is not None and cache.is_file():
         scores = torch.load(cache)
     else:
-        scores = torch.stack([score_poses(rig, views, cues_of(t), G[:, t].to(init.device), scfg)
-                              for t in range(num_frames)], 1)  # (M, T)
+        scores = stage.member_scores(X.to(init.device), model, rig, views, cues_of, cfg)  # (M, T)
         if cache is not None:
             cache.parent.mkdir(parents=True, exist_ok=True)
             torch.save(scores, cache)
