@@ -7,6 +7,11 @@
   K1 = 0.01, K2 = 0.03, data range 1, mean over channels) on the bounding rectangle of
   that box (Neural Body crops the same way), :func:`ssim`.
 * IoU of the rendered silhouette (alpha > 0.5) with the true mask, :func:`iou`.
+* PSNR and SSIM inside pixel regions (the subject, garment or body of a label mask),
+  pooled over images: :func:`region_stats` sums each region's squared error, pixels and
+  per-pixel SSIM (:func:`ssim_map`) of one image; :class:`RegionStats` add up over images;
+  :func:`region_score` turns a sum into PSNR = -10 log10(squared error / (3 pixels)) and
+  SSIM = SSIM-map sum / pixels (NaN for no pixel, +inf PSNR for no error).
 * LPIPS (Zhang et al. CVPR 2018, v0.1) with the AlexNet or VGG16 backbone and DISTS
   (Ding et al. TPAMI 2020) with VGG16 and L2 pooling. Both need pretrained weights:
   the backbone's torchvision ``state_dict`` (``alexnet-owt-7be5be79.pth``,
@@ -28,6 +33,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Mapping, NamedTuple
 
 import numpy as np
 import torch
@@ -37,6 +43,11 @@ from torch import Tensor, nn
 __all__ = [
     "psnr",
     "ssim",
+    "ssim_map",
+    "RegionStats",
+    "RegionScore",
+    "region_stats",
+    "region_score",
     "iou",
     "subject_box_mask",
     "box_rect",
@@ -81,6 +92,23 @@ def _gauss_window(size: int, sigma: float, dtype, device) -> Tensor:
     return g / g.sum()
 
 
+def _ssim_valid(x: Tensor, y: Tensor, window: int, sigma: float, k1: float, k2: float,
+                data_range: float) -> Tensor:
+    """SSIM at every 'valid' window position: x, y (C, 1, H, W) float64 -> (C, 1, H - w + 1, W - w + 1)."""
+    g = _gauss_window(window, sigma, x.dtype, x.device)
+
+    def filt(z: Tensor) -> Tensor:  # separable Gaussian, 'valid' positions
+        z = F.conv2d(z, g.view(1, 1, 1, -1))
+        return F.conv2d(z, g.view(1, 1, -1, 1))
+
+    mx, my = filt(x), filt(y)
+    sxx = filt(x * x) - mx * mx
+    syy = filt(y * y) - my * my
+    sxy = filt(x * y) - mx * my
+    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
+    return ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+
+
 def ssim(pred: Tensor, gt: Tensor, window: int = 11, sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03,
          data_range: float = 1.0) -> float:
     """Mean SSIM of (H, W, 3) images (Wang et al. 2004), valid-window positions only.
@@ -96,19 +124,97 @@ def ssim(pred: Tensor, gt: Tensor, window: int = 11, sigma: float = 1.5, k1: flo
         return float("nan")
     x = pred.double().permute(2, 0, 1)[:, None]  # (C, 1, H, W)
     y = gt.double().permute(2, 0, 1)[:, None]
-    g = _gauss_window(window, sigma, x.dtype, x.device)
+    return float(_ssim_valid(x, y, window, sigma, k1, k2, data_range).mean())
 
-    def filt(z: Tensor) -> Tensor:  # separable Gaussian, 'valid' positions
-        z = F.conv2d(z, g.view(1, 1, 1, -1))
-        return F.conv2d(z, g.view(1, 1, -1, 1))
 
-    mx, my = filt(x), filt(y)
-    sxx = filt(x * x) - mx * mx
-    syy = filt(y * y) - my * my
-    sxy = filt(x * y) - mx * my
-    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return float(s.mean())
+def _mirror_index(n: int, p: int, device) -> Tensor:
+    """Indices (n + 2p,) of positions -p .. n + p - 1 mirrored into 0 .. n - 1 with the edge repeated
+    (``d c b a | a b c d | d c b a``, scipy.ndimage mode 'reflect'), any p (repeated mirroring)."""
+    i = torch.arange(-p, n + p, device=device) % (2 * n)
+    return torch.where(i < n, i, 2 * n - 1 - i)
+
+
+def ssim_map(pred: Tensor, gt: Tensor, window: int = 11, sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03,
+             data_range: float = 1.0) -> Tensor:
+    """Per-pixel SSIM (H, W) float64 of (H, W, C) images: the window centred on each pixel, mean over channels.
+
+    The constants and Gaussian window of :func:`ssim`, whose value is the mean of this map over
+    the valid positions ``[p:H-p, p:W-p]``, p = (window - 1) // 2 (equal up to rounding). Borders:
+    both images are mirrored by p pixels with the edge pixel repeated (``d c b a | a b c d``,
+    scipy.ndimage's 'reflect', as ``skimage.metrics.structural_similarity(full=True)``'s map; an
+    image smaller than p is mirrored repeatedly) before filtering, so a window near the border
+    sees the image's own content; zero padding would add black pixels that lower the local means
+    and raise the variances, biasing a region that touches the border. So "SSIM in a mask" is the
+    mean of this map over the mask's pixels. The window must be odd (centred).
+    """
+    if pred.shape != gt.shape or pred.ndim != 3:
+        raise ValueError(f"ssim_map: expects two (H, W, C) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    if window % 2 != 1:
+        raise ValueError(f"ssim_map: the window must be odd to centre it on a pixel, got {window}")
+    H, W, _ = pred.shape
+    p = (window - 1) // 2
+    rows, cols = _mirror_index(H, p, pred.device), _mirror_index(W, p, pred.device)
+    # 1. mirror-pad (H + 2p, W + 2p, C), channels first: (C, 1, H + 2p, W + 2p)
+    x = pred.double()[rows][:, cols].permute(2, 0, 1)[:, None]
+    y = gt.double()[rows][:, cols].permute(2, 0, 1)[:, None]
+    # 2. SSIM at the valid positions of the padded images = every pixel of the image; mean over channels
+    return _ssim_valid(x, y, window, sigma, k1, k2, data_range)[:, 0].mean(0)
+
+
+@dataclass(frozen=True)
+class RegionStats:
+    """Sums over the pixels of one region of one image, or of several images (``a + b`` pools them).
+
+    sq_err: sum over the region's pixels and the 3 channels of (pred - gt)^2; pixels: the region's
+    pixel count; ssim_sum: sum of :func:`ssim_map` over the region's pixels. An empty region is
+    all zeros and adds nothing to a pool.
+    """
+
+    sq_err: float = 0.0
+    pixels: int = 0
+    ssim_sum: float = 0.0
+
+    def __add__(self, other: "RegionStats") -> "RegionStats":
+        return RegionStats(self.sq_err + other.sq_err, self.pixels + other.pixels, self.ssim_sum + other.ssim_sum)
+
+
+class RegionScore(NamedTuple):
+    psnr_db: float
+    ssim: float
+
+
+def region_stats(pred: Tensor, gt: Tensor, masks: Mapping[str, Tensor], smap: Tensor | None = None,
+                 ) -> dict[str, RegionStats]:
+    """:class:`RegionStats` of (H, W, 3) images in [0, 1] for each named bool mask (H, W).
+
+    smap: their :func:`ssim_map` (H, W) when already computed (else computed here, default window).
+    """
+    if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[2] != 3:
+        raise ValueError(f"region_stats: expects two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    for name, m in masks.items():
+        if m.shape != pred.shape[:2]:
+            raise ValueError(f"region_stats: mask {name!r} {tuple(m.shape)} does not match image {tuple(pred.shape)}")
+        if m.dtype != torch.bool:
+            raise ValueError(f"region_stats: mask {name!r} must be bool, got {m.dtype}")
+    if smap is None:
+        smap = ssim_map(pred, gt)
+    elif smap.shape != pred.shape[:2]:
+        raise ValueError(f"region_stats: SSIM map {tuple(smap.shape)} does not match image {tuple(pred.shape)}")
+    sq = ((pred.double() - gt.double()) ** 2).sum(-1)  # (H, W): squared error summed over channels
+    return {name: RegionStats(float(sq[m].sum()), int(m.sum()), float(smap[m].sum())) for name, m in masks.items()}
+
+
+def region_score(stats: RegionStats) -> RegionScore:
+    """PSNR (dB, data range 1) and SSIM of (pooled) :class:`RegionStats`.
+
+    PSNR = -10 log10(sq_err / (3 pixels)), SSIM = ssim_sum / pixels. No pixel: both NaN. No error
+    (identical pixels; a pool is identical only if every image is): PSNR +inf, kept as such (not
+    clipped: a pool with any error is finite, so +inf only ever means "identical").
+    """
+    if stats.pixels == 0:
+        return RegionScore(float("nan"), float("nan"))
+    mse = stats.sq_err / (3 * stats.pixels)
+    return RegionScore(float("inf") if mse == 0 else -10.0 * math.log10(mse), stats.ssim_sum / stats.pixels)
 
 
 def iou(alpha: Tensor, mask: Tensor, threshold: float = 0.5) -> float:

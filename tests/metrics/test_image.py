@@ -41,6 +41,130 @@ def test_ssim_matches_skimage():
     assert math.isnan(M.ssim(a[:5, :5], b[:5, :5]))
 
 
+
+def _ssim_at(a: np.ndarray, b: np.ndarray, i: int, j: int, window=11, sigma=1.5) -> float:
+    """Slow SSIM at pixel (i, j) of (H, W, 3) float64 images: the window centred there on the images
+    padded by mirroring with the edge repeated (numpy 'symmetric'), mean over channels."""
+    p = window // 2
+    x = np.arange(window) - p
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    w = np.outer(g, g) / np.outer(g, g).sum()
+    out = []
+    for c in range(3):
+        pa = np.pad(a[..., c], p, mode="symmetric")[i:i + window, j:j + window]
+        pb = np.pad(b[..., c], p, mode="symmetric")[i:i + window, j:j + window]
+        mx, my = (w * pa).sum(), (w * pb).sum()
+        sxx, syy = (w * pa * pa).sum() - mx * mx, (w * pb * pb).sum() - my * my
+        sxy = (w * pa * pb).sum() - mx * my
+        c1, c2 = 0.01 ** 2, 0.03 ** 2
+        out.append((2 * mx * my + c1) * (2 * sxy + c2) / ((mx * mx + my * my + c1) * (sxx + syy + c2)))
+    return float(np.mean(out))
+
+
+def test_ssim_map_against_a_slow_reference_and_ssim():
+    a, b = (t.double() for t in _imgs(2, 30, 26))
+    m = M.ssim_map(a, b)
+    assert m.shape == (30, 26) and m.dtype == torch.float64
+    an, bn = a.numpy(), b.numpy()
+    for i, j in ((0, 0), (0, 25), (29, 13), (2, 3), (15, 12), (27, 24)):  # corners, borders, the inside
+        assert float(m[i, j]) == pytest.approx(_ssim_at(an, bn, i, j), abs=1e-12), (i, j)
+    # its mean over the valid window positions is ssim (float32 images too)
+    assert float(m[5:-5, 5:-5].mean()) == pytest.approx(M.ssim(a, b), abs=1e-12)
+    af, bf = _imgs(3, 24, 20)
+    assert float(M.ssim_map(af, bf)[5:-5, 5:-5].mean()) == pytest.approx(M.ssim(af, bf), abs=1e-12)
+    # identical images: 1 everywhere, borders included
+    assert torch.allclose(M.ssim_map(a, a), torch.ones(30, 26, dtype=torch.float64), rtol=0, atol=1e-12)
+    # skimage's full map uses the same border handling (scipy.ndimage 'reflect')
+    from skimage.metrics import structural_similarity
+
+    _, full = structural_similarity(an, bn, channel_axis=-1, gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False, data_range=1.0, full=True)
+    assert np.allclose(m.numpy(), full.mean(-1), rtol=0, atol=1e-12)
+    # an image smaller than the half window is mirrored repeatedly
+    small = M.ssim_map(a[:3, :4], b[:3, :4])
+    assert small.shape == (3, 4) and float(small[1, 2]) == pytest.approx(_ssim_at(an[:3, :4], bn[:3, :4], 1, 2), abs=1e-12)
+    with pytest.raises(ValueError, match="odd"):
+        M.ssim_map(a, b, window=10)
+    with pytest.raises(ValueError, match=r"\(30, 26, 3\) and \(5, 26, 3\)"):
+        M.ssim_map(a, b[:5])
+
+
+def _labels(H=12, W=10) -> torch.Tensor:
+    """(H, W) labels: background 0, a body block 1 and a garment block 2 inside it."""
+    lab = torch.zeros(H, W, dtype=torch.uint8)
+    lab[2:10, 2:8] = 1  # 48 body-or-garment pixels
+    lab[6:10, 3:7] = 2  # 16 of them garment
+    return lab
+
+
+def _regions(lab: torch.Tensor) -> dict:
+    return {"subject": lab > 0, "garment": lab == 2, "body": lab == 1}
+
+
+def test_region_psnr_of_a_known_error():
+    """An error of 0.1 on every garment pixel (all 3 channels), none elsewhere: garment 20 dB, body +inf
+    (identical), subject 20 dB - 10 log10(garment pixels / subject pixels) (the same error over more pixels)."""
+    lab = _labels()
+    gt = torch.rand(12, 10, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 0.8
+    pred = torch.where((lab == 2)[..., None], gt + 0.1, gt)
+    st = M.region_stats(pred, gt, _regions(lab))
+    assert (st["subject"].pixels, st["garment"].pixels, st["body"].pixels) == (48, 16, 32)
+    assert st["garment"].sq_err == pytest.approx(16 * 3 * 0.01, rel=1e-12) and st["body"].sq_err == 0
+    garment, body, subject = (M.region_score(st[k]) for k in ("garment", "body", "subject"))
+    assert garment.psnr_db == pytest.approx(20.0, abs=1e-9)
+    assert body.psnr_db == math.inf
+    assert subject.psnr_db == pytest.approx(20.0 - 10 * math.log10(16 / 48), abs=1e-9)
+    # SSIM in a region: the map's mean over its pixels
+    smap = M.ssim_map(pred, gt)
+    for k, m in _regions(lab).items():
+        assert M.region_score(st[k]).ssim == pytest.approx(float(smap[m].mean()), abs=1e-12)
+    assert M.region_stats(gt, gt, _regions(lab))["subject"].ssim_sum == pytest.approx(48.0, abs=1e-9)
+    # pooled with a finite region the +inf body becomes finite; with another identical one it stays +inf
+    assert M.region_score(st["body"] + st["body"]).psnr_db == math.inf
+    assert math.isfinite(M.region_score(st["body"] + st["garment"]).psnr_db)
+
+
+def test_pooled_psnr_is_not_the_mean_of_per_image_psnr():
+    """Image 1: error 0.1 on 16 garment pixels; image 2: error 0.2 on 48. Pooled: one MSE over the 64 pixels,
+    (16 * 0.01 + 48 * 0.04) / 64 = 0.0325 -> 14.881 dB, not the mean of 20 and 13.979 dB (16.990)."""
+    g = torch.Generator().manual_seed(5)
+    lab1 = _labels()
+    lab2 = torch.zeros(12, 10, dtype=torch.uint8)
+    lab2[0:6, 0:8] = 2  # 48 garment pixels
+    stats = []
+    for lab, e in ((lab1, 0.1), (lab2, 0.2)):
+        gt = torch.rand(12, 10, 3, generator=g, dtype=torch.float64) * 0.7
+        pred = torch.where((lab == 2)[..., None], gt + e, gt)
+        stats.append(M.region_stats(pred, gt, _regions(lab))["garment"])
+    per_image = [M.region_score(s).psnr_db for s in stats]
+    assert per_image == pytest.approx([20.0, -10 * math.log10(0.04)], abs=1e-9)
+    pooled = M.region_score(stats[0] + stats[1])
+    assert pooled.psnr_db == pytest.approx(-10 * math.log10((16 * 0.01 + 48 * 0.04) / 64), abs=1e-9)
+    assert pooled.psnr_db < np.mean(per_image) - 2  # the larger, worse image weighs more
+    assert pooled.ssim == pytest.approx((stats[0].ssim_sum + stats[1].ssim_sum) / 64, abs=1e-12)
+
+
+def test_an_empty_region_is_nan_and_adds_nothing_to_a_pool():
+    a, b = (t.double() for t in _imgs(6, 12, 10))
+    lab = _labels()
+    lab[lab == 2] = 1  # no garment in view
+    st = M.region_stats(a, b, _regions(lab))
+    assert st["garment"] == M.RegionStats() and st["garment"].pixels == 0
+    assert all(math.isnan(v) for v in M.region_score(st["garment"]))
+    other = M.region_stats(a, b, _regions(_labels()))["garment"]
+    assert M.region_score(other + st["garment"]) == M.region_score(other)
+
+
+def test_region_stats_reject_masks_of_another_size():
+    a, b = _imgs(7, 12, 10)
+    with pytest.raises(ValueError, match=r"'garment' \(12, 9\) does not match image \(12, 10, 3\)"):
+        M.region_stats(a, b, {"subject": torch.ones(12, 10, dtype=torch.bool),
+                              "garment": torch.ones(12, 9, dtype=torch.bool)})
+    with pytest.raises(ValueError, match="must be bool"):
+        M.region_stats(a, b, {"subject": torch.ones(12, 10, dtype=torch.uint8)})
+    with pytest.raises(ValueError, match=r"\(12, 10, 3\) and \(11, 10, 3\)"):
+        M.region_stats(a, b[:11], {})
+
 def test_iou():
     alpha = torch.zeros(4, 4)
     alpha[:2] = 0.9
