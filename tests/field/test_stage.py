@@ -131,3 +131,101 @@ def test_a_checkpoint_resumes_only_the_same_training(scene_dir, tmp_path, caplog
     run_train(scene_dir, "walk", "full", masks2, fresh, PARAMS, progress=False)
     a, b = load_field(out).model.state_dict(), load_field(fresh).model.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def _write_render(folder, frames, cams, pred_of):
+    """A render folder as run_render writes it: render.json, rgb/<cam>/<f>.png (uint8 ``pred_of(cam, f)``),
+    alpha/<cam>/<f>.png (16-bit, opaque)."""
+    files.write_json(folder / "render.json", {"frames": frames, "cameras": cams, "background": [0.0, 0.0, 0.0]})
+    for f in frames:
+        for cam in cams:
+            rgb = pred_of(cam, f)
+            files.write_png(folder / "rgb" / cam / f"{f:06d}.png", rgb)
+            files.write_png(folder / "alpha" / cam / f"{f:06d}.png", np.full(rgb.shape[:2], 65535, np.uint16))
+
+
+def test_evaluate_region_metrics(scene_dir, tmp_path):
+    """Subject / garment / body PSNR and SSIM: per image, and pooled per (kind, sequence) over the pixels.
+
+    walk (cameras 02, 04, frames 0, 1): garment = the subject's pixels in rows >= 16 (none for 04 frame 1); the
+    render is the composited image with an error of 51/255 = 0.2 on frame 0's garment pixels and 0.4 on frame 1's,
+    exact elsewhere. dance: one mask saved 0 / 255 (no labels: "subject only"), the others 0 / 1."""
+    import shutil
+
+    root = tmp_path / "scene"
+    shutil.copytree(scene_dir, root)
+    info = yaml.safe_load((root / "scene.yaml").read_text())
+    (root / "scene.yaml").write_text(yaml.safe_dump(dict(info, garment_template="garment/template.obj")))
+    walk_cams, counts = ["02", "04"], {}
+
+    def composited(seq, cam, f):  # the image on the black background, uint8 (as the PNG holds it)
+        img = np.round(files.read_image(root / seq / "images" / cam / f"{f:06d}.png") * 255).astype(np.int32)
+        return np.where((files.read_mask(root / seq / "gt" / "masks" / cam / f"{f:06d}.png") > 0)[..., None], img, 0)
+
+    for f in (0, 1):
+        for cam in walk_cams:
+            mp = root / "walk" / "gt" / "masks" / cam / f"{f:06d}.png"
+            lab = files.read_mask(mp).copy()
+            if not (cam == "04" and f == 1):
+                lab[16:][lab[16:] > 0] = 2
+            files.write_mask(mp, lab)
+            counts[cam, f] = (int((lab > 0).sum()), int((lab == 2).sum()))
+    assert all(n_g > 0 for (cam, f), (_, n_g) in counts.items() if (cam, f) != ("04", 1))
+
+    def walk_pred(cam, f):
+        gt = composited("walk", cam, f)
+        lab = files.read_mask(root / "walk" / "gt" / "masks" / cam / f"{f:06d}.png")
+        e = 51 * (f + 1)  # 0.2, 0.4
+        wrong = np.where(gt >= e, gt - e, gt + e)
+        return np.where((lab == 2)[..., None], wrong, gt).astype(np.uint8)
+
+    dm = root / "dance" / "gt" / "masks" / "01" / "000000.png"
+    files.write_mask(dm, (files.read_mask(dm) > 0).astype(np.uint8) * 255)
+    _write_render(tmp_path / "nv", [0, 1], walk_cams, walk_pred)
+    _write_render(tmp_path / "np", [0], ["01", "02", "03", "04"], lambda cam, f: composited("dance", cam, f).astype(np.uint8))
+    renders = [("novel_view", "walk", tmp_path / "nv"), ("novel_pose", "dance", tmp_path / "np")]
+    summ = run_evaluate(root, renders, tmp_path / "metrics.csv", tmp_path / "summary.json", {}, progress=False)
+    rows = read_metrics_csv(tmp_path / "metrics.csv")
+    assert list(rows[0].keys()) == COLUMNS
+    walk = {(r["camera"], r["frame"]): r for r in rows if r["kind"] == "novel_view"}
+    # 1. per image: garment PSNR of its error, body identical (+inf), subject from the pixel counts
+    for (cam, f), r in walk.items():
+        n_s, n_g = counts[cam, f]
+        assert r["region_masks"] == "gt/masks" and r["psnr_body_db"] == np.inf
+        if n_g == 0:  # the garment is hidden: empty region
+            assert np.isnan(r["psnr_garment_db"]) and np.isnan(r["ssim_garment"]) and r["psnr_subject_db"] == np.inf
+            continue
+        mse = (0.2 * (f + 1)) ** 2
+        assert r["psnr_garment_db"] == pytest.approx(-10 * np.log10(mse), abs=1e-4)
+        assert r["psnr_subject_db"] == pytest.approx(-10 * np.log10(mse * n_g / n_s), abs=1e-4)
+        assert -1 <= r["ssim_garment"] < r["ssim_body"] < 1 and r["ssim_garment"] < r["ssim_subject"]
+    # 2. pooled over the pixels of the images, not the mean of their PSNRs
+    nv = next(m for m in summ["metrics"] if m["kind"] == "novel_view")
+    g0 = sum(n_g for (cam, f), (_, n_g) in counts.items() if f == 0)
+    g1 = sum(n_g for (cam, f), (_, n_g) in counts.items() if f == 1)
+    n_s = sum(n for n, _ in counts.values())
+    assert nv["psnr_garment_db"] == pytest.approx(-10 * np.log10((0.04 * g0 + 0.16 * g1) / (g0 + g1)), abs=1e-4)
+    assert nv["psnr_subject_db"] == pytest.approx(-10 * np.log10((0.04 * g0 + 0.16 * g1) / n_s), abs=1e-4)
+    assert nv["psnr_body_db"] == np.inf and nv["body_images"] == 4 and nv["body_empty_images"] == 0
+    assert (nv["garment_images"], nv["garment_empty_images"], nv["subject_images"]) == (3, 1, 4)
+    assert nv["subject_only_images"] == 0 and nv["region_masks"] == ["gt/masks"]
+    assert -1 < nv["ssim_garment"] < nv["ssim_subject"] < 1 and "pooled" in summ["region_definition"]
+    # 3. dance: the 0 / 255 mask has no labels; the 0 / 1 masks of this garment scene an empty garment region
+    dance = {r["camera"]: r for r in rows if r["kind"] == "novel_pose"}
+    assert dance["01"]["region_masks"] == "subject only" and dance["01"]["psnr_subject_db"] == np.inf
+    assert np.isnan(dance["01"]["psnr_body_db"]) and np.isnan(dance["01"]["ssim_garment"])
+    assert all(dance[c]["region_masks"] == "gt/masks" and np.isnan(dance[c]["psnr_garment_db"]) for c in "02 03 04".split())
+    npe = next(m for m in summ["metrics"] if m["kind"] == "novel_pose")
+    assert (npe["subject_only_images"], npe["garment_images"], npe["garment_empty_images"], npe["body_images"]) == (1, 0, 3, 3)
+    assert np.isnan(npe["psnr_garment_db"]) and npe["region_masks"] == ["gt/masks", "subject only"]
+    assert npe["subject_images"] == 4 and npe["ssim_subject"] == pytest.approx(1.0, abs=1e-9)
+    # 4. in a scene without a garment, a 0 / 1 mask carries no body / garment distinction; a mask with a 2 does
+    (root / "scene.yaml").write_text(yaml.safe_dump(info))
+    run_evaluate(root, renders[:1], tmp_path / "m2.csv", tmp_path / "s2.json", {}, progress=False)
+    rows2 = {(r["camera"], r["frame"]): r for r in read_metrics_csv(tmp_path / "m2.csv")}
+    assert rows2["04", 1]["region_masks"] == "subject only" and np.isnan(rows2["04", 1]["psnr_body_db"])
+    assert rows2["02", 1]["region_masks"] == "gt/masks" and rows2["02", 1]["psnr_body_db"] == np.inf
+    # 5. a mask of another size than the render: the error names the file and both sizes
+    files.write_mask(root / "walk" / "gt" / "masks" / "02" / "000001.png", np.zeros((16, 32), np.uint8))
+    with pytest.raises(files.ArtifactError, match=r"masks/02/000001.png: mask size \(16, 32\) differs from the render \(32, 32\)"):
+        run_evaluate(root, renders[:1], tmp_path / "m3.csv", tmp_path / "s3.json", {}, progress=False)
