@@ -118,6 +118,29 @@ def test_report_content(tmp_path):
         assert html.count(label) == 1, label
     assert d["rig_sweep"]["label"].startswith("reference figures in benchmarks/rig.csv")
     assert "nothing on this page is typed in" not in html and "reference figures this run did" in html
+    # older summaries without the region figures: n/a, and the note says so
+    assert all(h in html for h in ("PSNR box (dB)", "PSNR subject", "PSNR garment", "PSNR body"))
+    assert "regions from the masks: n/a" in html and "<td>n/a</td><td>n/a</td><td>n/a</td>" in html
+
+
+def test_report_shows_the_region_psnrs(tmp_path):
+    """metrics_summary.json with evaluate_field's pooled region figures: beside the box PSNR, +inf as inf; the note
+    names the masks of the regions."""
+    cfg = _tree(tmp_path)
+    p = tmp_path / "results" / "sk" / "walk" / "full" / "metrics_summary.json"
+    summ = files.read_json(p)
+    for m, vals in zip(summ["metrics"], ((25.125, 21.25, float("inf")), (24.375, 19.5, float("nan")))):
+        m.update(psnr_subject_db=vals[0], psnr_garment_db=vals[1], psnr_body_db=vals[2])
+        m["region_masks"] = ["gt/masks"] if m["kind"] == "novel_view" else ["gt/masks", "subject only"]
+    files.write_json(p, summ)
+    out = tmp_path / "report.html"
+    d = run_report(cfg, out, tmp_path)
+    assert d["scenes"][0]["sequences"][0]["field"]["region_masks"] == ["gt/masks", "subject only"]
+    html = out.read_text()
+    assert "<td>28.50</td><td>25.12</td><td>21.25</td><td>inf</td>" in html  # full, novel view: box, subject, ...
+    assert "<td>27.50</td><td>24.38</td><td>19.50</td><td>n/a</td>" in html
+    assert "<td>27.90</td><td>n/a</td><td>n/a</td><td>n/a</td>" in html  # body_only: an older summary
+    assert 'regions from the masks: gt/masks, subject only ("subject only": masks without' in html
 
 
 def test_report_shows_no_reference_table_unless_passed(tmp_path):

@@ -175,6 +175,13 @@ def _field(res: Path, data: Path, seq: str, info: dict) -> dict:
         p = res / seq / v / "metrics_summary.json"
         if p.is_file():
             out["variants"][v] = files.read_json(p)
+    # evaluate_field's pooled region PSNRs (older summaries have none: NaN, shown n/a) and the masks of the regions
+    for summ in out["variants"].values():
+        for m in summ.get("metrics", []):
+            for k in ("psnr_subject_db", "psnr_garment_db", "psnr_body_db"):
+                m.setdefault(k, float("nan"))
+    out["region_masks"] = sorted({r for summ in out["variants"].values() for m in summ.get("metrics", [])
+                                  for r in m.get("region_masks", [])})
     # the images and masks evaluate_field compared with, per sequence (metrics_summary.json "sources"; older
     # summaries: the scene's images and gt/masks)
     sources = next((summ["sources"] for summ in out["variants"].values() if summ.get("sources")), {})
@@ -435,7 +442,8 @@ def collect_report(config: dict, root: str | os.PathLike = ".",
     }
 
 
-def _fmt(x, digits=3):
+def _fmt(x, digits=3, inf=None):
+    """A number for the page: None "–", NaN "n/a"; +inf ``inf`` when given (a PSNR of identical pixels), else "n/a"."""
     if x is None:
         return "–"
     if isinstance(x, (int, np.integer)):
@@ -444,6 +452,8 @@ def _fmt(x, digits=3):
         v = float(x)
     except (TypeError, ValueError):
         return str(x)
+    if v == math.inf and inf is not None:
+        return inf
     if not math.isfinite(v):
         return "n/a"
     return f"{v:.{digits}f}"
