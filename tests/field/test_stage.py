@@ -182,7 +182,8 @@ def test_evaluate_region_metrics(scene_dir, tmp_path):
     dm = root / "dance" / "gt" / "masks" / "01" / "000000.png"
     files.write_mask(dm, (files.read_mask(dm) > 0).astype(np.uint8) * 255)
     _write_render(tmp_path / "nv", [0, 1], walk_cams, walk_pred)
-    _write_render(tmp_path / "np", [0], ["01", "02", "03", "04"], lambda cam, f: composited("dance", cam, f).astype(np.uint8))
+    _write_render(tmp_path / "np", [0], ["01", "02", "03", "04"],
+                  lambda cam, f: composited("dance", cam, f).astype(np.uint8))
     renders = [("novel_view", "walk", tmp_path / "nv"), ("novel_pose", "dance", tmp_path / "np")]
     summ = run_evaluate(root, renders, tmp_path / "metrics.csv", tmp_path / "summary.json", {}, progress=False)
     rows = read_metrics_csv(tmp_path / "metrics.csv")
@@ -214,9 +215,11 @@ def test_evaluate_region_metrics(scene_dir, tmp_path):
     dance = {r["camera"]: r for r in rows if r["kind"] == "novel_pose"}
     assert dance["01"]["region_masks"] == "subject only" and dance["01"]["psnr_subject_db"] == np.inf
     assert np.isnan(dance["01"]["psnr_body_db"]) and np.isnan(dance["01"]["ssim_garment"])
-    assert all(dance[c]["region_masks"] == "gt/masks" and np.isnan(dance[c]["psnr_garment_db"]) for c in "02 03 04".split())
+    assert all(dance[c]["region_masks"] == "gt/masks" and np.isnan(dance[c]["psnr_garment_db"])
+               for c in ("02", "03", "04"))
     npe = next(m for m in summ["metrics"] if m["kind"] == "novel_pose")
-    assert (npe["subject_only_images"], npe["garment_images"], npe["garment_empty_images"], npe["body_images"]) == (1, 0, 3, 3)
+    counts_np = (npe["subject_only_images"], npe["garment_images"], npe["garment_empty_images"], npe["body_images"])
+    assert counts_np == (1, 0, 3, 3)
     assert np.isnan(npe["psnr_garment_db"]) and npe["region_masks"] == ["gt/masks", "subject only"]
     assert npe["subject_images"] == 4 and npe["ssim_subject"] == pytest.approx(1.0, abs=1e-9)
     # 4. in a scene without a garment, a 0 / 1 mask carries no body / garment distinction; a mask with a 2 does
@@ -227,5 +230,6 @@ def test_evaluate_region_metrics(scene_dir, tmp_path):
     assert rows2["02", 1]["region_masks"] == "gt/masks" and rows2["02", 1]["psnr_body_db"] == np.inf
     # 5. a mask of another size than the render: the error names the file and both sizes
     files.write_mask(root / "walk" / "gt" / "masks" / "02" / "000001.png", np.zeros((16, 32), np.uint8))
-    with pytest.raises(files.ArtifactError, match=r"masks/02/000001.png: mask size \(16, 32\) differs from the render \(32, 32\)"):
+    with pytest.raises(files.ArtifactError,
+                       match=r"masks/02/000001.png: mask size \(16, 32\) differs from the render \(32, 32\)"):
         run_evaluate(root, renders[:1], tmp_path / "m3.csv", tmp_path / "s3.json", {}, progress=False)
