@@ -9,11 +9,12 @@ the spatial hash of the paper, ``(i * 1) xor (j * 2654435761) xor (k * 805459861
 The encoding is the trilinear interpolation of the 8 corner features per level,
 concatenated over levels: (N, 3) -> (N, L * F).
 
-Speed on a CPU: the trilinear weights, the corner gather and the backward pass (the
-table gradient as a scatter-add, the input gradient from the trilinear derivative)
-live in one custom autograd function, :class:`_HashInterp`, with N innermost in
-memory; nothing of size (N, L, 8, F) is stored.
-:func:`hash_encode_reference` is the slow, obvious version the tests compare with.
+:func:`hash_encode` runs two Warp kernels (:mod:`anidress_core.field.kernels`: the
+encoding, one thread per sample and level; its backward pass, the table gradient as a
+scatter-add and the input gradient from the trilinear derivative, one thread per sample),
+nothing of size (N, L, 8) in memory. :func:`hash_encode_torch` is the same in batched torch
+(one custom autograd function, :class:`_HashInterp`), and :func:`hash_encode_reference` the
+slow, obvious version; the tests compare all three.
 """
 from __future__ import annotations
 
@@ -21,9 +22,13 @@ import math
 from dataclasses import dataclass
 
 import torch
+import warp as wp
 from torch import Tensor, nn
 
-__all__ = ["HashGridConfig", "HashGrid", "hash_encode", "hash_encode_reference", "level_resolutions"]
+from . import kernels
+
+__all__ = ["HashGridConfig", "HashGrid", "hash_encode", "hash_encode_torch", "hash_encode_reference",
+           "level_resolutions"]
 
 _PRIMES = (1, 2654435761, 805459861)
 
@@ -138,18 +143,72 @@ def _corner_indices(x: Tensor, res: list[int], log2_size: int) -> tuple[Tensor, 
     return idx.long(), f
 
 
-def hash_encode(x: Tensor, table: Tensor, cfg: HashGridConfig) -> Tensor:
-    """Encode points x (N, 3) in [0, 1]^3 (clamped) with ``table`` (F, L * T) -> (N, L * F).
-
-    Differentiable w.r.t. ``table`` and ``x``.
-    """
+def _check(x: Tensor, table: Tensor, cfg: HashGridConfig) -> None:
     if x.ndim != 2 or x.shape[-1] != 3:
         raise ValueError(f"hash_encode: x must be (N, 3), got {tuple(x.shape)}")
     T = 1 << cfg.log2_size
     if table.shape != (cfg.features, cfg.levels * T):
         raise ValueError(f"hash_encode: table must be ({cfg.features}, {cfg.levels * T}), got {tuple(table.shape)}")
+
+
+class _HashWarp(torch.autograd.Function):
+    """:func:`hash_encode` through the Warp kernels ``hash_fwd`` / ``hash_bwd``; the forward pass also
+    keeps d out / d x (N, L F, 3) when x needs a gradient (the corners' features are in cache then)."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, x: Tensor, res: Tensor, dense: Tensor, log2_size: int) -> Tensor:
+        dev, stream = kernels.device_of(x, "hash_encode")
+        N, L, F = x.shape[0], res.shape[0], table.shape[0]
+        want_dx = ctx.needs_input_grad[1]
+        out = x.new_empty(N, L * F)
+        dout = x.new_empty(N, L * F, 3) if want_dx else x.new_empty(1, 1, 3)
+        wp.launch(kernels.hash_fwd, N * L,
+                  inputs=[kernels.array(x), kernels.array(table), kernels.array(res), kernels.array(dense), log2_size,
+                          int(want_dx), wp.from_torch(out), wp.from_torch(dout)],
+                  device=dev, stream=stream)
+        ctx.save_for_backward(x, res, dense, dout)
+        ctx.log2_size, ctx.table_shape = log2_size, table.shape
+        return out
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        x, res, dense, dout = ctx.saved_tensors
+        g = g.contiguous()
+        grad_table = grad_x = None
+        if ctx.needs_input_grad[0]:
+            grad_table = g.new_zeros(ctx.table_shape)
+            dev, stream = kernels.device_of(x, "hash_encode")
+            wp.launch(kernels.hash_bwd, x.shape[0] * res.shape[0],
+                      inputs=[kernels.array(x), kernels.array(g), kernels.array(res), kernels.array(dense),
+                              ctx.log2_size, wp.from_torch(grad_table)],
+                      device=dev, stream=stream)
+        if ctx.needs_input_grad[1]:
+            # grad_x[n, a] = sum_j g[n, j] dout[n, j, a]
+            grad_x = torch.bmm(g[:, None, :], dout)[:, 0]
+        return grad_table, grad_x, None, None, None
+
+
+def hash_encode(x: Tensor, table: Tensor, cfg: HashGridConfig) -> Tensor:
+    """Encode points x (N, 3) in [0, 1]^3 (clamped) with ``table`` (F, L * T) -> (N, L * F).
+
+    Differentiable w.r.t. ``table`` and ``x`` (zero where x was clamped); float32 or float64
+    (x is cast to the table's type). Warp kernels; :func:`hash_encode_torch` is the same in torch.
+    """
+    _check(x, table, cfg)
     if x.shape[0] == 0:
-        return x.new_zeros(0, cfg.out_dim)
+        return x.new_zeros(0, cfg.out_dim, dtype=table.dtype)
+    res = level_resolutions(cfg)
+    T = 1 << cfg.log2_size
+    r = torch.tensor(res, dtype=torch.int32, device=x.device)
+    dense = torch.tensor([int((q + 1) ** 3 <= T) for q in res], dtype=torch.int32, device=x.device)
+    return _HashWarp.apply(table.contiguous(), x.to(table.dtype).contiguous(), r, dense, cfg.log2_size)
+
+
+def hash_encode_torch(x: Tensor, table: Tensor, cfg: HashGridConfig) -> Tensor:
+    """:func:`hash_encode` in batched torch (one custom autograd function; the kernels' reference)."""
+    _check(x, table, cfg)
+    if x.shape[0] == 0:
+        return x.new_zeros(0, cfg.out_dim, dtype=table.dtype)
     idx, f = _corner_indices(x.clamp(0, 1), level_resolutions(cfg), cfg.log2_size)
     out = _HashInterp.apply(table, f.to(table.dtype), idx)  # (L, N, F)
     return out.permute(1, 0, 2).reshape(x.shape[0], -1)

@@ -41,6 +41,9 @@ class FieldConfig:
     """Added to the log-density before the exponential: the field starts at sigma ~ e^3 / m,
     a haze that becomes opaque within a few centimetres (a start near 0 trains several
     times slower: the density has to grow through many steps of small gradients)."""
+    warp_iterations: int = 0
+    """Backward warp (:func:`anidress_core.field.deform.backward_warp`): 0 blends the joints'
+    proposals (HumanNeRF, the paper); n > 0 solves forward skinning by n fixed-point iterations."""
 
 
 class AnimatableField(nn.Module):
@@ -75,11 +78,13 @@ class RayBatchResult(NamedTuple):
     """Samples inside the grid boxes before the occupancy test."""
 
 
-def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Tensor, inv_transforms: Tensor,
+def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Tensor, transforms: Tensor,
                 grid: OccupancyGrid, step: float, background: Tensor, generator: torch.Generator | None = None,
                 jitter: bool = False, volume: Tensor | None = None, use_occupancy: bool = True,
                 cull_joints: bool = True, early_stop: float = 0.0, round_samples: int = 4) -> RayBatchResult:
-    """Render rays (R, 3) of frames (R,) (indices into inv_transforms (T, K, 4, 4) and grid).
+    """Render rays (R, 3) of frames (R,) (indices into transforms (T, K, 4, 4) and grid).
+
+    ``transforms``: the unified pose S of every frame, canonical -> world per joint.
 
     ``volume``: the decoded motion-weight volume, when the caller already has it
     (rendering many chunks of one image decodes it once). ``early_stop`` > 0 (inference
@@ -93,11 +98,14 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
               cull_joints=cull_joints)
     if volume is None:
         volume = model.weights()
+    inv_transforms = torch.linalg.inv(transforms)
+    iterations = model.cfg.warp_iterations
 
     def shade(sel: Tensor | None) -> tuple[Tensor, Tensor]:
         x, r, c = (s.x, s.ray, s.cand) if sel is None else (s.x[sel], s.ray[sel], s.cand[sel])
         # 2. observation -> canonical through the unified pose
-        warp = backward_warp(x, frame[r], inv_transforms, c, volume, model.weights.box)
+        warp = backward_warp(x, frame[r], inv_transforms, c, volume, model.weights.box, transforms=transforms,
+                             iterations=iterations)
         # 3. canonical colour and density; density gated by the foreground likelihood (HumanNeRF)
         rgb, sigma = model.canonical(warp.x_c)
         return rgb, sigma * warp.fg

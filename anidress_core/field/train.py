@@ -81,8 +81,8 @@ class TrainData(NamedTuple):
     """(C, 3) camera centres (world)."""
     ray_dirs: Tensor
     """(C, H, W, 3) unit world direction of every pixel's ray."""
-    inv_transforms: Tensor
-    """(T, K, 4, 4) world -> canonical transform of every joint of every frame."""
+    transforms: Tensor
+    """(T, K, 4, 4) canonical -> world transform of every joint of every frame (the unified pose S)."""
     grid: OccupancyGrid
     """Occupancy and candidate joints of the T frames."""
 
@@ -204,7 +204,7 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
     model.train()
     for k in steps:
         o, d, fr, target, bgr, n_patch = _sample_batch(data, valid, cfg, gen, patches)
-        out = render_rays(model, o, d, fr, data.inv_transforms, data.grid, cfg.step_m, bgr, generator=gen, jitter=True,
+        out = render_rays(model, o, d, fr, data.transforms, data.grid, cfg.step_m, bgr, generator=gen, jitter=True,
                           use_occupancy=cfg.use_occupancy, cull_joints=cfg.cull_joints)
         n_rand = o.shape[0] - n_patch
         loss = ((out.rgb[:n_rand] - target[:n_rand]) ** 2).mean()
@@ -253,12 +253,12 @@ class ViewRender(NamedTuple):
 
 @torch.no_grad()
 def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tensor, frame: int,
-                inv_transforms: Tensor, grid: OccupancyGrid, step: float, background: Tensor,
+                transforms: Tensor, grid: OccupancyGrid, step: float, background: Tensor,
                 chunk: int = 8192, volume: Tensor | None = None, use_occupancy: bool = True,
                 cull_joints: bool = True, early_stop: float = 1e-3, pixels: Tensor | None = None) -> ViewRender:
     """Render one image: origin (3,), dirs (H, W, 3), box (4,) y0, y1, x0, x1 of the rays cast.
 
-    ``frame`` indexes inv_transforms (T, K, 4, 4) and ``grid``. ``early_stop``: rays stop
+    ``frame`` indexes transforms (T, K, 4, 4) (the unified pose) and ``grid``. ``early_stop``: rays stop
     once their transmittance is below it (0: every sample). ``pixels`` (H, W) bool:
     cast rays only there (inside the box); elsewhere the background.
     """
@@ -284,7 +284,7 @@ def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tenso
         dd = d[s:s + chunk]
         o = origin.expand_as(dd)
         fr = torch.full((dd.shape[0],), frame, dtype=torch.long, device=dev)
-        out = render_rays(model, o, dd, fr, inv_transforms, grid, step, background, volume=volume,
+        out = render_rays(model, o, dd, fr, transforms, grid, step, background, volume=volume,
                           use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early_stop)
         cols.append(out.rgb)
         alps.append(out.alpha)

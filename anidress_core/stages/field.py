@@ -69,7 +69,8 @@ def field_config_from_params(p: dict) -> FieldConfig:
                           base_resolution=int(m.get("hash_base_resolution", 16)),
                           max_resolution=int(m.get("hash_max_resolution", 256)))
     return FieldConfig(grid=grid, width=int(m.get("width", 64)), volume_res=int(m.get("volume_res", 32)),
-                       density_bias=float(m.get("density_bias", 3.0)))
+                       density_bias=float(m.get("density_bias", 3.0)),
+                       warp_iterations=int(m.get("warp_iterations", 0)))
 
 
 def train_config_from_params(p: dict) -> TrainConfig:
@@ -223,7 +224,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     box_frac = float(((boxes[..., 1] - boxes[..., 0]) * (boxes[..., 3] - boxes[..., 2])).sum()) / (Tn * C * H * W)
     rays = pixel_rays(cameras)
     data = TrainData(imgs.to(dev), (labels > 0).to(dev), boxes.to(dev), rays.origins[:, 0, 0].to(dev), rays.directions.to(dev),
-                     torch.linalg.inv(S).to(dev), grid.to(dev))
+                     S.to(dev), grid.to(dev))
     # 3. model, resume, train
     model = AnimatableField(box, prior, fcfg, seed=tcfg.seed).to(dev)
     ckpt_path = training_state_path(out_pt)
@@ -429,7 +430,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     parts = posed_parts(inp.body, posed.vertices.float(), inp.garment, variant, posed.transforms.float(), G,
                         sp["dilate_m"], sp["body_only_garment_dilate_m"])
     grid = build_occupancy(parts, (sp["res"],) * 3, sp["max_joints"], sp["min_weight"], progress=False).to(dev)
-    inv = torch.linalg.inv(S).to(dev)
+    S = S.to(dev)
     all_cams = scene_cameras(scene_dir, cam_seq, None, info, seq_dir=sequence_source(
         scene_dir, cam_seq, undistorted_dir, info)).to(dtype=torch.float32)
     names = list(cameras) if cameras else all_cams.names
@@ -454,7 +455,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
         pix = _occupancy_pixels(grid, i, cams) if use_occupancy else None
         for c, name in enumerate(names):
             t0, c0 = time.perf_counter(), time.process_time()
-            r = render_view(model, origins[c], dirs[c], boxes[c], i, inv, grid, sp["step_m"], bg, chunk=chunk,
+            r = render_view(model, origins[c], dirs[c], boxes[c], i, S, grid, sp["step_m"], bg, chunk=chunk,
                             volume=volume, use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early,
                             pixels=None if pix is None else pix[c])
             dt, dc = time.perf_counter() - t0, time.process_time() - c0

@@ -24,7 +24,7 @@ def _train_psnr(model, data) -> float:
     for t in range(data.images.shape[0]):
         for c in range(data.images.shape[1]):
             b = data.boxes[t, c]
-            r = render_view(model, data.ray_origins[c], data.ray_dirs[c], b, t, data.inv_transforms, data.grid,
+            r = render_view(model, data.ray_origins[c], data.ray_dirs[c], b, t, data.transforms, data.grid,
                             0.01, bg, volume=vol)
             gt = torch.where(data.masks[t, c, ..., None], data.images[t, c].float() / 255, bg)
             m = torch.zeros_like(data.masks[t, c])
@@ -96,9 +96,9 @@ def test_early_termination_and_projected_occupancy_change_nothing_visible(scene,
     full_box = torch.tensor([0, H, 0, W])
     vol = model.weights()
     for c in range(4):
-        ref = render_view(model, data.ray_origins[c], data.ray_dirs[c], full_box, 1, data.inv_transforms, data.grid,
+        ref = render_view(model, data.ray_origins[c], data.ray_dirs[c], full_box, 1, data.transforms, data.grid,
                           0.01, torch.zeros(3), early_stop=0.0, volume=vol)
-        fast = render_view(model, data.ray_origins[c], data.ray_dirs[c], full_box, 1, data.inv_transforms, data.grid,
+        fast = render_view(model, data.ray_origins[c], data.ray_dirs[c], full_box, 1, data.transforms, data.grid,
                            0.01, torch.zeros(3), early_stop=1e-3, pixels=pix[c], volume=vol)
         assert fast.num_samples < ref.num_samples and fast.rays < ref.rays
         assert (fast.rgb - ref.rgb).abs().max() < 2e-3 and (fast.alpha - ref.alpha).abs().max() < 2e-3

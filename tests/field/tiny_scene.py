@@ -39,7 +39,7 @@ def tiny_scene(body, size: int = 40, cams: int = 4):
     box, prior = canonical_setup(br, None, "full", res=SMALL.volume_res)
     grid = build_occupancy([SurfacePart(posed.vertices, body.faces, body.weights, 0.03)], (32, 32, 32), 8)
     rays = pixel_rays(cam)
-    data = TrainData(imgs, masks, boxes, rays.origins[:, 0, 0], rays.directions, torch.linalg.inv(posed.transforms),
+    data = TrainData(imgs, masks, boxes, rays.origins[:, 0, 0], rays.directions, posed.transforms,
                      grid)
     return data, box, prior
 

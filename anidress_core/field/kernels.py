@@ -1,0 +1,481 @@
+"""Warp kernels of the field's hot paths, on the CPU and on CUDA (NVIDIA Warp, ``import warp``).
+
+Each kernel does what a batched torch function of the field package does, one thread per
+sample (or per sample and level), without the (N, L, 8, F)-sized intermediates of the torch
+code; the torch functions stay as the references the tests compare with:
+
+* :func:`hash_fwd`, :func:`hash_bwd`: the multiresolution hash encoding
+  (:func:`anidress_core.field.encoding.hash_encode_torch`) and its gradients with respect to
+  the table (scatter-add) and the points (the trilinear derivative);
+* :func:`warp_place`: the backward warp's blend of the joints' proposals and its fixed-point
+  iterations without gradients (:func:`anidress_core.field.deform.backward_warp`), which
+  place the point the last, differentiable iteration starts from.
+
+Kernels are generic in the float type (float32 or float64, as the tensors passed in); Warp
+compiles each specialisation once per machine and caches it (``~/.cache/warp``).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # no greeting or "module loaded" lines
+wp.config.quiet = True
+
+
+
+def device_of(t, what: str) -> tuple[str, object]:
+    """(Warp device, stream) of torch tensor ``t``; initialises Warp. ``what`` names the caller in errors."""
+    wp.init()
+    if t.device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{what}: the Warp kernels run on cpu or cuda, not {t.device}")
+    if t.device.type == "cpu":
+        return "cpu", None
+    return f"cuda:{t.device.index or 0}", wp.stream_from_torch(t.device)
+
+
+def array(t):
+    """A Warp view of torch tensor ``t`` (detached, made contiguous)."""
+    return wp.from_torch(t.detach().contiguous())
+
+
+# the spatial hash's primes (instant-ngp), reduced modulo 2^32 as the int32 arithmetic wraps
+_P1 = -1640531535  # 2654435761 - 2^32
+_P2 = 805459861
+
+
+@wp.func
+def _hash_entry(i: int, j: int, k: int, s: int, dense: int, mask: int) -> int:
+    """Table row of grid vertex (i, j, k) of a level with s = r + 1 vertices per axis."""
+    if dense == 1:
+        return i + j * s + k * s * s
+    return ((i & mask) ^ ((j * _P1) & mask) ^ ((k * _P2) & mask)) & mask
+
+
+_vec8i = wp.types.vector(length=8, dtype=wp.int32)
+
+
+@wp.func
+def _cell(x: Any, r: int) -> int:
+    """Cell index of a unit-cube coordinate x (clamped) on a level of r cells."""
+    return wp.min(int(wp.floor(wp.clamp(x, type(x)(0.0), type(x)(1.0)) * type(x)(r))), r - 1)
+
+
+@wp.kernel
+def hash_fwd(x: wp.array2d(dtype=Any), table: wp.array2d(dtype=Any), res: wp.array(dtype=wp.int32),
+             dense: wp.array(dtype=wp.int32), log2_size: int, want_dx: int, out: wp.array2d(dtype=Any),
+             dout: wp.array3d(dtype=Any)):
+    """out[n, l F + f] = sum_c w_c table[f, l T + e_c]: one thread per (sample n, level l).
+
+    x (N, 3) in the unit cube (clamped here), table (F, L T), res / dense (L,) cells per axis
+    and 1 where the level is indexed densely, out (N, L F). With ``want_dx`` also
+    dout (N, L F, 3) = d out / d x: the trilinear derivative times r, 0 on an axis where x
+    was clamped (the backward pass of x is then sum_j g[n, j] dout[n, j]).
+    """
+    tid = wp.tid()
+    L = res.shape[0]
+    F = table.shape[0]
+    n = tid // L
+    lvl = tid - n * L
+    one = type(x[0, 0])(1.0)
+    zero = type(x[0, 0])(0.0)
+    r = int(res[lvl])
+    rf = type(x[0, 0])(r)
+    mask = (1 << log2_size) - 1
+    base = lvl << log2_size
+    s = r + 1
+    ix = _cell(x[n, 0], r)
+    iy = _cell(x[n, 1], r)
+    iz = _cell(x[n, 2], r)
+    fx = wp.clamp(x[n, 0], zero, one) * rf - type(x[0, 0])(ix)
+    fy = wp.clamp(x[n, 1], zero, one) * rf - type(x[0, 0])(iy)
+    fz = wp.clamp(x[n, 2], zero, one) * rf - type(x[0, 0])(iz)
+    # d f_a / d x_a: r inside the cube, 0 where clamped
+    kx = wp.where(x[n, 0] >= zero and x[n, 0] <= one, rf, zero)
+    ky = wp.where(x[n, 1] >= zero and x[n, 1] <= one, rf, zero)
+    kz = wp.where(x[n, 2] >= zero and x[n, 2] <= one, rf, zero)
+    e = _vec8i()
+    for c in range(8):
+        e[c] = base + _hash_entry(ix + (c >> 2), iy + ((c >> 1) & 1), iz + (c & 1), s, int(dense[lvl]), mask)
+    for f in range(F):
+        acc = zero
+        gx = zero
+        gy = zero
+        gz = zero
+        for c in range(8):
+            dx = c >> 2
+            dy = (c >> 1) & 1
+            dz = c & 1
+            wx = wp.where(dx == 1, fx, one - fx)
+            wy = wp.where(dy == 1, fy, one - fy)
+            wz = wp.where(dz == 1, fz, one - fz)
+            v = table[f, e[c]]
+            acc = acc + wx * wy * wz * v
+            if want_dx == 1:
+                gx = gx + wp.where(dx == 1, v, -v) * wy * wz
+                gy = gy + wp.where(dy == 1, v, -v) * wx * wz
+                gz = gz + wp.where(dz == 1, v, -v) * wx * wy
+        out[n, lvl * F + f] = acc
+        if want_dx == 1:
+            dout[n, lvl * F + f, 0] = gx * kx
+            dout[n, lvl * F + f, 1] = gy * ky
+            dout[n, lvl * F + f, 2] = gz * kz
+
+
+@wp.kernel
+def hash_bwd(x: wp.array2d(dtype=Any), g: wp.array2d(dtype=Any), res: wp.array(dtype=wp.int32),
+             dense: wp.array(dtype=wp.int32), log2_size: int, grad_table: wp.array2d(dtype=Any)):
+    """The table gradient of :func:`hash_fwd` for the output gradient g (N, L F):
+    grad_table (F, L T) += w_c g, atomically (samples share entries); one thread per (sample, level)."""
+    tid = wp.tid()
+    L = res.shape[0]
+    F = grad_table.shape[0]
+    n = tid // L
+    lvl = tid - n * L
+    one = type(x[0, 0])(1.0)
+    zero = type(x[0, 0])(0.0)
+    r = int(res[lvl])
+    rf = type(x[0, 0])(r)
+    mask = (1 << log2_size) - 1
+    base = lvl << log2_size
+    s = r + 1
+    ix = _cell(x[n, 0], r)
+    iy = _cell(x[n, 1], r)
+    iz = _cell(x[n, 2], r)
+    fx = wp.clamp(x[n, 0], zero, one) * rf - type(x[0, 0])(ix)
+    fy = wp.clamp(x[n, 1], zero, one) * rf - type(x[0, 0])(iy)
+    fz = wp.clamp(x[n, 2], zero, one) * rf - type(x[0, 0])(iz)
+    for c in range(8):
+        dx = c >> 2
+        dy = (c >> 1) & 1
+        dz = c & 1
+        ent = base + _hash_entry(ix + dx, iy + dy, iz + dz, s, int(dense[lvl]), mask)
+        w = wp.where(dx == 1, fx, one - fx) * wp.where(dy == 1, fy, one - fy) * wp.where(dz == 1, fz, one - fz)
+        for f in range(F):
+            wp.atomic_add(grad_table, f, ent, w * g[n, lvl * F + f])
+
+
+@wp.func
+def _trilinear(vol: wp.array(dtype=Any), chan: int, ux: Any, uy: Any, uz: Any, D: int, H: int, W: int) -> Any:
+    """Value of channel ``chan`` of the flat (C, D, H, W) volume at voxel coordinates (ux, uy, uz)
+    (x along W); corners outside the grid read 0 (:func:`anidress_core.field.weights.sample_channels`)."""
+    one = type(ux)(1.0)
+    acc = type(ux)(0.0)
+    x0 = int(wp.floor(ux))
+    y0 = int(wp.floor(uy))
+    z0 = int(wp.floor(uz))
+    fx = ux - type(ux)(x0)
+    fy = uy - type(ux)(y0)
+    fz = uz - type(ux)(z0)
+    for c in range(8):
+        dx = c >> 2
+        dy = (c >> 1) & 1
+        dz = c & 1
+        i = x0 + dx
+        j = y0 + dy
+        k = z0 + dz
+        if i >= 0 and i < W and j >= 0 and j < H and k >= 0 and k < D:
+            w = wp.where(dx == 1, fx, one - fx) * wp.where(dy == 1, fy, one - fy) * wp.where(dz == 1, fz, one - fz)
+            acc = acc + w * vol[((chan * D + k) * H + j) * W + i]
+    return acc
+
+
+@wp.func
+def _apply(T: wp.array2d(dtype=Any), row: int, px: Any, py: Any, pz: Any, a: int) -> Any:
+    """Row a of the 3x4 transform T[row] (flattened to 12) applied to (px, py, pz, 1)."""
+    return T[row, 4 * a] * px + T[row, 4 * a + 1] * py + T[row, 4 * a + 2] * pz + T[row, 4 * a + 3]
+
+
+@wp.kernel
+def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand: wp.array2d(dtype=wp.int32),
+               num_joints: int, inv_t: wp.array2d(dtype=Any), fwd_t: wp.array2d(dtype=Any),
+               vol: wp.array(dtype=Any), lo: wp.array(dtype=Any), scale: wp.array(dtype=Any), D: int, H: int,
+               W: int, iterations: int, eps: float, x_c: wp.array2d(dtype=Any)):
+    """Blend of the candidates' proposals, then ``iterations`` fixed-point steps of forward skinning,
+    no gradients: one thread per sample (the torch reference: ``backward_warp`` without its last step).
+
+    x_o (N, 3); frame (N,) row block of the (T K, 12) transform tables (3x4 parts of T_k^-1 and
+    T_k); cand (N, M), K = no joint; vol (C D H W,) flat weights; voxel coordinate
+    u = (p - lo) * scale, clamped to [-2, max(D, H, W) + 1] as the torch path.
+    """
+    n = wp.tid()
+    M = cand.shape[1]
+    zero = type(x_o[0, 0])(0.0)
+    one = type(x_o[0, 0])(1.0)
+    e = type(x_o[0, 0])(eps)
+    hi = type(x_o[0, 0])(wp.max(wp.max(D, H), W) + 1)
+    lo2 = type(x_o[0, 0])(-2.0)
+    px = x_o[n, 0]
+    py = x_o[n, 1]
+    pz = x_o[n, 2]
+    fb = int(frame[n]) * num_joints
+    # 1. HumanNeRF's blend: proposals T_k^-1 x_o, each weighted by its joint's volume weight there
+    s = zero
+    cx = zero
+    cy = zero
+    cz = zero
+    for m in range(M):
+        k = int(cand[n, m])
+        if k < num_joints:
+            qx = _apply(inv_t, fb + k, px, py, pz, 0)
+            qy = _apply(inv_t, fb + k, px, py, pz, 1)
+            qz = _apply(inv_t, fb + k, px, py, pz, 2)
+            w = _trilinear(vol, k, wp.clamp((qx - lo[0]) * scale[0], lo2, hi), wp.clamp((qy - lo[1]) * scale[1], lo2, hi),
+                           wp.clamp((qz - lo[2]) * scale[2], lo2, hi), D, H, W)
+            s = s + w
+            cx = cx + w * qx
+            cy = cy + w * qy
+            cz = cz + w * qz
+    d = wp.max(s, e)
+    cx = cx / d
+    cy = cy / d
+    cz = cz / d
+    # 2. fixed point of x_o = (sum_k w_k(x_c) T_k) x_c: A = sum_k w_k T_k[:3, :] (w normalised)
+    for it in range(iterations):
+        ux = wp.clamp((cx - lo[0]) * scale[0], lo2, hi)
+        uy = wp.clamp((cy - lo[1]) * scale[1], lo2, hi)
+        uz = wp.clamp((cz - lo[2]) * scale[2], lo2, hi)
+        s = zero
+        a00 = zero
+        a01 = zero
+        a02 = zero
+        a03 = zero
+        a10 = zero
+        a11 = zero
+        a12 = zero
+        a13 = zero
+        a20 = zero
+        a21 = zero
+        a22 = zero
+        a23 = zero
+        for m in range(M):
+            k = int(cand[n, m])
+            if k < num_joints:
+                w = _trilinear(vol, k, ux, uy, uz, D, H, W)
+                row = fb + k
+                s = s + w
+                a00 = a00 + w * fwd_t[row, 0]
+                a01 = a01 + w * fwd_t[row, 1]
+                a02 = a02 + w * fwd_t[row, 2]
+                a03 = a03 + w * fwd_t[row, 3]
+                a10 = a10 + w * fwd_t[row, 4]
+                a11 = a11 + w * fwd_t[row, 5]
+                a12 = a12 + w * fwd_t[row, 6]
+                a13 = a13 + w * fwd_t[row, 7]
+                a20 = a20 + w * fwd_t[row, 8]
+                a21 = a21 + w * fwd_t[row, 9]
+                a22 = a22 + w * fwd_t[row, 10]
+                a23 = a23 + w * fwd_t[row, 11]
+        if s > e:
+            # x_c = R^-1 (x_o - t), R^-1 = adj(R) / det(R), with R, t the normalised blend
+            r00 = a00 / s
+            r01 = a01 / s
+            r02 = a02 / s
+            r10 = a10 / s
+            r11 = a11 / s
+            r12 = a12 / s
+            r20 = a20 / s
+            r21 = a21 / s
+            r22 = a22 / s
+            bx = px - a03 / s
+            by = py - a13 / s
+            bz = pz - a23 / s
+            c00 = r11 * r22 - r12 * r21
+            c01 = r02 * r21 - r01 * r22
+            c02 = r01 * r12 - r02 * r11
+            c10 = r12 * r20 - r10 * r22
+            c11 = r00 * r22 - r02 * r20
+            c12 = r02 * r10 - r00 * r12
+            c20 = r10 * r21 - r11 * r20
+            c21 = r01 * r20 - r00 * r21
+            c22 = r00 * r11 - r01 * r10
+            det = r00 * c00 + r01 * c10 + r02 * c20
+            if wp.abs(det) > type(x_o[0, 0])(1.0e-6):
+                cx = (c00 * bx + c01 * by + c02 * bz) / det
+                cy = (c10 * bx + c11 * by + c12 * bz) / det
+                cz = (c20 * bx + c21 * by + c22 * bz) / det
+    x_c[n, 0] = cx
+    x_c[n, 1] = cy
+    x_c[n, 2] = cz
+
+
+@wp.func
+def _trilinear_add(grad: wp.array(dtype=Any), chan: int, ux: Any, uy: Any, uz: Any, D: int, H: int, W: int,
+                   g: Any):
+    """grad[chan, corners of u] += corner weight * g (the transpose of :func:`_trilinear`)."""
+    one = type(ux)(1.0)
+    x0 = int(wp.floor(ux))
+    y0 = int(wp.floor(uy))
+    z0 = int(wp.floor(uz))
+    fx = ux - type(ux)(x0)
+    fy = uy - type(ux)(y0)
+    fz = uz - type(ux)(z0)
+    for c in range(8):
+        dx = c >> 2
+        dy = (c >> 1) & 1
+        dz = c & 1
+        i = x0 + dx
+        j = y0 + dy
+        k = z0 + dz
+        if i >= 0 and i < W and j >= 0 and j < H and k >= 0 and k < D:
+            w = wp.where(dx == 1, fx, one - fx) * wp.where(dy == 1, fy, one - fy) * wp.where(dz == 1, fz, one - fz)
+            wp.atomic_add(grad, ((chan * D + k) * H + j) * W + i, w * g)
+
+
+@wp.func
+def _dot_row(T: wp.array2d(dtype=Any), row: int, cx: Any, cy: Any, cz: Any, lx: Any, ly: Any, lz: Any) -> Any:
+    """lambda . (T[row] [c; 1]) for the 3x4 transform T[row] (flattened to 12)."""
+    return lx * _apply(T, row, cx, cy, cz, 0) + ly * _apply(T, row, cx, cy, cz, 1) + lz * _apply(T, row, cx, cy, cz, 2)
+
+
+@wp.kernel
+def warp_step(x_o: wp.array2d(dtype=Any), x_bar: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32),
+              cand: wp.array2d(dtype=wp.int32), num_joints: int, fwd_t: wp.array2d(dtype=Any),
+              vol: wp.array(dtype=Any), lo: wp.array(dtype=Any), scale: wp.array(dtype=Any), D: int, H: int, W: int,
+              eps: float, backward: int, g_xc: wp.array2d(dtype=Any), g_s: wp.array(dtype=Any), want_t: int,
+              x_c: wp.array2d(dtype=Any), s_out: wp.array(dtype=Any), grad_vol: wp.array(dtype=Any),
+              grad_t: wp.array2d(dtype=Any)):
+    """The warp's last fixed-point step from x_bar, with its gradient (``backward`` 1); one thread per sample.
+
+    Forward (the torch reference: ``deform._skinning_step``): w_m = W_{c_m}(x_bar), s = sum_m w_m,
+    A = sum_m (w_m / s) T_{c_m}[:3, :] = (R | t), x_c = R^-1 (x_o - t) where s > eps and
+    |det R| > 1e-6, else x_bar; s_out = s. Backward, for g_xc = dL/dx_c (N, 3) and g_s = dL/ds
+    (N,): with lambda = R^-T g_xc, dL/dA = -lambda [x_c; 1]^T, so dL/dwhat_m = -lambda . (T_m x_c),
+    dL/dT_m = -what_m lambda [x_c; 1]^T (``want_t``), dL/dw_m = (dL/dwhat_m - sum_k what_k
+    dL/dwhat_k) / s + g_s; the volume gradient is the transposed trilinear splat (atomic).
+    """
+    n = wp.tid()
+    M = cand.shape[1]
+    zero = type(x_o[0, 0])(0.0)
+    e = type(x_o[0, 0])(eps)
+    hi = type(x_o[0, 0])(wp.max(wp.max(D, H), W) + 1)
+    lo2 = type(x_o[0, 0])(-2.0)
+    fb = int(frame[n]) * num_joints
+    px = x_o[n, 0]
+    py = x_o[n, 1]
+    pz = x_o[n, 2]
+    ux = wp.clamp((x_bar[n, 0] - lo[0]) * scale[0], lo2, hi)
+    uy = wp.clamp((x_bar[n, 1] - lo[1]) * scale[1], lo2, hi)
+    uz = wp.clamp((x_bar[n, 2] - lo[2]) * scale[2], lo2, hi)
+    s = zero
+    a00 = zero
+    a01 = zero
+    a02 = zero
+    a03 = zero
+    a10 = zero
+    a11 = zero
+    a12 = zero
+    a13 = zero
+    a20 = zero
+    a21 = zero
+    a22 = zero
+    a23 = zero
+    for m in range(M):
+        k = int(cand[n, m])
+        if k < num_joints:
+            w = _trilinear(vol, k, ux, uy, uz, D, H, W)
+            row = fb + k
+            s = s + w
+            a00 = a00 + w * fwd_t[row, 0]
+            a01 = a01 + w * fwd_t[row, 1]
+            a02 = a02 + w * fwd_t[row, 2]
+            a03 = a03 + w * fwd_t[row, 3]
+            a10 = a10 + w * fwd_t[row, 4]
+            a11 = a11 + w * fwd_t[row, 5]
+            a12 = a12 + w * fwd_t[row, 6]
+            a13 = a13 + w * fwd_t[row, 7]
+            a20 = a20 + w * fwd_t[row, 8]
+            a21 = a21 + w * fwd_t[row, 9]
+            a22 = a22 + w * fwd_t[row, 10]
+            a23 = a23 + w * fwd_t[row, 11]
+    cx = x_bar[n, 0]
+    cy = x_bar[n, 1]
+    cz = x_bar[n, 2]
+    solved = int(0)
+    det = zero
+    c00 = zero
+    c01 = zero
+    c02 = zero
+    c10 = zero
+    c11 = zero
+    c12 = zero
+    c20 = zero
+    c21 = zero
+    c22 = zero
+    if s > e:
+        r00 = a00 / s
+        r01 = a01 / s
+        r02 = a02 / s
+        r10 = a10 / s
+        r11 = a11 / s
+        r12 = a12 / s
+        r20 = a20 / s
+        r21 = a21 / s
+        r22 = a22 / s
+        c00 = r11 * r22 - r12 * r21
+        c01 = r02 * r21 - r01 * r22
+        c02 = r01 * r12 - r02 * r11
+        c10 = r12 * r20 - r10 * r22
+        c11 = r00 * r22 - r02 * r20
+        c12 = r02 * r10 - r00 * r12
+        c20 = r10 * r21 - r11 * r20
+        c21 = r01 * r20 - r00 * r21
+        c22 = r00 * r11 - r01 * r10
+        det = r00 * c00 + r01 * c10 + r02 * c20
+        if wp.abs(det) > type(x_o[0, 0])(1.0e-6):
+            bx = px - a03 / s
+            by = py - a13 / s
+            bz = pz - a23 / s
+            cx = (c00 * bx + c01 * by + c02 * bz) / det
+            cy = (c10 * bx + c11 * by + c12 * bz) / det
+            cz = (c20 * bx + c21 * by + c22 * bz) / det
+            solved = 1
+    if backward == 0:
+        x_c[n, 0] = cx
+        x_c[n, 1] = cy
+        x_c[n, 2] = cz
+        s_out[n] = s
+        return
+    # lambda = R^-T g = adj(R)^T g / det
+    lx = zero
+    ly = zero
+    lz = zero
+    if solved == 1:
+        gx = g_xc[n, 0]
+        gy = g_xc[n, 1]
+        gz = g_xc[n, 2]
+        lx = (c00 * gx + c10 * gy + c20 * gz) / det
+        ly = (c01 * gx + c11 * gy + c21 * gz) / det
+        lz = (c02 * gx + c12 * gy + c22 * gz) / det
+    # sum_k what_k dL/dwhat_k = -lambda . (A x_c + t) / s... computed as the weighted mean below
+    mean = zero
+    if solved == 1:
+        for m in range(M):
+            k = int(cand[n, m])
+            if k < num_joints:
+                w = _trilinear(vol, k, ux, uy, uz, D, H, W)
+                mean = mean + (w / s) * (-_dot_row(fwd_t, fb + k, cx, cy, cz, lx, ly, lz))
+    gs = g_s[n]
+    for m in range(M):
+        k = int(cand[n, m])
+        if k < num_joints:
+            gw = gs
+            if solved == 1:
+                gw = gw + (-_dot_row(fwd_t, fb + k, cx, cy, cz, lx, ly, lz) - mean) / s
+                if want_t == 1:
+                    wh = _trilinear(vol, k, ux, uy, uz, D, H, W) / s
+                    row = fb + k
+                    wp.atomic_add(grad_t, row, 0, -wh * lx * cx)
+                    wp.atomic_add(grad_t, row, 1, -wh * lx * cy)
+                    wp.atomic_add(grad_t, row, 2, -wh * lx * cz)
+                    wp.atomic_add(grad_t, row, 3, -wh * lx)
+                    wp.atomic_add(grad_t, row, 4, -wh * ly * cx)
+                    wp.atomic_add(grad_t, row, 5, -wh * ly * cy)
+                    wp.atomic_add(grad_t, row, 6, -wh * ly * cz)
+                    wp.atomic_add(grad_t, row, 7, -wh * ly)
+                    wp.atomic_add(grad_t, row, 8, -wh * lz * cx)
+                    wp.atomic_add(grad_t, row, 9, -wh * lz * cy)
+                    wp.atomic_add(grad_t, row, 10, -wh * lz * cz)
+                    wp.atomic_add(grad_t, row, 11, -wh * lz)
+            _trilinear_add(grad_vol, k, ux, uy, uz, D, H, W, gw)
