@@ -66,16 +66,16 @@ def _cell(x: Any, r: int) -> int:
 def hash_fwd(x: wp.array2d(dtype=Any), table: wp.array2d(dtype=Any), res: wp.array(dtype=wp.int32),
              dense: wp.array(dtype=wp.int32), log2_size: int, want_dx: int, out: wp.array2d(dtype=Any),
              dout: wp.array3d(dtype=Any)):
-    """out[n, l F + f] = sum_c w_c table[f, l T + e_c]: one thread per (sample n, level l).
+    """out[n, l F + f] = sum_c w_c table[l T + e_c, f]: one thread per (sample n, level l).
 
-    x (N, 3) in the unit cube (clamped here), table (F, L T), res / dense (L,) cells per axis
+    x (N, 3) in the unit cube (clamped here), table (L T, F) entry-major, res / dense (L,) cells per axis
     and 1 where the level is indexed densely, out (N, L F). With ``want_dx`` also
     dout (N, L F, 3) = d out / d x: the trilinear derivative times r, 0 on an axis where x
     was clamped (the backward pass of x is then sum_j g[n, j] dout[n, j]).
     """
     tid = wp.tid()
     L = res.shape[0]
-    F = table.shape[0]
+    F = table.shape[1]
     n = tid // L
     lvl = tid - n * L
     one = type(x[0, 0])(1.0)
@@ -110,7 +110,7 @@ def hash_fwd(x: wp.array2d(dtype=Any), table: wp.array2d(dtype=Any), res: wp.arr
             wx = wp.where(dx == 1, fx, one - fx)
             wy = wp.where(dy == 1, fy, one - fy)
             wz = wp.where(dz == 1, fz, one - fz)
-            v = table[f, e[c]]
+            v = table[e[c], f]
             acc = acc + wx * wy * wz * v
             if want_dx == 1:
                 gx = gx + wp.where(dx == 1, v, -v) * wy * wz
@@ -127,10 +127,10 @@ def hash_fwd(x: wp.array2d(dtype=Any), table: wp.array2d(dtype=Any), res: wp.arr
 def hash_bwd(x: wp.array2d(dtype=Any), g: wp.array2d(dtype=Any), res: wp.array(dtype=wp.int32),
              dense: wp.array(dtype=wp.int32), log2_size: int, grad_table: wp.array2d(dtype=Any)):
     """The table gradient of :func:`hash_fwd` for the output gradient g (N, L F):
-    grad_table (F, L T) += w_c g, atomically (samples share entries); one thread per (sample, level)."""
+    grad_table (L T, F) += w_c g, atomically (samples share entries); one thread per (sample, level)."""
     tid = wp.tid()
     L = res.shape[0]
-    F = grad_table.shape[0]
+    F = grad_table.shape[1]
     n = tid // L
     lvl = tid - n * L
     one = type(x[0, 0])(1.0)
@@ -153,13 +153,15 @@ def hash_bwd(x: wp.array2d(dtype=Any), g: wp.array2d(dtype=Any), res: wp.array(d
         ent = base + _hash_entry(ix + dx, iy + dy, iz + dz, s, int(dense[lvl]), mask)
         w = wp.where(dx == 1, fx, one - fx) * wp.where(dy == 1, fy, one - fy) * wp.where(dz == 1, fz, one - fz)
         for f in range(F):
-            wp.atomic_add(grad_table, f, ent, w * g[n, lvl * F + f])
+            wp.atomic_add(grad_table, ent, f, w * g[n, lvl * F + f])
 
 
 @wp.func
-def _trilinear(vol: wp.array(dtype=Any), chan: int, ux: Any, uy: Any, uz: Any, D: int, H: int, W: int) -> Any:
-    """Value of channel ``chan`` of the flat (C, D, H, W) volume at voxel coordinates (ux, uy, uz)
-    (x along W); corners outside the grid read 0 (:func:`anidress_core.field.weights.sample_channels`)."""
+def _trilinear(vol: wp.array(dtype=Any), chan: int, ux: Any, uy: Any, uz: Any, D: int, H: int, W: int,
+               C: int) -> Any:
+    """Value of channel ``chan`` of the flat channel-last (D, H, W, C) volume at voxel coordinates (ux, uy, uz)
+    (x along W); corners outside the grid read 0 (:func:`anidress_core.field.weights.sample_channels`). Channel-last:
+    the candidates of one point read the same cache lines."""
     one = type(ux)(1.0)
     acc = type(ux)(0.0)
     x0 = int(wp.floor(ux))
@@ -177,7 +179,7 @@ def _trilinear(vol: wp.array(dtype=Any), chan: int, ux: Any, uy: Any, uz: Any, D
         k = z0 + dz
         if i >= 0 and i < W and j >= 0 and j < H and k >= 0 and k < D:
             w = wp.where(dx == 1, fx, one - fx) * wp.where(dy == 1, fy, one - fy) * wp.where(dz == 1, fz, one - fz)
-            acc = acc + w * vol[((chan * D + k) * H + j) * W + i]
+            acc = acc + w * vol[((k * H + j) * W + i) * C + chan]
     return acc
 
 
@@ -188,16 +190,18 @@ def _apply(T: wp.array2d(dtype=Any), row: int, px: Any, py: Any, pz: Any, a: int
 
 
 @wp.kernel
-def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand: wp.array2d(dtype=wp.int32),
+def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand: wp.array2d(dtype=wp.int16),
                num_joints: int, inv_t: wp.array2d(dtype=Any), fwd_t: wp.array2d(dtype=Any),
                vol: wp.array(dtype=Any), lo: wp.array(dtype=Any), scale: wp.array(dtype=Any), D: int, H: int,
-               W: int, iterations: int, eps: float, x_c: wp.array2d(dtype=Any)):
+               W: int, C: int, iterations: int, eps: float, x_c: wp.array2d(dtype=Any), s_out: wp.array(dtype=Any)):
     """Blend of the candidates' proposals, then ``iterations`` fixed-point steps of forward skinning,
     no gradients: one thread per sample (the torch reference: ``backward_warp`` without its last step).
 
     x_o (N, 3); frame (N,) row block of the (T K, 12) transform tables (3x4 parts of T_k^-1 and
-    T_k); cand (N, M), K = no joint; vol (C D H W,) flat weights; voxel coordinate
-    u = (p - lo) * scale, clamped to [-2, max(D, H, W) + 1] as the torch path.
+    T_k); cand (N, M), K = no joint; vol (D H W C,) flat channel-last weights; voxel coordinate
+    u = (p - lo) * scale, clamped to [-2, max(D, H, W) + 1] as the torch path. s_out (N,): the
+    sum of the candidates' weights where the last step (or the blend) read them, the foreground
+    likelihood (before its clamp to 1) of the warp without gradients.
     """
     n = wp.tid()
     M = cand.shape[1]
@@ -222,7 +226,7 @@ def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand
             qy = _apply(inv_t, fb + k, px, py, pz, 1)
             qz = _apply(inv_t, fb + k, px, py, pz, 2)
             w = _trilinear(vol, k, wp.clamp((qx - lo[0]) * scale[0], lo2, hi), wp.clamp((qy - lo[1]) * scale[1], lo2, hi),
-                           wp.clamp((qz - lo[2]) * scale[2], lo2, hi), D, H, W)
+                           wp.clamp((qz - lo[2]) * scale[2], lo2, hi), D, H, W, C)
             s = s + w
             cx = cx + w * qx
             cy = cy + w * qy
@@ -252,7 +256,7 @@ def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand
         for m in range(M):
             k = int(cand[n, m])
             if k < num_joints:
-                w = _trilinear(vol, k, ux, uy, uz, D, H, W)
+                w = _trilinear(vol, k, ux, uy, uz, D, H, W, C)
                 row = fb + k
                 s = s + w
                 a00 = a00 + w * fwd_t[row, 0]
@@ -298,11 +302,12 @@ def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand
     x_c[n, 0] = cx
     x_c[n, 1] = cy
     x_c[n, 2] = cz
+    s_out[n] = s
 
 
 @wp.func
 def _trilinear_add(grad: wp.array(dtype=Any), chan: int, ux: Any, uy: Any, uz: Any, D: int, H: int, W: int,
-                   g: Any):
+                   C: int, g: Any):
     """grad[chan, corners of u] += corner weight * g (the transpose of :func:`_trilinear`)."""
     one = type(ux)(1.0)
     x0 = int(wp.floor(ux))
@@ -320,7 +325,7 @@ def _trilinear_add(grad: wp.array(dtype=Any), chan: int, ux: Any, uy: Any, uz: A
         k = z0 + dz
         if i >= 0 and i < W and j >= 0 and j < H and k >= 0 and k < D:
             w = wp.where(dx == 1, fx, one - fx) * wp.where(dy == 1, fy, one - fy) * wp.where(dz == 1, fz, one - fz)
-            wp.atomic_add(grad, ((chan * D + k) * H + j) * W + i, w * g)
+            wp.atomic_add(grad, ((k * H + j) * W + i) * C + chan, w * g)
 
 
 @wp.func
@@ -331,9 +336,9 @@ def _dot_row(T: wp.array2d(dtype=Any), row: int, cx: Any, cy: Any, cz: Any, lx: 
 
 @wp.kernel
 def warp_step(x_o: wp.array2d(dtype=Any), x_bar: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32),
-              cand: wp.array2d(dtype=wp.int32), num_joints: int, fwd_t: wp.array2d(dtype=Any),
+              cand: wp.array2d(dtype=wp.int16), num_joints: int, fwd_t: wp.array2d(dtype=Any),
               vol: wp.array(dtype=Any), lo: wp.array(dtype=Any), scale: wp.array(dtype=Any), D: int, H: int, W: int,
-              eps: float, backward: int, g_xc: wp.array2d(dtype=Any), g_s: wp.array(dtype=Any), want_t: int,
+              C: int, eps: float, backward: int, g_xc: wp.array2d(dtype=Any), g_s: wp.array(dtype=Any), want_t: int,
               x_c: wp.array2d(dtype=Any), s_out: wp.array(dtype=Any), grad_vol: wp.array(dtype=Any),
               grad_t: wp.array2d(dtype=Any)):
     """The warp's last fixed-point step from x_bar, with its gradient (``backward`` 1); one thread per sample.
@@ -374,7 +379,7 @@ def warp_step(x_o: wp.array2d(dtype=Any), x_bar: wp.array2d(dtype=Any), frame: w
     for m in range(M):
         k = int(cand[n, m])
         if k < num_joints:
-            w = _trilinear(vol, k, ux, uy, uz, D, H, W)
+            w = _trilinear(vol, k, ux, uy, uz, D, H, W, C)
             row = fb + k
             s = s + w
             a00 = a00 + w * fwd_t[row, 0]
@@ -454,7 +459,7 @@ def warp_step(x_o: wp.array2d(dtype=Any), x_bar: wp.array2d(dtype=Any), frame: w
         for m in range(M):
             k = int(cand[n, m])
             if k < num_joints:
-                w = _trilinear(vol, k, ux, uy, uz, D, H, W)
+                w = _trilinear(vol, k, ux, uy, uz, D, H, W, C)
                 mean = mean + (w / s) * (-_dot_row(fwd_t, fb + k, cx, cy, cz, lx, ly, lz))
     gs = g_s[n]
     for m in range(M):
@@ -464,7 +469,7 @@ def warp_step(x_o: wp.array2d(dtype=Any), x_bar: wp.array2d(dtype=Any), frame: w
             if solved == 1:
                 gw = gw + (-_dot_row(fwd_t, fb + k, cx, cy, cz, lx, ly, lz) - mean) / s
                 if want_t == 1:
-                    wh = _trilinear(vol, k, ux, uy, uz, D, H, W) / s
+                    wh = _trilinear(vol, k, ux, uy, uz, D, H, W, C) / s
                     row = fb + k
                     wp.atomic_add(grad_t, row, 0, -wh * lx * cx)
                     wp.atomic_add(grad_t, row, 1, -wh * lx * cy)
@@ -478,4 +483,76 @@ def warp_step(x_o: wp.array2d(dtype=Any), x_bar: wp.array2d(dtype=Any), frame: w
                     wp.atomic_add(grad_t, row, 9, -wh * lz * cy)
                     wp.atomic_add(grad_t, row, 10, -wh * lz * cz)
                     wp.atomic_add(grad_t, row, 11, -wh * lz)
-            _trilinear_add(grad_vol, k, ux, uy, uz, D, H, W, gw)
+            _trilinear_add(grad_vol, k, ux, uy, uz, D, H, W, C, gw)
+
+
+@wp.func
+def _ray_span(origins: wp.array2d(dtype=Any), dirs: wp.array2d(dtype=Any), r: int, f: int,
+              g_origin: wp.array2d(dtype=Any), g_voxel: wp.array2d(dtype=Any), G: wp.array(dtype=wp.int32)) -> Any:
+    """Entry (clamped to 0) and exit of ray r in the grid box of frame f, as a 2-vector of the float type:
+    the slab test of the torch path (directions below 1e-12 in magnitude count as +1e-12)."""
+    zero = type(origins[0, 0])(0.0)
+    tiny = type(origins[0, 0])(1.0e-12)
+    tmin = type(origins[0, 0])(-3.0e38)
+    tmax = type(origins[0, 0])(3.0e38)
+    for a in range(3):
+        d = dirs[r, a]
+        if wp.abs(d) < tiny:
+            d = tiny
+        inv = type(origins[0, 0])(1.0) / d
+        lo = g_origin[f, a]
+        hi = lo + g_voxel[f, a] * type(origins[0, 0])(G[a])
+        t0 = (lo - origins[r, a]) * inv
+        t1 = (hi - origins[r, a]) * inv
+        tmin = wp.max(tmin, wp.min(t0, t1))
+        tmax = wp.min(tmax, wp.max(t0, t1))
+    return wp.vector(wp.max(tmin, zero), tmax)
+
+
+@wp.func
+def _grid_row(px: Any, py: Any, pz: Any, f: int, g_origin: wp.array2d(dtype=Any), g_voxel: wp.array2d(dtype=Any),
+              G: wp.array(dtype=wp.int32), index: wp.array2d(dtype=wp.int32)) -> int:
+    """Row of point p of frame f in the occupancy grid's candidate table; -1 outside or empty
+    (:meth:`anidress_core.field.sampler.OccupancyGrid.lookup`)."""
+    i = int(wp.floor((px - g_origin[f, 0]) / g_voxel[f, 0]))
+    j = int(wp.floor((py - g_origin[f, 1]) / g_voxel[f, 1]))
+    k = int(wp.floor((pz - g_origin[f, 2]) / g_voxel[f, 2]))
+    if i < 0 or j < 0 or k < 0 or i >= int(G[0]) or j >= int(G[1]) or k >= int(G[2]):
+        return -1
+    return int(index[f, (i * int(G[1]) + j) * int(G[2]) + k])
+
+
+@wp.kernel
+def march_count(origins: wp.array2d(dtype=Any), dirs: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32),
+                u: wp.array(dtype=Any), step: float, g_origin: wp.array2d(dtype=Any), g_voxel: wp.array2d(dtype=Any),
+                G: wp.array(dtype=wp.int32), index: wp.array2d(dtype=wp.int32), fill: int,
+                offset: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), considered: wp.array(dtype=wp.int32),
+                ray: wp.array(dtype=wp.int64), t_out: wp.array(dtype=Any), row_out: wp.array(dtype=wp.int32)):
+    """Ray marching in the occupancy grid (:func:`anidress_core.field.sampler.march`), one thread per ray:
+    samples t = entry + (i + u[r]) step while t < exit, kept where the grid is occupied. Pass ``fill`` 0
+    counts them (count, considered); pass 1 writes them from ``offset`` (ray, t, row), in depth order."""
+    r = wp.tid()
+    f = int(frame[r])
+    span = _ray_span(origins, dirs, r, f, g_origin, g_voxel, G)
+    st = type(origins[0, 0])(step)
+    n = int(wp.ceil((span[1] - span[0]) / st))
+    kept = int(0)
+    seen = int(0)
+    pos = int(0)
+    if fill == 1:
+        pos = int(offset[r])
+    for i in range(n):
+        t = span[0] + (type(origins[0, 0])(i) + u[r]) * st
+        if t < span[1]:
+            seen += 1
+            row = _grid_row(origins[r, 0] + t * dirs[r, 0], origins[r, 1] + t * dirs[r, 1],
+                            origins[r, 2] + t * dirs[r, 2], f, g_origin, g_voxel, G, index)
+            if row >= 0:
+                if fill == 1:
+                    ray[pos + kept] = wp.int64(r)
+                    t_out[pos + kept] = t
+                    row_out[pos + kept] = row
+                kept += 1
+    if fill == 0:
+        count[r] = kept
+        considered[r] = seen

@@ -279,7 +279,7 @@ class Samples(NamedTuple):
     x: Tensor
     """(S, 3) world position."""
     cand: Tensor
-    """(S, M) long candidate joints (K = none)."""
+    """(S, M) int16 candidate joints (K = none), as the occupancy grid stores them."""
     considered: int
     """Samples the marcher looked at (inside the grid box) before the occupancy test."""
 
@@ -294,9 +294,40 @@ def _ray_box(origins: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor) -> tuple[Ten
     return tmin, tmax
 
 
+def _march_warp(origins: Tensor, dirs: Tensor, frame: Tensor, grid: OccupancyGrid, step: float,
+                u: Tensor) -> tuple[Tensor, Tensor, Tensor, int]:
+    """Occupied samples (ray (S,) long, t (S,), row (S,) long) and the considered count, by the Warp
+    kernel ``march_count`` (:mod:`anidress_core.field.kernels`): a counting pass, offsets, a filling pass."""
+    from . import kernels
+
+    dev, dt = origins.device, origins.dtype
+    R = origins.shape[0]
+    wdev, stream = kernels.device_of(origins, "march")
+    A = kernels.array
+    G = torch.tensor(grid.res, dtype=torch.int32, device=dev)
+    common = [A(origins), A(dirs), A(frame.to(torch.int32)), A(u), float(step), A(grid.origin.to(dt)),
+              A(grid.voxel.to(dt)), A(G), A(grid.index)]
+    count = torch.zeros(R, dtype=torch.int32, device=dev)
+    seen = torch.zeros(R, dtype=torch.int32, device=dev)
+    empty_i, empty_t = torch.zeros(1, dtype=torch.int32, device=dev), torch.zeros(1, dtype=dt, device=dev)
+    kernels.wp.launch(kernels.march_count, R, inputs=[*common, 0, A(count), A(count), A(seen),
+                                                      A(torch.zeros(1, dtype=torch.int64, device=dev)), A(empty_t),
+                                                      A(empty_i)], device=wdev, stream=stream)
+    offset = (torch.cumsum(count, 0) - count).to(torch.int32)
+    S = int(count.sum())
+    ray = torch.empty(S, dtype=torch.int64, device=dev)
+    t = torch.empty(S, dtype=dt, device=dev)
+    row = torch.empty(S, dtype=torch.int32, device=dev)
+    if S:
+        kernels.wp.launch(kernels.march_count, R, inputs=[*common, 1, A(offset), A(count), A(seen),
+                                                          kernels.wp.from_torch(ray), kernels.wp.from_torch(t),
+                                                          kernels.wp.from_torch(row)], device=wdev, stream=stream)
+    return ray, t, row.long(), int(seen.sum())
+
+
 def march(origins: Tensor, dirs: Tensor, frame: Tensor, grid: OccupancyGrid, step: float,
           generator: torch.Generator | None = None, jitter: bool = False, use_occupancy: bool = True,
-          cull_joints: bool = True, chunk: int = 4096) -> Samples:
+          cull_joints: bool = True, chunk: int = 4096, backend: str = "warp") -> Samples:
     """Samples every ``step`` metres inside each ray's frame grid, kept where occupied.
 
     origins, dirs (R, 3) (unit directions), frame (R,) long. With ``jitter`` each ray's
@@ -306,9 +337,23 @@ def march(origins: Tensor, dirs: Tensor, frame: Tensor, grid: OccupancyGrid, ste
     ``use_occupancy=False`` keeps every sample inside the grid box, with all K joints
     as candidates where the grid has none; ``cull_joints=False`` makes every joint a
     candidate of every sample (M = K).
+    ``backend``: ``"warp"`` marches in one Warp kernel (with the occupancy grid; the
+    ablation ``use_occupancy=False`` runs in torch), ``"torch"`` in batched torch (``chunk``
+    rays at a time), the reference.
     """
     dev, dt = origins.device, origins.dtype
     K = grid.num_joints
+    if backend not in ("warp", "torch"):
+        raise ValueError(f"march: backend must be 'warp' or 'torch', got {backend!r}")
+    if backend == "warp" and use_occupancy:
+        R = origins.shape[0]
+        u = torch.rand(R, generator=generator, dtype=dt).to(dev) if jitter else torch.full((R,), 0.5, dtype=dt,
+                                                                                              device=dev)
+        r_all, t_all, row, considered = _march_warp(origins, dirs, frame, grid, step, u)
+        x_all = origins[r_all] + t_all[:, None] * dirs[r_all]
+        cand = grid.cand[row] if cull_joints else \
+            torch.arange(K, dtype=torch.int16, device=dev)[None].expand(r_all.shape[0], K)
+        return Samples(r_all, t_all, x_all, cand, considered)
     lo, hi = grid.box(frame)
     tmin, tmax = _ray_box(origins, dirs, lo, hi)
     n = ((tmax - tmin) / step).ceil().clamp_min(0).long()  # samples per ray
@@ -344,15 +389,15 @@ def march(origins: Tensor, dirs: Tensor, frame: Tensor, grid: OccupancyGrid, ste
         r_all, t_all, row = torch.cat(out_r), torch.cat(out_t), torch.cat(out_row)
     x_all = origins[r_all] + t_all[:, None] * dirs[r_all]
     if not cull_joints:
-        cand = torch.arange(K, device=dev)[None].expand(r_all.shape[0], K)
+        cand = torch.arange(K, dtype=torch.int16, device=dev)[None].expand(r_all.shape[0], K)
     elif use_occupancy:
-        cand = grid.cand[row].long()
+        cand = grid.cand[row]
     else:
         M = grid.cand.shape[1]
-        cand = torch.arange(K, device=dev)[None].repeat(r_all.shape[0], 1)
+        cand = torch.arange(K, dtype=torch.int16, device=dev)[None].repeat(r_all.shape[0], 1)
         occ = row >= 0
-        cand[occ] = torch.cat([grid.cand[row[occ]].long(),
-                               torch.full((int(occ.sum()), K - M), K, device=dev, dtype=torch.long)], 1)
+        cand[occ] = torch.cat([grid.cand[row[occ]],
+                               torch.full((int(occ.sum()), K - M), K, device=dev, dtype=torch.int16)], 1)
     return Samples(r_all, t_all, x_all, cand, considered)
 
 

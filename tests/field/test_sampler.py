@@ -93,3 +93,26 @@ def test_wide_margin_path_covers_the_margin_with_candidates():
         assert inside.all() and (row >= 0).all()
         c = grid.cand[row].long()
         assert ((c == 0) | (c == 1)).all() and (c[:, 0] == 0).any()
+
+
+def test_march_kernel_matches_the_torch_path():
+    """The Warp marcher against the torch one: the same samples (rays, depths, points, candidates) on
+    rays through, beside and behind the subject, with jitter, in two frames; and an empty batch."""
+    part = _tetra_part(T=2)
+    grid = build_occupancy([part], (32, 32, 32), max_joints=2)
+    g = torch.Generator().manual_seed(0)
+    n = 400
+    o = torch.cat([torch.rand(n, 3, generator=g) * torch.tensor([1.6, 0.5, 0.0]) + torch.tensor([-0.2, -0.1, -2.0]),
+                   torch.tensor([[9.0, 9.0, -2.0], [0.05, 0.05, 3.0]])])  # far beside; behind, looking away
+    d = torch.cat([torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.05 + torch.tensor([0, 0, 1.0]),
+                                                 dim=-1), torch.tensor([[0.0, 0, 1], [0.0, 0, 1]])])
+    fr = torch.randint(2, (n + 2,), generator=g)
+    for jitter in (False, True):
+        a = march(o, d, fr, grid, 0.01, generator=torch.Generator().manual_seed(4), jitter=jitter, backend="warp")
+        b = march(o, d, fr, grid, 0.01, generator=torch.Generator().manual_seed(4), jitter=jitter, backend="torch",
+                  chunk=n + 2)  # one chunk: the same jitter draws
+        assert a.ray.numel() > 100 and not (a.ray >= n).any()
+        assert torch.equal(a.ray, b.ray) and torch.equal(a.cand, b.cand) and a.considered == b.considered
+        assert torch.allclose(a.t, b.t, atol=1e-6) and torch.allclose(a.x, b.x, atol=1e-6)
+    e = march(o[:0], d[:0], fr[:0], grid, 0.01, backend="warp")
+    assert e.ray.shape == (0,) and e.x.shape == (0, 3) and e.considered == 0
