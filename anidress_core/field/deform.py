@@ -45,7 +45,7 @@ from torch import Tensor
 from . import kernels
 from .weights import sample_channels
 
-__all__ = ["WarpResult", "backward_warp", "forward_lbs", "inverse_lbs", "invert_affine3"]
+__all__ = ["WarpResult", "backward_warp", "channel_last", "forward_lbs", "inverse_lbs", "invert_affine3"]
 
 
 class WarpResult(NamedTuple):
@@ -113,38 +113,51 @@ def _skinning_step(x_o: Tensor, x_c: Tensor, pair: Tensor, c: Tensor, fwd: Tenso
     return torch.where((ok & (s > eps))[:, None], new, x_c), wq, s
 
 
-def _volume_frame(volume: Tensor, box: Tensor, dt) -> tuple[tuple[int, int, int], Tensor, Tensor]:
-    """Grid size (D, H, W), corner (3,) and scale (3,) of voxel coordinates u = (p - lo) * scale."""
+def _volume_frame(volume: Tensor, box: Tensor, dt) -> tuple[tuple[int, int, int, int], Tensor, Tensor]:
+    """Grid size (D, H, W, C), corner (3,) and scale (3,) of voxel coordinates u = (p - lo) * scale."""
     C, D, H, W = volume.shape
     box = box.to(device=volume.device, dtype=dt)
     scale = torch.tensor([W - 1, H - 1, D - 1], dtype=dt, device=volume.device) / (box[1] - box[0])
-    return (D, H, W), box[0].contiguous(), scale
+    return (D, H, W, C), box[0].contiguous(), scale
+
+
+def channel_last(volume: Tensor, dt=None) -> Tensor:
+    """The (C, D, H, W) volume as the Warp kernels read it: flat (D H W C,), channel-last, so that the
+    candidates of one point read the same cache lines (differentiable). A caller that warps many batches
+    with one volume converts it once and passes it to :func:`backward_warp` as ``volume_last``."""
+    return volume.to(dt or volume.dtype).permute(1, 2, 3, 0).reshape(-1)
 
 
 def _place_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, transforms: Tensor, cand: Tensor,
-                volume: Tensor, box: Tensor, iterations: int, eps: float) -> Tensor:
+                volume: Tensor, box: Tensor, iterations: int, eps: float,
+                volume_last: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The blend and ``iterations`` fixed-point steps, no gradient, in one Warp kernel
-    (:func:`anidress_core.field.kernels.warp_place`)."""
+    (:func:`anidress_core.field.kernels.warp_place`): x_c (N, 3) and the weights' sum s (N,)
+    where the last step read them."""
     N = x_o.shape[0]
     dev, dt = x_o.device, x_o.dtype
     out = torch.empty(N, 3, dtype=dt, device=dev)
+    s = torch.empty(N, dtype=dt, device=dev)
     if N == 0:
-        return out
+        return out, s
     wdev, stream = kernels.device_of(x_o, "backward_warp")
-    (D, H, W), lo, scale = _volume_frame(volume, box, dt)
+    (D, H, W, C), lo, scale = _volume_frame(volume, box, dt)
     fr = torch.zeros(N, dtype=torch.int32, device=dev) if frame is None else frame.to(torch.int32)
     wp.launch(kernels.warp_place, N,
-              inputs=[kernels.array(x_o), kernels.array(fr), kernels.array(cand.to(torch.int32)), inv_transforms.shape[-3],
+              inputs=[kernels.array(x_o), kernels.array(fr), kernels.array(cand.to(torch.int16)), inv_transforms.shape[-3],
                       kernels.array(inv_transforms[..., :3, :].reshape(-1, 12).to(dt)),
-                      kernels.array(transforms[..., :3, :].reshape(-1, 12).to(dt)), kernels.array(volume.reshape(-1).to(dt)), kernels.array(lo),
-                      kernels.array(scale), D, H, W, int(iterations), float(eps), wp.from_torch(out)],
+                      kernels.array(transforms[..., :3, :].reshape(-1, 12).to(dt)),
+                      kernels.array(channel_last(volume, dt) if volume_last is None else volume_last.to(dt)),
+                      kernels.array(lo), kernels.array(scale), D, H, W, C,
+                      int(iterations), float(eps), wp.from_torch(out),
+                      wp.from_torch(s)],
               device=wdev, stream=stream)
-    return out
+    return out, s
 
 
 class _StepWarp(torch.autograd.Function):
     """:func:`_skinning_step` (x_c, s) through the Warp kernel ``warp_step``, differentiable with respect to
-    the flat volume (C D H W,) and the transforms' 3x4 table (T K, 12)."""
+    the flat channel-last volume (D H W C,) and the transforms' 3x4 table (T K, 12)."""
 
     @staticmethod
     def forward(ctx, vol_flat: Tensor, table: Tensor, x_o: Tensor, x_bar: Tensor, frame: Tensor, cand: Tensor,
@@ -183,36 +196,43 @@ class _StepWarp(torch.autograd.Function):
 
 def backward_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, cand: Tensor, volume: Tensor,
                   box: Tensor, eps: float = 1e-4, transforms: Tensor | None = None,
-                  iterations: int = 0, backend: str = "warp") -> WarpResult:
+                  iterations: int = 0, backend: str = "warp", volume_last: Tensor | None = None) -> WarpResult:
     """Backward warp of observation points over candidate joints (module docstring).
 
     x_o (N, 3) world points; frame (N,) long index of each point's frame into
     inv_transforms (T, K, 4, 4), or None with inv_transforms (K, 4, 4) for one frame:
-    T_k^-1 (world -> canonical per joint); cand (N, M) long in [0, K] (K = no joint);
+    T_k^-1 (world -> canonical per joint); cand (N, M) integer in [0, K] (K = no joint);
     volume (K + 1, D, H, W) motion weights over ``box`` (2, 3).
     ``iterations`` 0: HumanNeRF's blend of the joints' proposals; n > 0: n fixed-point
     iterations of the inverse of forward skinning from the blend, which need ``transforms``
     (T, K, 4, 4) | (K, 4, 4), the inverses of ``inv_transforms``. ``backend``: where the
     blend and the first n - 1 iterations (no gradient) run, ``"warp"`` (one kernel) or
-    ``"torch"`` (the reference); the last iteration is torch either way.
+    ``"torch"`` (the reference); the last iteration is torch either way. ``volume_last``: the volume as
+    :func:`channel_last` gives it, when the caller has it (rendering: converted once per image).
     """
     K = inv_transforms.shape[-3]
-    N, M = cand.shape
-    # 0. only (sample, candidate) pairs naming a joint are evaluated (packed)
-    valid = cand < K
-    n_idx, m_idx = valid.nonzero(as_tuple=True)
-    c = cand[n_idx, m_idx]
-    row = c if frame is None else frame[n_idx] * K + c
+    N = cand.shape[0]
     if iterations > 0:
         if transforms is None:
             raise ValueError("backward_warp: iterations > 0 needs the forward transforms")
         if backend not in ("warp", "torch"):
             raise ValueError(f"backward_warp: backend must be 'warp' or 'torch', got {backend!r}")
+        if backend == "warp" and not (torch.is_grad_enabled() and (volume.requires_grad or transforms.requires_grad)):
+            # rendering: every step in one kernel
+            x_c, s = _place_warp(x_o, frame, inv_transforms, transforms, cand, volume, box, iterations, eps,
+                                 volume_last)
+            return WarpResult(x_c=x_c, fg=s.clamp(max=1.0))
+    # 0. only (sample, candidate) pairs naming a joint are evaluated (packed)
+    n_idx, m_idx = (cand < K).nonzero(as_tuple=True)
+    c = cand[n_idx, m_idx].long()
+    row = c if frame is None else frame[n_idx] * K + c
+    if iterations > 0:
         fwd = transforms[..., :3, :].reshape(-1, 12)[row].view(-1, 3, 4)  # (P, 3, 4)
         # 1. place x_c: the blend, then n - 1 fixed-point steps, without gradient
         with torch.no_grad():
             if backend == "warp":
-                x_c = _place_warp(x_o, frame, inv_transforms, transforms, cand, volume, box, iterations - 1, eps)
+                x_c = _place_warp(x_o, frame, inv_transforms, transforms, cand, volume, box, iterations - 1, eps,
+                                  volume_last)[0]
             else:
                 x_c = backward_warp(x_o, frame, inv_transforms, cand, volume, box, eps).x_c
                 for _ in range(iterations - 1):
@@ -221,8 +241,9 @@ def backward_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, can
         if backend == "warp":
             dhw, lo, scale = _volume_frame(volume, box, x_o.dtype)
             fr = torch.zeros(N, dtype=torch.int32, device=x_o.device) if frame is None else frame.to(torch.int32)
-            x_c, s = _StepWarp.apply(volume.reshape(-1), transforms[..., :3, :].reshape(-1, 12), x_o.detach(), x_c,
-                                     fr, cand.to(torch.int32), K, lo, scale, dhw, eps)
+            vl = channel_last(volume, x_o.dtype) if volume_last is None else volume_last
+            x_c, s = _StepWarp.apply(vl, transforms[..., :3, :].reshape(-1, 12), x_o.detach(), x_c,
+                                     fr, cand.to(torch.int16), K, lo, scale, dhw, eps)
         else:
             x_c, _, s = _skinning_step(x_o, x_c, n_idx, c, fwd, volume, box, eps)
         return WarpResult(x_c=x_c, fg=s.clamp(max=1.0))

@@ -67,13 +67,12 @@ def _axis_weights(f: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 class _HashInterp(torch.autograd.Function):
-    """out[l, n, :] = sum_c w_c(f[:, l, n]) table[:, idx[c, l, n]] -> (L, N, F).
+    """out[l, n, :] = sum_c w_c(f[:, l, n]) table[idx[c, l, n], :] -> (L, N, F).
 
     f (3, L, N) cell fractions, idx (8, L, N) corner entries (corner c = 4 dx + 2 dy + dz),
-    table (F, L * T) feature-major so every gather / scatter is a contiguous 1-D
-    ``take`` / ``index_add_``. The backward pass is written out: scatter-add for the
-    table, the trilinear derivative for f (autograd through the 8 weight products costs
-    several times more on a CPU).
+    table (L * T, F) entry-major (an entry's features side by side). The backward pass is
+    written out: scatter-add for the table, the trilinear derivative for f (autograd through
+    the 8 weight products costs several times more on a CPU).
     """
 
     @staticmethod
@@ -83,7 +82,8 @@ class _HashInterp(torch.autograd.Function):
         w = (wx[:, None, None] * (wy[:, None] * wz[None])[None]).reshape(8, *f.shape[1:])
         flat = idx.reshape(-1)
         ctx.save_for_backward(table, f, idx, w)
-        return torch.stack([(w * table[k].take(flat).view_as(w)).sum(0) for k in range(table.shape[0])], -1)
+        F = table.shape[1]
+        return (w[..., None] * table.index_select(0, flat).view(*w.shape, F)).sum(0)
 
     @staticmethod
     def backward(ctx, g: Tensor):
@@ -91,14 +91,13 @@ class _HashInterp(torch.autograd.Function):
         flat = idx.reshape(-1)
         grad_table = grad_f = None
         if ctx.needs_input_grad[0]:
-            # grad_table[k, idx[c,l,n]] += w[c,l,n] g[l,n,k]  (the transposed gather)
+            # grad_table[idx[c,l,n], k] += w[c,l,n] g[l,n,k]  (the transposed gather)
             grad_table = torch.zeros_like(table)
-            for k in range(table.shape[0]):
-                grad_table[k].index_add_(0, flat, (w * g[None, :, :, k]).reshape(-1))
+            grad_table.index_add_(0, flat, (w[..., None] * g[None]).reshape(-1, table.shape[1]))
         if ctx.needs_input_grad[1]:
-            # gw[c, l, n] = <table[:, idx[c,l,n]], g[l, n, :]>, then the trilinear derivative:
+            # gw[c, l, n] = <table[idx[c,l,n], :], g[l, n, :]>, then the trilinear derivative:
             # d/df_x = sum_{dy,dz} (gw[1,dy,dz] - gw[0,dy,dz]) wy[dy] wz[dz], etc.
-            gw = sum(table[k].take(flat).view_as(w) * g[None, :, :, k] for k in range(table.shape[0]))
+            gw = (table.index_select(0, flat).view(*w.shape, table.shape[1]) * g[None]).sum(-1)
             gw = gw.view(2, 2, 2, *f.shape[1:])
             wx, wy, wz = _axis_weights(f)
             gx = ((gw[1] - gw[0]) * (wy[:, None] * wz[None])).sum((0, 1))
@@ -147,8 +146,8 @@ def _check(x: Tensor, table: Tensor, cfg: HashGridConfig) -> None:
     if x.ndim != 2 or x.shape[-1] != 3:
         raise ValueError(f"hash_encode: x must be (N, 3), got {tuple(x.shape)}")
     T = 1 << cfg.log2_size
-    if table.shape != (cfg.features, cfg.levels * T):
-        raise ValueError(f"hash_encode: table must be ({cfg.features}, {cfg.levels * T}), got {tuple(table.shape)}")
+    if table.shape != (cfg.levels * T, cfg.features):
+        raise ValueError(f"hash_encode: table must be ({cfg.levels * T}, {cfg.features}), got {tuple(table.shape)}")
 
 
 class _HashWarp(torch.autograd.Function):
@@ -158,7 +157,7 @@ class _HashWarp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table: Tensor, x: Tensor, res: Tensor, dense: Tensor, log2_size: int) -> Tensor:
         dev, stream = kernels.device_of(x, "hash_encode")
-        N, L, F = x.shape[0], res.shape[0], table.shape[0]
+        N, L, F = x.shape[0], res.shape[0], table.shape[1]
         want_dx = ctx.needs_input_grad[1]
         out = x.new_empty(N, L * F)
         dout = x.new_empty(N, L * F, 3) if want_dx else x.new_empty(1, 1, 3)
@@ -189,7 +188,7 @@ class _HashWarp(torch.autograd.Function):
 
 
 def hash_encode(x: Tensor, table: Tensor, cfg: HashGridConfig) -> Tensor:
-    """Encode points x (N, 3) in [0, 1]^3 (clamped) with ``table`` (F, L * T) -> (N, L * F).
+    """Encode points x (N, 3) in [0, 1]^3 (clamped) with ``table`` (L * T, F) -> (N, L * F).
 
     Differentiable w.r.t. ``table`` and ``x`` (zero where x was clamped); float32 or float64
     (x is cast to the table's type). Warp kernels; :func:`hash_encode_torch` is the same in torch.
@@ -235,20 +234,20 @@ def hash_encode_reference(x: Tensor, table: Tensor, cfg: HashGridConfig) -> Tens
                         row = (i * _PRIMES[0] ^ j * _PRIMES[1] ^ k * _PRIMES[2]) % T
                     wgt = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) \
                         * (f[:, 2] if dz else 1 - f[:, 2])
-                    acc = acc + wgt[:, None] * table[:, lvl * T + row].t()
+                    acc = acc + wgt[:, None] * table[lvl * T + row]
         out.append(acc)
     return torch.cat(out, -1)
 
 
 class HashGrid(nn.Module):
-    """Stores the hash table (F, L * T); ``forward(x (N, 3) in [0,1]^3) -> (N, L * F)``."""
+    """Stores the hash table (L * T, F); ``forward(x (N, 3) in [0,1]^3) -> (N, L * F)``."""
 
     def __init__(self, cfg: HashGridConfig = HashGridConfig(), generator: torch.Generator | None = None):
         super().__init__()
         self.cfg = cfg
         rows = cfg.levels * (1 << cfg.log2_size)
         # instant-ngp: table initialised uniformly in [-1e-4, 1e-4]
-        self.table = nn.Parameter(torch.rand(cfg.features, rows, generator=generator) * 2e-4 - 1e-4)
+        self.table = nn.Parameter(torch.rand(rows, cfg.features, generator=generator) * 2e-4 - 1e-4)
 
     @property
     def out_dim(self) -> int:

@@ -31,7 +31,8 @@ from . import files
 __all__ = ["FIELD_FORMAT", "FieldCheckpoint", "read_field_checkpoint", "write_field_checkpoint",
            "training_state_path", "read_training_state", "write_training_state"]
 
-FIELD_FORMAT = "anidress-field/1"
+FIELD_FORMAT = "anidress-field/2"
+"""2: the hash table entry-major (L T, F) and the fixed-point warp (``field_config.warp_iterations``)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,8 +61,11 @@ def read_field_checkpoint(path: str | os.PathLike) -> FieldCheckpoint:
         d = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:
         raise files.ArtifactError(f"{path}: not a readable torch file ({e})") from e
-    if not isinstance(d, dict) or d.get("format") != FIELD_FORMAT:
+    if not isinstance(d, dict) or not str(d.get("format", "")).startswith("anidress-field/"):
         raise files.ArtifactError(f"{path}: not an AniDress field ({FIELD_FORMAT})")
+    if d["format"] != FIELD_FORMAT:
+        raise files.ArtifactError(f"{path}: written by another version of the field ({d['format']}; this code reads "
+                                  f"{FIELD_FORMAT}): train it again")
     missing = [k for k in ("field_config", "state_dict") if k not in d]
     if missing:
         raise files.ArtifactError(f"{path}: missing entries {missing}")

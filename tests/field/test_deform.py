@@ -128,22 +128,25 @@ def test_warp_kernels_match_the_torch_path_in_values_and_gradients(iterations):
     for a, b in zip(out["warp"], out["torch"]):
         assert torch.allclose(a, b, atol=1e-10, rtol=1e-8)
     assert out["warp"][2].abs().sum() > 0 and out["warp"][3].abs().sum() > 0
+    with torch.no_grad():  # rendering: one kernel for every step
+        r = backward_warp(x_o, frame, torch.linalg.inv(S), cand, vol0, box, transforms=S, iterations=iterations)
+    assert torch.allclose(r.x_c, out["torch"][0], atol=1e-10) and torch.allclose(r.fg, out["torch"][1], atol=1e-10)
     # samples without a candidate keep their blend (the origin) and no foreground
     assert (out["warp"][1][20:25] == 0).all()
 
 
 def test_warp_step_kernel_gradcheck():
     """The kernel's hand-written backward pass against finite differences of its own forward (float64)."""
-    from anidress_core.field.deform import _StepWarp, _volume_frame
+    from anidress_core.field.deform import channel_last, _StepWarp, _volume_frame
 
     x_o, frame, S, cand, vol, box = _random_warp_problem(4, N=12, K=3, T=2, M=3)
     x_bar = backward_warp(x_o, frame, torch.linalg.inv(S), cand, vol, box).x_c.detach()
     dhw, lo, scale = _volume_frame(vol, box, x_o.dtype)
     table = S[..., :3, :].reshape(-1, 12).clone().requires_grad_()
-    flat = vol.reshape(-1).clone().requires_grad_()
+    flat = channel_last(vol, vol.dtype).clone().requires_grad_()
 
     def f(v, t):
-        x_c, s = _StepWarp.apply(v, t, x_o, x_bar, frame.to(torch.int32), cand.to(torch.int32), 3, lo, scale, dhw, 1e-4)
+        x_c, s = _StepWarp.apply(v, t, x_o, x_bar, frame.to(torch.int32), cand.to(torch.int16), 3, lo, scale, dhw, 1e-4)
         return x_c, s
 
     assert torch.autograd.gradcheck(f, (flat, table), atol=1e-6)

@@ -22,7 +22,7 @@ def test_matches_reference_on_dense_and_hashed_levels(dtype, encoder):
     g = torch.Generator().manual_seed(0)
     x = torch.rand(200, 3, generator=g, dtype=dtype)
     x[:3] = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 0.0, 0.5]], dtype=dtype)  # cube corners
-    table = torch.randn(2, 4 * 256, generator=g, dtype=dtype)
+    table = torch.randn(4 * 256, 2, generator=g, dtype=dtype)
     assert any((r + 1) ** 3 <= 256 for r in level_resolutions(CFG))
     assert any((r + 1) ** 3 > 256 for r in level_resolutions(CFG))
     x[3:6] = torch.tensor([[-0.2, 0.5, 0.5], [0.5, 1.3, 0.5], [2.0, -1.0, 0.2]], dtype=dtype)  # outside: clamped
@@ -39,7 +39,7 @@ def test_gradients_wrt_table_and_points_float64(encoder):
     g = torch.Generator().manual_seed(1)
     # keep points off cell borders, where the trilinear interpolation is not differentiable
     x = (torch.rand(6, 3, generator=g, dtype=torch.float64) * 0.9 + 0.05).requires_grad_()
-    table = torch.randn(2, 3 * 64, generator=g, dtype=torch.float64, requires_grad=True)
+    table = torch.randn(3 * 64, 2, generator=g, dtype=torch.float64, requires_grad=True)
     assert any((r + 1) ** 3 > 64 for r in level_resolutions(cfg))
     assert torch.autograd.gradcheck(lambda a, b: ENCODERS[encoder](a, b, cfg), (x, table))
 
@@ -50,7 +50,7 @@ def test_kernel_gradients_match_the_torch_path():
     cfg = HashGridConfig(levels=4, features=2, log2_size=8, base_resolution=2, max_resolution=16)
     g = torch.Generator().manual_seed(2)
     x0 = torch.rand(500, 3, generator=g, dtype=torch.float64) * 1.4 - 0.2
-    t0 = torch.randn(2, 4 * 256, generator=g, dtype=torch.float64)
+    t0 = torch.randn(4 * 256, 2, generator=g, dtype=torch.float64)
     w = torch.randn(500, cfg.out_dim, generator=g, dtype=torch.float64)
     grads = {}
     for name, enc in ENCODERS.items():
@@ -77,4 +77,4 @@ def test_module_and_shape_errors():
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         m(torch.rand(5, 2))
     with pytest.raises(ValueError, match="table"):
-        hash_encode(torch.rand(5, 3), torch.zeros(3, 10), CFG)
+        hash_encode(torch.rand(5, 3), torch.zeros(10, 3), CFG)
