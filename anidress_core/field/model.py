@@ -13,14 +13,15 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from .deform import backward_warp
+from .deform import backward_warp, channel_last
 from .encoding import HashGridConfig
-from .mlp import CanonicalField
+from .mlp import CanonicalField, trunc_exp
 from .render import composite
 from .sampler import OccupancyGrid, march
 from .weights import MotionWeightVolume
 
-__all__ = ["FieldConfig", "AnimatableField", "RayBatchResult", "render_rays"]
+__all__ = ["FieldConfig", "AnimatableField", "RayBatchResult", "render_rays", "CanonicalOccupancy",
+           "canonical_occupancy"]
 
 
 @dataclass(frozen=True)
@@ -41,7 +42,7 @@ class FieldConfig:
     """Added to the log-density before the exponential: the field starts at sigma ~ e^3 / m,
     a haze that becomes opaque within a few centimetres (a start near 0 trains several
     times slower: the density has to grow through many steps of small gradients)."""
-    warp_iterations: int = 0
+    warp_iterations: int = 3
     """Backward warp (:func:`anidress_core.field.deform.backward_warp`): 0 blends the joints'
     proposals (HumanNeRF, the paper); n > 0 solves forward skinning by n fixed-point iterations."""
 
@@ -65,6 +66,44 @@ class AnimatableField(nn.Module):
         return self.weights.num_channels - 1
 
 
+class CanonicalOccupancy(NamedTuple):
+    """Cells of the canonical box where the trained field has density (rendering skips the others)."""
+
+    occupied: Tensor
+    """(R, R, R) bool over the box, indexed (x, y, z)."""
+    box: Tensor
+    """(2, 3) the canonical box."""
+
+    def lookup(self, x_c: Tensor) -> Tensor:
+        """(N,) bool: canonical points (N, 3) in an occupied cell (outside the box: False)."""
+        R = self.occupied.shape[0]
+        u = ((x_c - self.box[0]) / (self.box[1] - self.box[0]) * R).floor().long()
+        inside = ((u >= 0) & (u < R)).all(-1)
+        u = u.clamp(0, R - 1)
+        return inside & self.occupied[u[:, 0], u[:, 1], u[:, 2]]
+
+
+@torch.no_grad()
+def canonical_occupancy(model: AnimatableField, res: int = 128, min_density: float = 0.05,
+                        chunk: int = 65536) -> CanonicalOccupancy:
+    """The canonical cells (res^3 over the box) whose density exceeds ``min_density`` (1/m) at any of their
+    corners, grown by one cell on every side. A sample in another cell would add less than
+    ``min_density * step`` to its ray's optical depth; rendering skips its hash encoding and MLPs."""
+    box = model.canonical.box
+    t = torch.linspace(0, 1, res + 1, device=box.device)
+    occ = torch.zeros((res + 1) ** 3, dtype=torch.bool, device=box.device)
+    gx, gy, gz = torch.meshgrid(t, t, t, indexing="ij")
+    pts = box[0] + torch.stack([gx, gy, gz], -1).reshape(-1, 3) * (box[1] - box[0])
+    for i in range(0, pts.shape[0], chunk):
+        h = model.canonical.density_net(model.canonical.encoding(model.canonical.normalise(pts[i:i + chunk])))
+        occ[i:i + chunk] = trunc_exp(h[:, 0] + model.canonical.density_bias) > min_density
+    # a cell is occupied when one of its 8 corners is; then one cell of margin (max filter 3)
+    c = occ.view(1, 1, res + 1, res + 1, res + 1).float()
+    cell = torch.nn.functional.max_pool3d(c, 2, stride=1)  # (res, res, res): any of the corners
+    cell = torch.nn.functional.max_pool3d(cell, 3, stride=1, padding=1)
+    return CanonicalOccupancy(cell[0, 0] > 0, box)
+
+
 class RayBatchResult(NamedTuple):
     rgb: Tensor
     """(R, 3)"""
@@ -81,7 +120,8 @@ class RayBatchResult(NamedTuple):
 def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Tensor, transforms: Tensor,
                 grid: OccupancyGrid, step: float, background: Tensor, generator: torch.Generator | None = None,
                 jitter: bool = False, volume: Tensor | None = None, use_occupancy: bool = True,
-                cull_joints: bool = True, early_stop: float = 0.0, round_samples: int = 4) -> RayBatchResult:
+                cull_joints: bool = True, early_stop: float = 0.0, round_samples: int = 4,
+                skip: CanonicalOccupancy | None = None) -> RayBatchResult:
     """Render rays (R, 3) of frames (R,) (indices into transforms (T, K, 4, 4) and grid).
 
     ``transforms``: the unified pose S of every frame, canonical -> world per joint.
@@ -90,7 +130,8 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
     (rendering many chunks of one image decodes it once). ``early_stop`` > 0 (inference
     only): samples are evaluated front to back in rounds of ``round_samples`` per ray and
     a ray stops once its transmittance falls below ``early_stop`` (what it leaves out
-    weighs less than that).
+    weighs less than that). ``skip`` (inference only): samples whose canonical point falls in an empty
+    cell of this occupancy get no density and skip the canonical field.
     """
     R = origins.shape[0]
     # 1. samples where the posed subject can be, with their candidate joints
@@ -100,14 +141,21 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
         volume = model.weights()
     inv_transforms = torch.linalg.inv(transforms)
     iterations = model.cfg.warp_iterations
+    volume_last = channel_last(volume) if iterations > 0 else None  # once for every round below
 
     def shade(sel: Tensor | None) -> tuple[Tensor, Tensor]:
         x, r, c = (s.x, s.ray, s.cand) if sel is None else (s.x[sel], s.ray[sel], s.cand[sel])
         # 2. observation -> canonical through the unified pose
         warp = backward_warp(x, frame[r], inv_transforms, c, volume, model.weights.box, transforms=transforms,
-                             iterations=iterations)
+                             iterations=iterations, volume_last=volume_last)
         # 3. canonical colour and density; density gated by the foreground likelihood (HumanNeRF)
-        rgb, sigma = model.canonical(warp.x_c)
+        if skip is None:
+            rgb, sigma = model.canonical(warp.x_c)
+            return rgb, sigma * warp.fg
+        keep = skip.lookup(warp.x_c).nonzero()[:, 0]
+        rgb = warp.x_c.new_zeros(x.shape[0], 3)
+        sigma = warp.x_c.new_zeros(x.shape[0])
+        rgb[keep], sigma[keep] = model.canonical(warp.x_c[keep])
         return rgb, sigma * warp.fg
 
     if early_stop <= 0 or torch.is_grad_enabled() or s.ray.numel() == 0:
@@ -127,18 +175,21 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
     dep = origins.new_zeros(R)
     alive = torch.ones(R, dtype=torch.bool, device=origins.device)
     evaluated = 0
-    for r0 in range(0, int(rank.max()) + 1, round_samples):
-        sel = ((rank >= r0) & (rank < r0 + round_samples) & alive[s.ray]).nonzero()[:, 0]
-        if sel.numel() == 0:
-            break
+    todo = idx  # samples not evaluated yet, of rays still alive, in order
+    r0, size = 0, round_samples
+    black = torch.zeros(3, dtype=origins.dtype, device=origins.device)
+    while todo.numel():
+        now = rank[todo] < r0 + size
+        sel, todo = todo[now], todo[~now]
         rgb, sigma = shade(sel)
         evaluated += int(sel.numel())
-        part = composite(sigma, rgb, s.t[sel], step, s.ray[sel], R, torch.zeros(3, dtype=rgb.dtype,
-                                                                                 device=rgb.device), offset=tau)
+        part = composite(sigma, rgb, s.t[sel], step, s.ray[sel], R, black, offset=tau)
         col += part.rgb  # (black background inside the rounds; the real one is added once below)
         acc += part.alpha
         dep += part.depth * part.alpha
         tau += part.optical_depth
         alive &= torch.exp(-tau) > early_stop
+        todo = todo[alive[s.ray[todo]]]
+        r0 += size
     rgb = col + (1 - acc)[:, None] * background.to(col.dtype).expand(R, 3)
     return RayBatchResult(rgb, acc, dep / acc.clamp_min(1e-8), evaluated, s.considered)

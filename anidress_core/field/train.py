@@ -21,7 +21,7 @@ from typing import Callable, NamedTuple
 import torch
 from torch import Tensor
 
-from .model import AnimatableField, render_rays
+from .model import AnimatableField, CanonicalOccupancy, render_rays
 from .sampler import OccupancyGrid
 
 __all__ = ["TrainConfig", "TrainData", "TrainResult", "train_field", "render_view", "ViewRender", "psnr"]
@@ -47,6 +47,10 @@ class TrainConfig:
     """Adam learning rate of the motion-weight volume decoder."""
     lr_final_ratio: float = 0.1
     """Learning rates decay exponentially to this fraction at the last step."""
+    weights_every: int = 4
+    """Steps per decode of the motion-weight volume. In between, the last decoded volume is used and
+    its gradients add up; the decoder takes one optimiser step per block with their sum (the decoder
+    sees blocks of ``weights_every`` batches, the canonical field every batch)."""
     lpips_weight: float = 0.2
     """lambda of the LPIPS term (paper: 0.2); used only when LPIPS weights are loaded."""
     patch_size: int = 32
@@ -202,10 +206,19 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
         bar = tqdm(total=cfg.steps, initial=start, desc="train", unit="step")
     t0, c0 = time.perf_counter(), time.process_time()
     model.train()
+    every = max(1, int(cfg.weights_every))
+    decoded = volume = None
     for k in steps:
+        if volume is None:
+            # 1. the weight volume of this block: decoded once, its gradient gathered over the block
+            decoded = model.weights()
+            volume = decoded.detach().requires_grad_()
+            if state is not None and state.get("volume_grad") is not None:  # resumed inside a block
+                volume.grad = state["volume_grad"].to(volume)
+                state = None
         o, d, fr, target, bgr, n_patch = _sample_batch(data, valid, cfg, gen, patches)
         out = render_rays(model, o, d, fr, data.transforms, data.grid, cfg.step_m, bgr, generator=gen, jitter=True,
-                          use_occupancy=cfg.use_occupancy, cull_joints=cfg.cull_joints)
+                          volume=volume, use_occupancy=cfg.use_occupancy, cull_joints=cfg.cull_joints)
         n_rand = o.shape[0] - n_patch
         loss = ((out.rgb[:n_rand] - target[:n_rand]) ** 2).mean()
         if n_patch:
@@ -215,6 +228,12 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
             loss = loss + ((out.rgb[n_rand:] - target[n_rand:]) ** 2).mean() + cfg.lpips_weight * lpips(pr, pt).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        if (k + 1) % every == 0 or k + 1 == cfg.steps:
+            # 2. end of the block: the decoder's gradient from the volume's (the decoder is skipped by
+            #    the optimiser at the other steps: its gradients are None there)
+            if volume.grad is not None:
+                decoded.backward(volume.grad)
+            decoded = volume = None
         opt.step()
         sched.step()
         if (k + 1) % log_every == 0 or k + 1 == cfg.steps:
@@ -231,7 +250,8 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
             checkpoint({"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                         "generator": gen.get_state(), "step": k + 1, "history": history,
                         "wall_s": wall0 + time.perf_counter() - t0, "cpu_s": cpu0 + time.process_time() - c0,
-                        "train_config": asdict(cfg)})
+                        "train_config": asdict(cfg),
+                        "volume_grad": None if volume is None or volume.grad is None else volume.grad.detach().cpu()})
     if bar is not None:
         bar.close()
     model.eval()
@@ -255,12 +275,14 @@ class ViewRender(NamedTuple):
 def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tensor, frame: int,
                 transforms: Tensor, grid: OccupancyGrid, step: float, background: Tensor,
                 chunk: int = 8192, volume: Tensor | None = None, use_occupancy: bool = True,
-                cull_joints: bool = True, early_stop: float = 1e-3, pixels: Tensor | None = None) -> ViewRender:
+                cull_joints: bool = True, early_stop: float = 1e-3, pixels: Tensor | None = None,
+                skip: CanonicalOccupancy | None = None) -> ViewRender:
     """Render one image: origin (3,), dirs (H, W, 3), box (4,) y0, y1, x0, x1 of the rays cast.
 
     ``frame`` indexes transforms (T, K, 4, 4) (the unified pose) and ``grid``. ``early_stop``: rays stop
     once their transmittance is below it (0: every sample). ``pixels`` (H, W) bool:
-    cast rays only there (inside the box); elsewhere the background.
+    cast rays only there (inside the box); elsewhere the background. ``skip``: the canonical cells
+    without density (:func:`anidress_core.field.model.canonical_occupancy`), not shaded.
     """
     H, W, _ = dirs.shape
     dev = dirs.device
@@ -285,7 +307,7 @@ def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tenso
         o = origin.expand_as(dd)
         fr = torch.full((dd.shape[0],), frame, dtype=torch.long, device=dev)
         out = render_rays(model, o, dd, fr, transforms, grid, step, background, volume=volume,
-                          use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early_stop)
+                          use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early_stop, skip=skip)
         cols.append(out.rgb)
         alps.append(out.alpha)
         deps.append(out.depth)

@@ -3,7 +3,7 @@
 Artifacts (under ``results/<scene>/<seq>/<variant>/``, seq = a training sequence,
 variant = ``full`` | ``body_only``):
 
-* ``field.pt`` (:mod:`anidress_core.io.field`, written atomically): ``format`` ("anidress-field/1"),
+* ``field.pt`` (:mod:`anidress_core.io.field`, written atomically): ``format`` ("anidress-field/2"),
   ``variant``, ``scene``, ``sequence``, ``field_config`` (architecture),
   ``state_dict`` (canonical field + motion-weight volume incl. its prior and the
   canonical box), ``num_body_joints`` (24), ``num_bones`` (B; 0 for body_only / tight),
@@ -11,8 +11,9 @@ variant = ``full`` | ``body_only``):
   ``steps``, ``lpips`` ("used" or why not), ``sampling`` (occupied fraction, samples
   per ray kept / considered), ``config_hash``, ``code_version``.
   While training, ``field.pt.ckpt`` holds the last checkpoint, resumed by a rerun with the
-  same settings and data (``resume_key``: config hash without ``checkpoint_every`` + digest
-  of the training tensors; else ignored and overwritten); removed when training ends. A
+  same settings, data and code (``resume_key``: config hash without ``checkpoint_every``, the file
+  format, a digest of the field package's sources and of the training tensors; else ignored and
+  overwritten); removed when training ends. A
   resumed training ends with the same field as an uninterrupted one (tests/workflow/test_killed_runs.py).
 * ``renders/<kind>/`` with kind ``novel_view`` (test cameras, training frames),
   ``novel_pose/<seq>`` (all cameras of a held-out sequence, its own garment poses) or
@@ -39,7 +40,7 @@ import torch
 from .. import __version__
 from ..camera import pixel_rays, project
 from ..field.encoding import HashGridConfig
-from ..field.model import AnimatableField, FieldConfig
+from ..field.model import AnimatableField, FieldConfig, canonical_occupancy
 from ..field.sampler import build_occupancy, mask_boxes, occupancy_pixels, occupied_centres
 from ..field.subject import BodyRest, GarmentRest, canonical_setup, posed_parts, unified_pose
 from ..field.train import TrainConfig, TrainData, render_view, train_field
@@ -70,7 +71,7 @@ def field_config_from_params(p: dict) -> FieldConfig:
                           max_resolution=int(m.get("hash_max_resolution", 256)))
     return FieldConfig(grid=grid, width=int(m.get("width", 64)), volume_res=int(m.get("volume_res", 32)),
                        density_bias=float(m.get("density_bias", 3.0)),
-                       warp_iterations=int(m.get("warp_iterations", 0)))
+                       warp_iterations=int(m.get("warp_iterations", 3)))
 
 
 def train_config_from_params(p: dict) -> TrainConfig:
@@ -230,7 +231,8 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     ckpt_path = training_state_path(out_pt)
     # a checkpoint resumes only the same training: same settings and the same data (images, masks,
     # poses, occupancy, initial model), so a rerun after an upstream change never continues a stale one
-    resume_key = files.config_hash({"config": cfg_hash, "lpips": bool(lpips),
+    resume_key = files.config_hash({"config": cfg_hash, "lpips": bool(lpips), "format": FORMAT,
+                                    "code": field_code_digest(),
                                     "data": _tensor_digest(data, grid, model.state_dict())})
     state = None
     if ckpt_path.is_file():
@@ -239,7 +241,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
             state = st
             log.info("resuming from %s at step %d", ckpt_path, int(st["step"]))
         else:
-            log.info("ignoring %s: made with other settings or data", ckpt_path)
+            log.info("ignoring %s: made with other settings, data or field code", ckpt_path)
     if lpips:
         lp = lpips.to(dev)
         lpips_note = "used"
@@ -276,6 +278,16 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     log.info("trained %s in %.1f s (%.1f CPU s, %d steps): last batch PSNR %.2f dB, %.1f of %.1f samples per ray kept",
              variant, res.wall_s, res.cpu_s, res.steps, last.get("psnr_db", float("nan")), kept, seen)
     return out
+
+
+def field_code_digest() -> str:
+    """sha256 of the field package's sources (anidress_core/field/*.py): a training checkpoint resumes only
+    in the code that wrote it."""
+    h = hashlib.sha256()
+    for p in sorted((Path(__file__).resolve().parents[1] / "field").glob("*.py")):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
 
 
 def _tensor_digest(*objs) -> str:
@@ -440,6 +452,13 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     chunk = int(params.get("render", {}).get("chunk", 8192))
     with torch.no_grad():
         volume = model.weights()
+    rp = params.get("render", {})
+    skip = None
+    if float(rp.get("skip_density", 0.0)) > 0:
+        t0 = time.perf_counter()
+        skip = canonical_occupancy(model, int(rp.get("skip_res", 128)), float(rp["skip_density"]))
+        log.info("canonical occupancy %d^3: %.1f%% of the cells have density above %g/m (%.1f s)", skip.occupied.shape[0],
+                 100 * float(skip.occupied.float().mean()), float(rp["skip_density"]), time.perf_counter() - t0)
     per_image = []
     todo = [(i, f, c) for i, f in enumerate(frames) for c in range(len(names))]
     bar = None
@@ -457,6 +476,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
             t0, c0 = time.perf_counter(), time.process_time()
             r = render_view(model, origins[c], dirs[c], boxes[c], i, S, grid, sp["step_m"], bg, chunk=chunk,
                             volume=volume, use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early,
+                            skip=skip,
                             pixels=None if pix is None else pix[c])
             dt, dc = time.perf_counter() - t0, time.process_time() - c0
             files.write_png(out_dir / "rgb" / name / f"{f:06d}.png", r.rgb.cpu().numpy())

@@ -1,5 +1,7 @@
 """Training: a tiny scene overfits (PSNR rises over 150 steps); resuming from a checkpoint equals an uninterrupted run."""
 import copy
+import dataclasses
+import functools
 
 import pytest
 import torch
@@ -8,6 +10,12 @@ from anidress_core.field.train import TrainConfig, render_view, train_field
 from anidress_core.metrics.image import psnr
 
 from .tiny_scene import new_model, tiny_scene
+
+
+def _new_model(box, prior, seed: int = 0, iterations: int = 0):
+    m = new_model(box, prior, seed=seed)
+    m.cfg = dataclasses.replace(m.cfg, warp_iterations=iterations)
+    return m
 
 
 @pytest.fixture(scope="module")
@@ -51,9 +59,14 @@ def test_tiny_scene_overfits(trained):
     assert 0 < res.history[-1]["samples_per_ray"] < res.history[-1]["considered_per_ray"]
 
 
-def test_resume_from_checkpoint_equals_uninterrupted_run(scene):
+@pytest.mark.parametrize("weights_every,iterations", [(1, 0), (3, 3)])
+def test_resume_from_checkpoint_equals_uninterrupted_run(scene, weights_every, iterations):
+    """Also with the weight volume decoded every 3rd step (the checkpoint at step 16 falls inside a block:
+    the volume's gathered gradient is part of the state) and the fixed-point warp."""
     data, box, prior = scene
-    cfg = TrainConfig(steps=24, rays_per_step=128, images_per_step=2, step_m=0.015, checkpoint_every=8)
+    cfg = TrainConfig(steps=24, rays_per_step=128, images_per_step=2, step_m=0.015, checkpoint_every=8,
+                      weights_every=weights_every)
+    new_model = functools.partial(_new_model, iterations=iterations)
     full = new_model(box, prior)
     train_field(full, data, cfg, progress=False)
 
@@ -77,11 +90,16 @@ def test_resume_from_checkpoint_equals_uninterrupted_run(scene):
     assert a.keys() == b.keys()
     for k in a:
         assert torch.equal(a[k], b[k]), k
+    if weights_every > 1:
+        assert saved["state"]["volume_grad"] is not None
 
 
 def test_early_termination_and_projected_occupancy_change_nothing_visible(scene, trained):
     """Rendering shortcuts: rays stop below transmittance 1e-3, rays only through pixels
-    that see occupied voxels -- the image equals the exhaustive one within 2e-3."""
+    that see occupied voxels, samples in canonical cells without density are not shaded --
+    the image equals the exhaustive one within 2e-3."""
+    from anidress_core.field.model import canonical_occupancy
+
     from anidress_core.camera import ring_cameras
     from anidress_core.camera import project
     from anidress_core.field.sampler import occupancy_pixels, occupied_centres
@@ -95,6 +113,7 @@ def test_early_termination_and_projected_occupancy_change_nothing_visible(scene,
     pix = occupancy_pixels(pr.uv, pr.depth, radius.ceil(), H, W)
     full_box = torch.tensor([0, H, 0, W])
     vol = model.weights()
+    skip = canonical_occupancy(model, 32, 0.05)
     for c in range(4):
         ref = render_view(model, data.ray_origins[c], data.ray_dirs[c], full_box, 1, data.transforms, data.grid,
                           0.01, torch.zeros(3), early_stop=0.0, volume=vol)
@@ -103,3 +122,12 @@ def test_early_termination_and_projected_occupancy_change_nothing_visible(scene,
         assert fast.num_samples < ref.num_samples and fast.rays < ref.rays
         assert (fast.rgb - ref.rgb).abs().max() < 2e-3 and (fast.alpha - ref.alpha).abs().max() < 2e-3
         assert not pix[c].all() and (ref.alpha[~pix[c]] == 0).all()
+        sk = render_view(model, data.ray_origins[c], data.ray_dirs[c], full_box, 1, data.transforms, data.grid,
+                         0.01, torch.zeros(3), early_stop=1e-3, pixels=pix[c], volume=vol, skip=skip)
+        assert (sk.rgb - ref.rgb).abs().max() < 2e-3 and (sk.alpha - ref.alpha).abs().max() < 2e-3
+    # a field that is empty everywhere at the threshold is skipped everywhere: background only
+    none = canonical_occupancy(model, 16, 1e12)
+    assert not none.occupied.any()
+    r = render_view(model, data.ray_origins[0], data.ray_dirs[0], full_box, 1, data.transforms, data.grid, 0.01,
+                    torch.zeros(3), early_stop=1e-3, volume=vol, skip=none)
+    assert (r.alpha == 0).all()
