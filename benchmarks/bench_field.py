@@ -1,28 +1,20 @@
-"""Benchmark of the pose-driven radiance field (anidress_core.field): `full` vs `body_only`.
+"""Benchmark of the pose-driven radiance field: this code against the field of git 6aee398 (the reference of
+issue 45), measured in one run on one machine. Not a test.
 
-Run: .venv/bin/python -m benchmarks.bench_field [--scene skirt] [--steps N] [--workdir benchmarks/runs/field]
-Writes benchmarks/field.md and benchmarks/field.csv. Not a test.
+    .venv/bin/python -m benchmarks.bench_field demo          # the demo scenes, both codes
+    .venv/bin/python -m benchmarks.bench_field profile       # a training step and an image, part by part
+    .venv/bin/python -m benchmarks.bench_field convergence   # the tuning scenes: quality against the training budget
+    .venv/bin/python -m benchmarks.bench_field suite         # the held-out scenes: figures and time to quality
+    .venv/bin/python -m benchmarks.bench_field attribution   # what blurs the garment (tuning scenes)
+    .venv/bin/python -m benchmarks.bench_field write         # benchmarks/field.{md,csv} from the runs on disk
 
-Demo scale (config/config.yaml): the synthetic `skirt` scene, 8 training views at 256x256,
-60 training frames (`walk`), the held-out `dance` sequence for novel poses. Both variants
-are trained with the config's `field` settings, one after the other on one torch thread
-each (what `make demo` runs side by side on the 2 cores), rendered (novel view: the 4 test
-cameras on every `render/frame_stride`-th training frame; novel pose: all 12 cameras on
-every `frame_stride`-th frame of `dance`; a library motion with the rig's simulated garment
-poses) and evaluated with `anidress_core.stages.evaluate` (PSNR in the projected subject
-box, SSIM on its bounding rectangle, IoU of alpha > 0.5 with the true mask; LPIPS / DISTS
-where their weights load).
-
-Inputs: the pipeline's artifacts when they exist -- masks (`results/<scene>/<seq>/masks`),
-rig (`results/<scene>/rig.npz`), fitted garment poses (`results/<scene>/<seq>/garment_poses.npz`)
--- else stand-ins that the report names: the ground-truth masks, a rig decomposed here
-(`anidress_core.stages.rig.run_rig` on the simulated sequences, at most 40 frames each),
-garment poses from `anidress_core.rig.fit_transforms` on the ground-truth garment meshes
-mapped to the template (nearest-surface barycentric correspondence on the rest meshes).
-
-Sampling: the fraction of samples the occupancy grid skips (samples in occupied voxels /
-samples inside the frame's grid box) and the speed-up it gives, measured by turning it off
-(training steps and rendering), and the same for joint culling.
+Every field is trained, rendered and scored through the ``anidress`` command line (:mod:`benchmarks.field_runs`):
+the reference from a git worktree of 6aee398 with that commit's config, this code with config/config.yaml;
+both scored by this checkout's ``evaluate`` (PSNR in the subject's projected box, the paper's convention, and
+pooled inside the ground-truth subject mask and its garment and body labels). Jobs run two at a time, one
+torch thread each (as profiles/default runs the demo's). Inputs are the pipeline's own: masks, rig and
+fitted garment poses under results/ (build them first: ``make demo`` for the demo scenes, the suite's
+targets for the suite). Finished jobs are kept under benchmarks/runs/field/ and reused.
 """
 from __future__ import annotations
 
@@ -30,576 +22,431 @@ import argparse
 import csv
 import datetime
 import json
-import logging
 import os
 import platform
+import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import numpy as np
-import torch
+import yaml
 
-from anidress_core.config import load_config
-from anidress_core.io import files
-from anidress_core.io.field import read_field_checkpoint
-from anidress_core.io.scene import read_scene
-from anidress_core.metrics.image import load_dists, load_lpips
-from anidress_core.stages import setup_logging
-from anidress_core.stages.evaluate import run_evaluate
-from anidress_core.stages.field import run_render, run_train
 from benchmarks.benchutil import cpu_model, git_rev
-
-# the code whose uncommitted changes the git revision of a run's table flags
-CODE_PATHS = ("anidress_core", "benchmarks/bench_field.py")
+from benchmarks.fit_suite import FIELD_SUITE, FIELD_TUNING
+from benchmarks.field_runs import REFERENCE, Job, code_dir, load, rig_floor_poses, run_jobs, scene_sequences
 
 ROOT = Path(__file__).resolve().parents[1]
-
-log = logging.getLogger("anidress.bench")
-
-
-def machine() -> str:
-    cpu = cpu_model()
-    return (f"{cpu}, {os.cpu_count()} logical CPUs, torch threads {torch.get_num_threads()}; Python "
-            f"{platform.python_version()}, torch {torch.__version__}, numpy {np.__version__}")
-
-
-def load() -> str:
-    try:
-        return " / ".join(open("/proc/loadavg").read().split()[:3])
-    except OSError:
-        return "?"
+WORK = ROOT / "benchmarks" / "runs" / "field"
+CODE_PATHS = ("anidress_core", "benchmarks/bench_field.py", "benchmarks/field_runs.py", "benchmarks/field_profile.py",
+              "benchmarks/field_oracle.py", "config/config.yaml")
+#: budgets of the held-out time-to-quality runs, as fractions of this code's field/train/steps
+BUDGETS = (0.25, 0.5, 1.0)
+#: budgets of the convergence curve on the tuning scenes
+CURVE = (0.25, 0.5, 1.0, 2.0)
+#: the reference's figures that define "today's quality" (both kinds: novel view and novel pose)
+QUALITY = ("psnr_subject_db", "psnr_garment_db")
 
 
-# --------------------------------------------------------------------------- inputs (or stand-ins)
+def machine() -> dict:
+    return {"cpu": cpu_model(), "cpus": os.cpu_count(), "python": platform.python_version(),
+            "date": datetime.datetime.now().isoformat(timespec="seconds"), "git": git_rev(CODE_PATHS)}
 
 
-def standin_rig(scene: str, work: Path) -> Path:
-    from anidress_core.stages.rig import run_rig
-
-    out = work / "standin" / "rig.npz"
-    if not out.is_file():
-        sims = sorted((ROOT / "results" / scene / "sim").glob("*.npz"))
-        if not sims:
-            raise SystemExit(f"results/{scene}/sim/*.npz: no simulations to decompose a stand-in rig from")
-        run_rig(ROOT / "results" / scene / "template.npz", [str(s) for s in sims],
-                {"bones": 25, "iters": 30, "nnz": 8, "smooth": 1e-4, "max_frames_per_sequence": 40}, out)
-    return out
+def config() -> dict:
+    return yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
 
 
-def standin_poses(scene: str, seq: str, rig_npz: Path, work: Path) -> Path:
-    """fit_transforms of the rig to the GT garment meshes mapped onto the template's vertices."""
-    import trimesh
-
-    from anidress_core.io.mesh import read_mesh
-    from anidress_core.rig import fit_transforms, reconstruct, rmse
-    from anidress_core.io.rig import read_rig
-    from anidress_core.io.template import read_template
-
-    out = work / "standin" / seq / "garment_poses.npz"
-    if out.is_file():
-        return out
-    data = ROOT / "data" / scene
-    info = read_scene(data)
-    rig = read_rig(rig_npz, dtype=torch.float64)
-    tpl = read_template(ROOT / "results" / scene / "template.npz")
-    v, f, _ = read_mesh(data / info["garment_template"])
-    mesh = trimesh.Trimesh(v, f, process=False)
-    cp, dist, tri = trimesh.proximity.closest_point(mesh, tpl.verts)
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], cp)
-    g, _ = files.load_npz(data / seq / "gt" / "meshes.npz", required=("garment_vertices",))
-    if g["garment_vertices"].shape[1] != v.shape[0]:
-        raise SystemExit(f"{data / seq / 'gt' / 'meshes.npz'}: garment is not the topology of {info['garment_template']}")
-    mapped = torch.from_numpy(np.einsum("tvkc,vk->tvc", g["garment_vertices"][:, f[tri]], bary))
-    M = fit_transforms(rig.model, mapped)
-    err = rmse(reconstruct(rig.model.rest, rig.model.weights, M), mapped)
-    files.save_npz(out, {"transforms": M.float().numpy()},
-                   meta={"standin": "anidress_core.rig.fit_transforms on the ground-truth garment meshes",
-                         "rmse_m": err, "correspondence_max_m": float(dist.max())})
-    log.info("stand-in garment poses %s: rig fit RMSE %.2f mm", seq, 1e3 * err)
-    return out
+def suite_scenes() -> tuple[list[str], list[str]]:
+    """(tuning scenes, held-out scenes) of config/field_suite.yaml (benchmarks/fit_suite.py: FIELD_TUNING)."""
+    names = yaml.safe_load(FIELD_SUITE.read_text())["run_scenes"]
+    return [n for n in names if n in FIELD_TUNING], [n for n in names if n not in FIELD_TUNING]
 
 
-# --------------------------------------------------------------------------- main
+def save(kind: str, rows: list[dict], meta: dict) -> None:
+    d = WORK / kind
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "rows.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene", default="skirt")
-    ap.add_argument("--steps", type=int, default=0, help="override field/train/steps")
-    ap.add_argument("--ablation-steps", type=int, default=40, help="training steps timed with/without occupancy")
-    ap.add_argument("--workdir", default=str(ROOT / "benchmarks" / "runs" / "field"))
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--library", default="twirl", help="library motion rendered with simulated garment poses")
-    ap.add_argument("--render-stride", type=int, default=0, help="override field/render/frame_stride")
-    ap.add_argument("--worker", help=argparse.SUPPRESS)
-    ap.add_argument("--finish", action="store_true",
-                    help="workers already running (a previous invocation): wait for their results")
-    ap.add_argument("--collect", action="store_true",
-                    help="write field.md/.csv from what the runs left on disk (a run cut short)")
-    args = ap.parse_args()
-    setup_logging()
-    if args.collect:
-        collect(args)
-        return
-    if args.worker:
-        worker(args.worker, Path(args.workdir))
-        return
-    torch.set_num_threads(args.threads)
-    work = Path(args.workdir)
-    work.mkdir(parents=True, exist_ok=True)
-    cfg = load_config(ROOT / "config" / "config.yaml")
-    fcfg = cfg["field"]
-    params = {k: json.loads(json.dumps(fcfg[k])) for k in ("model", "priors", "sampler", "train", "render")}
-    if args.steps:
-        params["train"]["steps"] = args.steps
-    params["train"]["checkpoint_every"] = 0
-    scene = args.scene
-    data = ROOT / "data" / scene
-    info = read_scene(data)
-    train_seq = [s["name"] for s in info["sequences"] if s["role"] == "train"][0]
-    pose_seq = [s["name"] for s in info["sequences"] if s["role"] == "novel_pose"][0]
-    loads = {"start": load()}
-    # 1. inputs
-    notes = []
-    masks = ROOT / "results" / scene / train_seq / "masks"
-    if masks.is_dir():
-        notes.append(f"masks: pipeline (`results/{scene}/{train_seq}/masks`, rule masks)")
-    else:
-        masks = data / train_seq / "gt" / "masks"
-        notes.append(f"masks: **stand-in**: ground-truth masks `data/{scene}/{train_seq}/gt/masks` (the pipeline's "
-                     "masks were not built when this ran)")
-    rig = ROOT / "results" / scene / "rig.npz"
-    if rig.is_file():
-        notes.append(f"rig: pipeline (`results/{scene}/rig.npz`)")
-    else:
-        rig = standin_rig(scene, work)
-        notes.append("rig: **stand-in**: `run_rig` on every `results/{}/sim/*.npz` (25 bones, 30 iterations, at most 40 "
-                     "frames per sequence decomposed) -- `results/{}/rig.npz` did not exist".format(scene, scene))
-    poses = {}
-    for seq in (train_seq, pose_seq):
-        p = ROOT / "results" / scene / seq / "garment_poses.npz"
-        if p.is_file():
-            poses[seq] = p
-            notes.append(f"garment poses {seq}: pipeline fit (`results/{scene}/{seq}/garment_poses.npz`)")
-        else:
-            poses[seq] = standin_poses(scene, seq, rig, work)
-            meta = files.load_npz(poses[seq])[1].get("meta", {})
-            notes.append(f"garment poses {seq}: **stand-in**: `fit_transforms` of the rig to the ground-truth garment "
-                         f"meshes (rig fit RMSE {1e3 * meta.get('rmse_m', float('nan')):.1f} mm) -- the fitting stage's "
-                         "output did not exist")
-    tpl = ROOT / "results" / scene / "template.npz"
-    lp = load_lpips(**cfg["metrics"]["lpips"])
-    ds = load_dists(**cfg["metrics"]["dists"])
-    stride = args.render_stride or int(params["render"]["frame_stride"])
-    ctx = {"scene": scene, "train_seq": train_seq, "pose_seq": pose_seq, "masks": str(masks), "rig": str(rig),
-           "poses": {k: str(v) for k, v in poses.items()}, "tpl": str(tpl), "params": params, "stride": stride,
-           "library": args.library, "threads": args.threads}
-    (work / "ctx.json").write_text(json.dumps(ctx))
-    rows, results = [], {}
-    # 2. train, render, evaluate both variants: two worker processes side by side (what the
-    #    demo does on 2 cores: one torch thread each)
-    procs = {}
-    if not args.finish:
-        procs = {v: subprocess.Popen([sys.executable, "-m", "benchmarks.bench_field", "--worker", v,
-                                      "--workdir", str(work)], cwd=ROOT)
-                 for v in ("full", "body_only")}
-
-    def wait_for(v: str) -> None:
-        """Worker v done: its process exits 0 (or, with --finish, its worker.json appears)."""
-        if v in procs:
-            if procs[v].wait() != 0:
-                raise SystemExit(f"worker {v} failed (exit {procs[v].returncode})")
-        else:
-            while not (work / v / "worker.json").is_file():
-                time.sleep(10)
-
-    # 3. what skipping saves: occupancy off / joint culling off. The training steps run while
-    #    the workers train; the renders use the trained `full` field.
-    abl = {}
-    ablation_train = {}
-    variants_abl = (("default", {}), ("occupancy_off", {"use_occupancy": False}),
-                    ("joint_culling_off", {"cull_joints": False}))
-    for name, extra in variants_abl:
-        p = json.loads(json.dumps(params))
-        p["train"].update({"steps": args.ablation_steps, **extra})
-        ablation_train[name] = run_train(data, train_seq, "full", masks, work / "ablation" / name / "field.pt", p,
-                                         template_npz=tpl, rig_npz=rig, garment_poses_npz=poses[train_seq],
-                                         progress=False)
-        loads[f"ablation train {name}"] = load()
-    wait_for("full")
-    for name, extra in variants_abl:
-        tr = ablation_train[name]
-        rr = run_render(work / "full" / "field.pt", data, work / "ablation" / name / "render", params, seq=pose_seq,
-                        cameras=info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
-                        garment_poses_npz=poses[pose_seq], frame_stride=30, progress=False,
-                        use_occupancy=extra.get("use_occupancy", True), cull_joints=extra.get("cull_joints", True))
-        abl[name] = {"train_s_per_step": tr["cpu_s"] / tr["steps"], "train_wall_s_per_step": tr["wall_s"] / tr["steps"],
-                     "train_samples_per_ray": tr["sampling"]["samples_per_ray"],
-                     "render_s_per_image": rr["cpu_seconds_per_image_median"],
-                     "render_wall_s_per_image": rr["seconds_per_image_median"],
-                     "render_samples_per_ray": rr["samples_per_ray"],
-                     "render_considered_per_ray": rr["considered_per_ray"], "images": rr["images"]}
-        loads[f"ablation render {name}"] = load()
-    wait_for("body_only")
-    loads["variants done"] = load()
-    for variant in ("full", "body_only"):
-        w = json.loads((work / variant / "worker.json").read_text())
-        tr, stage_s, nv, npz, lib, summ = w["train"], w["stage_s"], w["nv"], w["np"], w["lib"], w["summary"]
-        loads.update({f"{k} ({variant})": v for k, v in w["loads"].items()})
-        results[variant] = {"train": tr, "stage_s": stage_s, "nv": nv, "np": npz, "lib": lib, "summary": summ}
-        for m in summ["metrics"]:
-            r = nv if m["kind"] == "novel_view" else npz
-            rows.append({"method": variant, "kind": m["kind"], "sequence": m["sequence"], "images": m["images"],
-                         "psnr_db": m["psnr_db"], "ssim": m["ssim"], "iou": m["iou"], "lpips": m["lpips"],
-                         "dists": m["dists"], "train_wall_s": tr["wall_s"], "train_cpu_s": tr["cpu_s"],
-                         "train_stage_wall_s": stage_s, "train_steps": tr["steps"],
-                         "render_s_per_image": r["seconds_per_image_median"],
-                         "render_cpu_s_per_image": r["cpu_seconds_per_image_median"],
-                         "samples_per_ray": r["samples_per_ray"], "considered_per_ray": r["considered_per_ray"],
-                         "skipped_fraction": 1 - r["samples_per_ray"] / max(r["considered_per_ray"], 1e-9),
-                         "reference": "body_only" if variant == "full" else ""})
-    for name, a in abl.items():
-        rows.append({"method": f"full/{name}", "kind": "sampling", "sequence": f"{train_seq} (train) / {pose_seq} (render)",
-                     "images": a["images"], "train_steps": args.ablation_steps, "train_cpu_s_per_step": a["train_s_per_step"],
-                     "train_s_per_step": a["train_wall_s_per_step"],
-                     "render_s_per_image": a["render_wall_s_per_image"], "render_cpu_s_per_image": a["render_s_per_image"],
-                     "samples_per_ray": a["render_samples_per_ray"], "considered_per_ray": a["render_considered_per_ray"],
-                     "speedup_vs_reference": a["train_s_per_step"] / abl["default"]["train_s_per_step"],
-                     "reference": "" if name == "default" else "full/default"})
-    loads["end"] = load()
-    write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose_seq, lp, ds, stride)
+def read(kind: str) -> dict | None:
+    p = WORK / kind / "rows.json"
+    return json.loads(p.read_text()) if p.is_file() else None
 
 
-def worker(variant: str, work: Path) -> None:
-    """Train, render and evaluate one variant (run in its own process by main)."""
-    ctx = json.loads((work / "ctx.json").read_text())
-    torch.set_num_threads(ctx["threads"])
-    cfg = load_config(ROOT / "config" / "config.yaml")
-    scene, train_seq, pose_seq, params = ctx["scene"], ctx["train_seq"], ctx["pose_seq"], ctx["params"]
-    data = ROOT / "data" / scene
-    info = read_scene(data)
-    masks, rig, tpl, poses, stride = ctx["masks"], ctx["rig"], ctx["tpl"], ctx["poses"], ctx["stride"]
-    lp = load_lpips(**cfg["metrics"]["lpips"])
-    ds = load_dists(**cfg["metrics"]["dists"])
-    loads = {}
-    vdir = work / variant
-    t0 = time.perf_counter()
-    tr = run_train(data, train_seq, variant, masks, vdir / "field.pt", params, template_npz=tpl, rig_npz=rig,
-                   garment_poses_npz=poses[train_seq], lpips=lp if params["train"]["lpips_weight"] > 0 else None,
-                   progress=False)
-    stage_s = time.perf_counter() - t0
-    loads["train"] = load()
-    nv = run_render(vdir / "field.pt", data, vdir / "novel_view", params, seq=train_seq,
-                    cameras=info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
-                    garment_poses_npz=poses[train_seq], frame_stride=stride, progress=False)
-    npz = run_render(vdir / "field.pt", data, vdir / "novel_pose", params, seq=pose_seq,
-                     cameras=info["cameras"]["train"] + info["cameras"]["test"], template_npz=tpl, rig_npz=rig,
-                     garment_poses_npz=poses[pose_seq], frame_stride=stride, progress=False)
-    lib = run_render(vdir / "field.pt", data, vdir / f"library_lib-{ctx['library']}", params,
-                     cameras=info["cameras"]["test"][:2], template_npz=tpl, rig_npz=rig,
-                     library_motion_npz=ROOT / "results" / scene / "motions" / f"lib-{ctx['library']}.npz",
-                     library_name=f"lib-{ctx['library']}", frame_stride=25, progress=False)
-    loads["render"] = load()
-    summ = run_evaluate(data, [("novel_view", train_seq, vdir / "novel_view"), ("novel_pose", pose_seq,
-                                                                                 vdir / "novel_pose")],
-                        vdir / "metrics.csv", vdir / "metrics_summary.json", cfg["metrics"], lpips=lp, dists=ds,
-                        progress=False)
-    strip = lambda r: {k: v for k, v in r.items() if k != "per_image"}  # noqa: E731
-    files.write_json(vdir / "worker.json", {"train": tr, "stage_s": stage_s, "nv": strip(nv), "np": strip(npz),
-                                            "lib": strip(lib), "summary": summ, "loads": loads})
+# --------------------------------------------------------------------------- runs
 
 
-def _f(x, nd=2):
-    if x is None or (isinstance(x, float) and (np.isnan(x) or np.isinf(x))):
+def run_demo(args) -> None:
+    """skirt (full, body_only) and tight (full) with both codes, their default settings."""
+    meta = {**machine(), "load_start": load(), "command": "demo"}
+    jobs = []
+    for code in (REFERENCE, "."):
+        label = REFERENCE if code != "." else "this code"
+        for scene, variant in (("skirt", "full"), ("skirt", "body_only"), ("tight", "full")):
+            jobs.append(Job(label, scene, variant, WORK / "demo" / f"{code.strip('.') or 'new'}_{scene}_{variant}",
+                            code=code))
+    rows = run_jobs(jobs, args.workers)
+    meta["load_end"] = load()
+    save("demo", rows, meta)
+
+
+def run_profile(args) -> None:
+    """benchmarks/field_profile.py in both codes, on 1 and 2 threads (one process at a time)."""
+    meta = {**machine(), "load_start": load(), "command": "profile"}
+    rows = []
+    for code in (REFERENCE, "."):
+        for threads in (1, 2):
+            out = WORK / "profile" / f"{code.strip('.') or 'new'}_{threads}.json"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            env = dict(os.environ)
+            cd = code_dir(code)
+            if cd is not None:
+                env["PYTHONPATH"] = str(cd)
+            # run as a script, not with -m: the working directory would come before PYTHONPATH
+            subprocess.run([sys.executable, str(ROOT / "benchmarks" / "field_profile.py"), "--threads", str(threads),
+                            "--out", str(out)], cwd=ROOT, env=env, check=True)
+            r = json.loads(out.read_text())
+            r["method"] = REFERENCE if code != "." else "this code"
+            rows.append(r)
+    meta["load_end"] = load()
+    save("profile", rows, meta)
+
+
+def _budget_overlay(steps: int) -> dict:
+    return {"field": {"train": {"steps": steps}}}
+
+
+def _budget_jobs(kind: str, scenes: list[str], budgets: tuple[float, ...]) -> list[Job]:
+    """Both variants of every scene: the reference at its default, this code at ``budgets`` x its steps."""
+    steps = int(config()["field"]["train"]["steps"])
+    jobs = []
+    for scene in scenes:
+        for variant in ("full", "body_only"):
+            jobs.append(Job(REFERENCE, scene, variant, WORK / kind / scene / f"ref_{variant}", code=REFERENCE))
+            for b in budgets:
+                n = max(1, round(b * steps))
+                jobs.append(Job("this code", scene, variant, WORK / kind / scene / f"new_{variant}_{n}",
+                                overlay=_budget_overlay(n)))
+    return jobs
+
+
+def run_suite(args) -> None:
+    """The held-out scenes: the reference at its default, this code at BUDGETS of its steps."""
+    tuning, held = suite_scenes()
+    steps = int(config()["field"]["train"]["steps"])
+    meta = {**machine(), "load_start": load(), "command": "suite", "tuning": tuning, "held_out": held,
+            "steps": steps}
+    rows = run_jobs(_budget_jobs("suite", held, BUDGETS), args.workers)
+    meta["load_end"] = load()
+    save("suite", rows, meta)
+
+
+def run_convergence(args) -> None:
+    """The tuning scenes: the reference at its default, this code at CURVE x its steps."""
+    tuning, held = suite_scenes()
+    steps = int(config()["field"]["train"]["steps"])
+    meta = {**machine(), "load_start": load(), "command": "convergence", "tuning": tuning, "held_out": held,
+            "steps": steps}
+    rows = run_jobs(_budget_jobs("convergence", tuning, CURVE), args.workers)
+    meta["load_end"] = load()
+    save("convergence", rows, meta)
+
+
+def attribution_jobs(scene: str) -> list[Job]:
+    """The rows of the attribution table on one tuning scene (this code, its default budget)."""
+    d = WORK / "attribution" / scene
+    train, pose = scene_sequences(scene)
+    res = ROOT / "results" / scene
+    floor = {s: str(rig_floor_poses(scene, s, res / "rig.npz", d / f"rig_floor_{s}.npz")) for s in (train, pose)}
+    jobs = [Job("pipeline fits", scene, "full", d / "fits"),
+            Job("body_only", scene, "body_only", d / "body_only"),
+            Job("rig floor", scene, "full", d / "floor", poses=floor),
+            Job("dense ground-truth deformation", scene, "full", d / "dense_gt", oracle="dense_gt"),
+            Job("warp: HumanNeRF blend (the paper's)", scene, "full", d / "blend",
+                overlay={"field": {"model": {"warp_iterations": 0}}}),
+            Job("capacity: hash 2^19 x 8 levels to 512, MLP 128", scene, "full", d / "capacity",
+                overlay={"field": {"model": {"hash_log2_size": 19, "hash_max_resolution": 512, "width": 128}}}),
+            Job("training: 4x the steps", scene, "full", d / "steps4x",
+                overlay={"field": {"train": {"steps": 4 * int(config()["field"]["train"]["steps"])}}})]
+    for bones in (40, 60):
+        rig = d / f"rig_{bones}.npz"
+        if not rig.is_file():
+            sims = sorted(str(p) for p in (res / "sim").glob("*.npz"))
+            subprocess.run([str(Path(sys.executable).parent / "anidress"), "rig", str(res / "template.npz"), *sims,
+                            "--bones", str(bones), "-o", str(rig)], cwd=ROOT, check=True, capture_output=True)
+        fl = {s: str(rig_floor_poses(scene, s, rig, d / f"rig{bones}_floor_{s}.npz")) for s in (train, pose)}
+        jobs.append(Job(f"rig of {bones} bones, its rig floor", scene, "full", d / f"floor_{bones}", rig=str(rig),
+                        poses=fl))
+    return jobs
+
+
+def run_attribution(args) -> None:
+    tuning, _ = suite_scenes()
+    meta = {**machine(), "load_start": load(), "command": "attribution", "scenes": tuning}
+    jobs = [j for s in tuning for j in attribution_jobs(s)]
+    rows = run_jobs(jobs, args.workers)
+    meta["load_end"] = load()
+    save("attribution", rows, meta)
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def _f(x, nd: int = 2) -> str:
+    if x is None or (isinstance(x, float) and (x != x or abs(x) == float("inf"))):
         return "n/a"
     return f"{x:.{nd}f}"
 
 
-def write(rows, results, abl, notes, loads, params, args, scene, train_seq, pose_seq, lp, ds, stride) -> None:
-    cols = ["method", "kind", "sequence", "images", "psnr_db", "ssim", "iou", "lpips", "dists", "train_wall_s",
-            "train_cpu_s", "train_stage_wall_s", "train_steps", "train_s_per_step", "train_cpu_s_per_step",
-            "render_s_per_image", "render_cpu_s_per_image", "samples_per_ray", "considered_per_ray",
-            "skipped_fraction", "speedup_vs_reference", "reference"]
-    with files.atomic_path(ROOT / "benchmarks" / "field.csv") as tmp:
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-    m = {(r["method"], r["kind"]): r for r in rows}
-    fnp, bnp = m[("full", "novel_pose")], m[("body_only", "novel_pose")]
-    fnv, bnv = m[("full", "novel_view")], m[("body_only", "novel_view")]
-    claim_psnr = fnp["psnr_db"] > bnp["psnr_db"]
-    claim_iou = fnp["iou"] > bnp["iou"]
-    t_full, t_bo = results["full"]["train"]["wall_s"], results["body_only"]["train"]["wall_s"]
-    c_full, c_bo = results["full"]["train"]["cpu_s"], results["body_only"]["train"]["cpu_s"]
-    d, o, c = abl["default"], abl["occupancy_off"], abl["joint_culling_off"]
-    skipped_train = 1 - d["train_samples_per_ray"] / max(o["train_samples_per_ray"], 1e-9)
-    skipped_render = 1 - d["render_samples_per_ray"] / max(d["render_considered_per_ray"], 1e-9)
-    tp = params["train"]
-    L = []
-    L.append("# Pose-driven radiance field benchmark (`anidress_core.field`): full vs body_only\n")
-    L.append(f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}")
-    cmd = " ".join(a for a in sys.argv[1:] if a != "--finish")
-    L.append(f"- command: `.venv/bin/python -m benchmarks.bench_field {cmd}` (git {git_rev(CODE_PATHS)})"
-             + (" -- this table was written by a second invocation with `--finish`, which waited for the two "
-                "variant workers the first one had started and ran the sampling ablations meanwhile" if args.finish
-                else ""))
-    L.append(f"- machine: {machine()}")
-    L.append("- load average (1/5/15 min) -- the machine is shared with other jobs, timings scale with it: "
-             + "; ".join(f"{k} {v}" for k, v in loads.items()))
-    L.append(f"- scene: `{scene}` (synthetic, 256x256, 8 training cameras, {len(results['full']['train']['frames'])} "
-             f"training frames of `{train_seq}`, novel pose `{pose_seq}`); config `field` of config/config.yaml: "
-             f"{tp['steps']} steps x {tp['rays_per_step']} rays, hash grid {params['model']['hash_levels']} levels x "
-             f"2^{params['model']['hash_log2_size']}, weight volume {params['model']['volume_res']}^3, occupancy "
-             f"{params['sampler']['occupancy_res']}^3, margin {params['sampler']['dilate_m']} m (body_only garment: "
-             f"{params['sampler']['body_only_garment_dilate_m']} m), step {params['sampler']['step_m']} m")
-    for n in notes:
-        L.append(f"- {n}")
-    L.append("- loss: MSE" + (" + 0.2 LPIPS" if lp else f" only -- LPIPS weights unavailable ({lp.reason})"))
-    L.append("- LPIPS / DISTS columns: " + ("measured" if lp and ds else
-                                               f"n/a -- {'' if lp else lp.reason + '; '}{'' if ds else ds.reason}"))
-    L.append(f"- novel view: test cameras {results['full']['nv']['cameras']} on every {stride}-th "
-             f"training frame; novel pose: all 12 cameras on every {stride}-th frame of "
-             f"`{pose_seq}`. PSNR inside the projected 3D box of the subject (ground-truth meshes, padded 5 cm), "
-             "SSIM on that box's bounding rectangle, IoU of rendered alpha > 0.5 with the true mask; ground truth "
-             "masked onto the black background.")
-    L.append("")
-    L.append("| variant | kind | images | PSNR (dB) | SSIM | IoU | LPIPS | DISTS | train wall (s) | train CPU (s) | "
-             "render wall (s/image) | render CPU (s/image) | samples/ray |")
-    L.append("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for r in rows:
-        if r["kind"] == "sampling":
+def _fig_cols(r: dict) -> list[str]:
+    out = []
+    for k in ("nv", "np"):
+        out += [_f(r.get(f"{k}_psnr_db")), _f(r.get(f"{k}_psnr_subject_db")), _f(r.get(f"{k}_psnr_garment_db")),
+                _f(r.get(f"{k}_psnr_body_db")), _f(r.get(f"{k}_ssim_subject"), 4), _f(r.get(f"{k}_iou"), 4)]
+    return out
+
+
+FIG_HEAD = ("novel view: box / subject / garment / body PSNR (dB), subject SSIM, IoU",
+            "novel pose: box / subject / garment / body PSNR (dB), subject SSIM, IoU")
+
+
+def _figs(r: dict, k: str) -> str:
+    return " / ".join(_f(r.get(f"{k}_{f}")) for f in ("psnr_db", "psnr_subject_db", "psnr_garment_db",
+                                                        "psnr_body_db")) + \
+        f", {_f(r.get(f'{k}_ssim_subject'), 4)}, {_f(r.get(f'{k}_iou'), 4)}"
+
+
+def demo_table(d: dict) -> list[str]:
+    m, rows = d["meta"], d["rows"]
+    L = ["## The demo scenes", "",
+         f"- command: `.venv/bin/python -m benchmarks.bench_field demo` (git {m['git']}, {m['date']}); {m['cpu']}, "
+         f"{m['cpus']} logical CPUs; load {m['load_start']} at the start, {m['load_end']} at the end",
+         "- each field trained, rendered and scored as rules train_field / render_* / evaluate_field do (the pipeline's "
+         "masks, rig and fits of `make demo`), one torch thread, two jobs side by side; each code with its own "
+         "default settings. Novel view: the 4 test cameras on every 12th training frame; novel pose: all 12 "
+         "cameras on every 12th frame of `dance`. Masks of the regions: the ground truth's labels (gt/masks)", "",
+         f"| scene, variant | code | steps x rays | train wall s (CPU s) | render CPU s/image (nv, np) | {FIG_HEAD[0]} | "
+         f"{FIG_HEAD[1]} |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in sorted(rows, key=lambda r: (r["scene"], r["variant"], r["code"] == ".")):
+        L.append(f"| {r['scene']}, {r['variant']} | {r['method']} | {r['steps']} x {r['rays_per_step']} | "
+                 f"{_f(r['train_wall_s'], 0)} ({_f(r['train_cpu_s'], 0)}) | {_f(r['nv_render_cpu_s_per_image'])}, "
+                 f"{_f(r['np_render_cpu_s_per_image'])} | {_figs(r, 'nv')} | {_figs(r, 'np')} |")
+    # against the reference, figure by figure
+    L += ["", "Change against the reference (this code minus 6aee398; PSNR in dB):", "",
+          "| scene, variant | kind | box | subject | garment | body | subject SSIM | IoU | train wall time | "
+          "render time per image |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for scene, variant in sorted({(r["scene"], r["variant"]) for r in rows}):
+        ref = [r for r in rows if (r["scene"], r["variant"]) == (scene, variant) and r["code"] != "."]
+        new = [r for r in rows if (r["scene"], r["variant"]) == (scene, variant) and r["code"] == "."]
+        if not ref or not new:
             continue
-        L.append(f"| {r['method']} | {r['kind']} ({r['sequence']}) | {r['images']} | {_f(r['psnr_db'])} | "
-                 f"{_f(r['ssim'], 4)} | {_f(r['iou'], 4)} | {_f(r['lpips'], 4)} | {_f(r['dists'], 4)} | "
-                 f"{_f(r['train_wall_s'], 0)} | {_f(r['train_cpu_s'], 0)} | {_f(r['render_s_per_image'])} | "
-                 f"{_f(r['render_cpu_s_per_image'])} | {_f(r['samples_per_ray'], 1)} |")
-    L.append("")
-    L.append("## Criteria\n")
-    L.append(f"- `full` beats `body_only` on novel-pose PSNR: {_f(fnp['psnr_db'])} vs {_f(bnp['psnr_db'])} dB "
-             f"({fnp['psnr_db'] - bnp['psnr_db']:+.2f} dB; paper +0.48) -- **{'MET' if claim_psnr else 'NOT MET'}**")
-    L.append(f"- `full` beats `body_only` on novel-pose IoU: {_f(fnp['iou'], 4)} vs {_f(bnp['iou'], 4)} "
-             f"({100 * (fnp['iou'] - bnp['iou']):+.2f} IoU points; paper +1.3) -- **{'MET' if claim_iou else 'NOT MET'}**")
-    L.append(f"- novel view (for reference): full {_f(fnv['psnr_db'])} dB / IoU {_f(fnv['iou'], 4)}, body_only "
-             f"{_f(bnv['psnr_db'])} dB / IoU {_f(bnv['iou'], 4)}")
-    ok_t = max(t_full, t_bo) <= 600
-    ok_c = max(c_full, c_bo) <= 600
-    L.append(f"- training within 10 minutes on this CPU (the two variants side by side, one thread each): wall "
-             f"full {t_full:.0f} s, body_only {t_bo:.0f} s (whole stage incl. loading and occupancy: "
-             f"{results['full']['stage_s']:.0f} s / {results['body_only']['stage_s']:.0f} s) -- "
-             f"**{'MET' if ok_t else 'NOT MET'}** on the wall clock at the load above; CPU time of the training "
-             f"loop full {c_full:.0f} s, body_only {c_bo:.0f} s -- {'within' if ok_c else 'over'} 10 minutes, i.e. "
-             f"{'met' if ok_c else 'not met'} on an otherwise idle 2-core machine")
-    L.append("")
-    L.append("## Sampling: what the occupancy grid and joint culling save\n")
-    L.append(f"Measured on `full`: {args.ablation_steps} training steps each, and rendering "
-             f"{d['images']} images of `{pose_seq}` (test cameras) with the trained field.\n")
-    L.append("CPU seconds (the process's own time: comparable under the shared load; wall times in field.csv).\n")
-    L.append("| configuration | train CPU s/step | samples/ray (train) | render CPU s/image | samples/ray (render) | "
-             "train speed-up of the default | render speed-up of the default |")
-    L.append("| --- | --- | --- | --- | --- | --- | --- |")
-    for name, a in abl.items():
-        st = "" if name == "default" else "%.2fx" % (a["train_s_per_step"] / d["train_s_per_step"])
-        sr = "" if name == "default" else "%.2fx" % (a["render_s_per_image"] / d["render_s_per_image"])
-        L.append(f"| {name} | {a['train_s_per_step']:.3f} | {a['train_samples_per_ray']:.1f} | "
-                 f"{a['render_s_per_image']:.2f} | {a['render_samples_per_ray']:.1f} | {st} | {sr} |")
-    L.append("")
-    L.append(f"- fraction of samples skipped by the occupancy grid: {100 * skipped_train:.1f}% while training "
-             f"({d['train_samples_per_ray']:.1f} of {o['train_samples_per_ray']:.1f} samples per ray inside the "
-             f"frame's grid box are kept), {100 * skipped_render:.1f}% while rendering; speed-up "
-             f"{o['train_s_per_step'] / d['train_s_per_step']:.2f}x per training step, "
-             f"{o['render_s_per_image'] / d['render_s_per_image']:.2f}x per rendered image.")
-    L.append(f"- joint culling (at most {params['sampler']['max_joints']} of the "
-             f"{24 + int(results['full']['train']['num_bones'])} joints per sample): "
-             f"{c['train_s_per_step'] / d['train_s_per_step']:.2f}x per training step, "
-             f"{c['render_s_per_image'] / d['render_s_per_image']:.2f}x per rendered image.")
-    L.append(f"- rays: only inside the dilated mask boxes, "
-             f"{100 * results['full']['train']['sampling']['ray_box_fraction']:.1f}% of the training pixels.")
-    L.append(f"- library motion `lib-{args.library}` rendered with the rig's simulated garment poses (paper §4.5): "
-             f"{results['full']['lib']['images']} images, {_f(results['full']['lib']['seconds_per_image_median'])} "
-             f"s/image (full); no ground truth, not scored.")
-    with files.atomic_path(ROOT / "benchmarks" / "field.md") as tmp:
-        tmp.write_text("\n".join(L) + "\n")
-    print("\n".join(L))
+        a, b = ref[0], new[0]
+        for k, name in (("nv", "novel view"), ("np", "novel pose")):
+            d_ = [b[f"{k}_{f}"] - a[f"{k}_{f}"] for f in ("psnr_db", "psnr_subject_db", "psnr_garment_db",
+                                                          "psnr_body_db", "ssim_subject", "iou")]
+            L.append(f"| {scene}, {variant} | {name} | {d_[0]:+.2f} | {d_[1]:+.2f} | {d_[2]:+.2f} | {d_[3]:+.2f} | "
+                     f"{d_[4]:+.4f} | {d_[5]:+.4f} | {b['train_wall_s'] / a['train_wall_s']:.2f}x | "
+                     f"{b[f'{k}_render_cpu_s_per_image'] / a[f'{k}_render_cpu_s_per_image']:.2f}x |")
+    return L
 
 
+def profile_table(d: dict) -> list[str]:
+    m, rows = d["meta"], d["rows"]
+    L = ["## Where the time goes", "",
+         f"- command: `.venv/bin/python -m benchmarks.bench_field profile` (git {m['git']}, {m['date']}); {m['cpu']}; "
+         f"load {m['load_start']} at the start, {m['load_end']} at the end",
+         "- benchmarks/field_profile.py on the demo skirt's `full` field (the pipeline's inputs), each code with its "
+         "defaults: CPU ms per training step of `train_field`, and each part alone on one batch (forward and "
+         "backward; the weight volume's decode per step); what the step spends beyond the parts is Python and launch "
+         "overhead. Rendering: CPU s per image of the training cameras' mask boxes, early termination on", ""]
+    parts = list(rows[0]["parts_cpu_s"])
+    head = [f"{r['method']}, {r['threads']} thread{'s' if r['threads'] > 1 else ''}" for r in rows]
+    L += ["| CPU ms per step | " + " | ".join(head) + " |", "| --- |" + " --- |" * len(rows)]
+    for p in parts:
+        L.append(f"| {p} | " + " | ".join(_f(1e3 * r["parts_cpu_s"][p], 1) for r in rows) + " |")
+    L.append("| **whole step** | " + " | ".join(f"**{_f(1e3 * r['train_cpu_s_per_step'], 1)}**" for r in rows) + " |")
+    L.append("| samples per step (rays per step) | " + " | ".join(f"{r['samples_per_step']} ({r['rays_per_step']})"
+                                                                    for r in rows) + " |")
+    L.append("| rays per CPU second | " + " | ".join(f"{r['rays_per_step'] / r['train_cpu_s_per_step'] / 1e3:.1f} K"
+                                                     for r in rows) + " |")
+    L.append("| render CPU s per image (samples per ray) | " + " | ".join(
+        f"{_f(r['render_cpu_s_per_image'], 3)} ({_f(r['render_samples_per_ray'], 1)})" for r in rows) + " |")
+    return L
 
-def collect(args) -> None:
-    """``--collect``: write field.md / field.csv from whatever the runs left on disk (a run cut
-    short by the session's time: what was not measured says so)."""
-    work = Path(args.workdir)
-    ctx = json.loads((work / "ctx.json").read_text())
-    params = ctx["params"]
-    rows, L = [], []
-    L.append("# Pose-driven radiance field benchmark (`anidress_core.field`): full vs body_only\n")
-    L.append(f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}")
-    L.append(f"- command: `.venv/bin/python -m benchmarks.bench_field --render-stride {ctx['stride']} --ablation-steps "
-             f"{args.ablation_steps}` (git {git_rev(CODE_PATHS)}); this file was written by `--collect` from the artifacts the run "
-             "had produced when the session's time ran out -- **a partial benchmark**: what is missing is marked "
-             "NOT MEASURED")
-    L.append(f"- machine: {machine()}; load average now {load()} (the machine was shared with other jobs at a load "
-             "of 8-13 on 2 cores during the run: wall times are ~5x what an idle machine gives; CPU times are the "
-             "processes' own)")
-    L.append(f"- scene `{ctx['scene']}`: 256x256, 8 training cameras, 60 training frames of `{ctx['train_seq']}`, "
-             f"novel pose `{ctx['pose_seq']}`; {params['train']['steps']} steps x {params['train']['rays_per_step']} "
-             f"rays; masks `{ctx['masks']}`; rig `{ctx['rig']}`; garment poses {ctx['poses']}")
-    L.append("- garment poses: **stand-in** (`anidress_core.rig.fit_transforms` of the rig to the ground-truth garment "
-             "meshes mapped to the template; the fitting stage's output did not exist); masks: **stand-in** ground "
-             "truth (the pipeline's masks were not built); loss MSE only (LPIPS weights unavailable)")
-    L.append(f"- novel view: 4 test cameras on every {ctx['stride']}-th training frame; novel pose: 12 cameras on "
-             f"every {ctx['stride']}-th frame of `{ctx['pose_seq']}`")
+
+def time_to_quality(rows: list[dict]) -> list[dict]:
+    """Per (scene, variant): the reference's wall time and figures, the smallest budget of this code reaching
+    every QUALITY figure of the reference on both kinds, and its wall time."""
+    out = []
+    for scene, variant in sorted({(r["scene"], r["variant"]) for r in rows}):
+        ref = [r for r in rows if (r["scene"], r["variant"]) == (scene, variant) and r["code"] != "."]
+        new = sorted([r for r in rows if (r["scene"], r["variant"]) == (scene, variant) and r["code"] == "."],
+                     key=lambda r: r["steps"])
+        if not ref or not new:
+            continue
+        a = ref[0]
+        reach = next((r for r in new if all(r[f"{k}_{q}"] >= a[f"{k}_{q}"] for k in ("nv", "np") for q in QUALITY)),
+                     None)
+        out.append({"scene": scene, "variant": variant, "ref": a, "reach": reach, "default": new[-1],
+                    "ratio": None if reach is None else reach["train_wall_s"] / a["train_wall_s"],
+                    "cpu_ratio": None if reach is None else reach["train_cpu_s"] / a["train_cpu_s"]})
+    return out
+
+
+def _med_worst(vals: list[float], worst=min) -> str:
+    return f"median {statistics.median(vals):+.2f}, worst {worst(vals):+.2f}" if vals else "n/a"
+
+
+def _suite_head(m: dict, what: str, budgets: tuple[float, ...]) -> list[str]:
+    return [f"- command: `.venv/bin/python -m benchmarks.bench_field {what}` (git {m['git']}, {m['date']}); {m['cpu']}; "
+            f"load {m['load_start']} at the start, {m['load_end']} at the end",
+            "- scenes: config/field_suite.yaml (`benchmarks/fit_suite.py --seed 26 --prefix fsuite --count 6 "
+            "--novel-pose`), each through the pipeline (`snakemake` with the suite overlay) for its masks, rig and "
+            f"fits. Tuning subset (the field's settings were chosen on it): {', '.join(m['tuning'])}; held out: "
+            f"{', '.join(m['held_out'])}. No per-scene settings. The synthetic scenes give exact body poses (a "
+            "capture's are estimated)",
+            f"- this code at {', '.join(str(max(1, round(b * m['steps']))) for b in budgets)} steps of "
+            f"{int(config()['field']['train']['rays_per_step'])} rays (its default: {m['steps']}); the reference at "
+            "its own default (600 steps x 2048 rays). Quality = subject and garment PSNR in novel view and in novel "
+            "pose; time to quality = the training wall time of the smallest budget reaching all four figures of "
+            "the reference"]
+
+
+def _time_to_quality_lines(rows: list[dict], label: str) -> list[str]:
+    tq = time_to_quality(rows)
+    L = ["| scene | variant | reference: wall s (CPU s) | this code: steps reaching it, wall s (CPU s) | "
+         "wall-time ratio |", "| --- | --- | --- | --- | --- |"]
+    for t in tq:
+        a, r = t["ref"], t["reach"]
+        got = "not reached within the budgets" if r is None else \
+            f"{r['steps']}, {_f(r['train_wall_s'], 1)} ({_f(r['train_cpu_s'], 1)})"
+        L.append(f"| {t['scene']} | {t['variant']} | {_f(a['train_wall_s'], 1)} ({_f(a['train_cpu_s'], 1)}) | {got} | "
+                 f"{_f(t['ratio'], 3)} |")
+    ok = [t["ratio"] for t in tq if t["ratio"] is not None]
+    missing = sum(t["ratio"] is None for t in tq)
+    if ok:
+        L.append(f"- {label}: wall-time ratio median {statistics.median(ok):.3f} (1/{1 / statistics.median(ok):.1f}), "
+                 f"worst {max(ok):.3f} over {len(ok)} fields" + (f"; {missing} not reached" if missing else ""))
+    return L
+
+
+def suite_table(d: dict) -> list[str]:
+    m, rows = d["meta"], d["rows"]
+    held, steps = m["held_out"], m["steps"]
+    L = ["## The held-out scenes of the field suite", ""] + _suite_head(m, "suite", BUDGETS) + [""]
+    dflt = [r for r in rows if r["code"] != "." or r["steps"] == steps]
+    L += [f"| scene | variant | code | train wall s | {FIG_HEAD[0]} | {FIG_HEAD[1]} |",
+          "| --- | --- | --- | --- | --- | --- |"]
+    for r in sorted(dflt, key=lambda r: (r["scene"], r["variant"], r["code"] == ".")):
+        L.append(f"| {r['scene']} | {r['variant']} | {r['method']} | {_f(r['train_wall_s'], 0)} | {_figs(r, 'nv')} | "
+                 f"{_figs(r, 'np')} |")
+    L += ["", "This code at its defaults minus the reference, over the held-out scenes (PSNR dB; IoU):", ""]
+    for variant in ("full", "body_only"):
+        for k, name in (("nv", "novel view"), ("np", "novel pose")):
+            parts = []
+            for f, nd in (("psnr_garment_db", "garment"), ("psnr_subject_db", "subject"), ("psnr_db", "box"),
+                          ("iou", "IoU")):
+                vals = []
+                for sc in held:
+                    a = [r for r in dflt if r["scene"] == sc and r["variant"] == variant and r["code"] != "."]
+                    b = [r for r in dflt if r["scene"] == sc and r["variant"] == variant and r["code"] == "."]
+                    if a and b:
+                        vals.append(b[0][f"{k}_{f}"] - a[0][f"{k}_{f}"])
+                parts.append(f"{nd} {_med_worst(vals)}")
+            L.append(f"- `{variant}`, {name}: " + "; ".join(parts))
     L.append("")
-    L.append("| variant | kind | images | PSNR (dB) | SSIM | IoU | train wall (s) | train CPU (s) | render wall (s/image) "
-             "| render CPU (s/image) | samples/ray kept | samples/ray in grid box |")
-    L.append("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    res = {}
-    for v in ("full", "body_only"):
-        wj = work / v / "worker.json"
-        if wj.is_file():
-            w = json.loads(wj.read_text())
-            res[v] = w
-            for m in w["summary"]["metrics"]:
-                r = w["nv"] if m["kind"] == "novel_view" else w["np"]
-                row = {"method": v, "kind": m["kind"], "sequence": m["sequence"], "images": m["images"],
-                       "psnr_db": m["psnr_db"], "ssim": m["ssim"], "iou": m["iou"], "lpips": m["lpips"],
-                       "dists": m["dists"], "train_wall_s": w["train"]["wall_s"], "train_cpu_s": w["train"]["cpu_s"],
-                       "train_steps": w["train"]["steps"], "render_s_per_image": r["seconds_per_image_median"],
-                       "render_cpu_s_per_image": r["cpu_seconds_per_image_median"],
-                       "samples_per_ray": r["samples_per_ray"], "considered_per_ray": r["considered_per_ray"],
-                       "reference": "body_only" if v == "full" else ""}
-                rows.append(row)
-                L.append(f"| {v} | {m['kind']} ({m['sequence']}) | {m['images']} | {_f(m['psnr_db'])} | "
-                         f"{_f(m['ssim'], 4)} | {_f(m['iou'], 4)} | {_f(row['train_wall_s'], 0)} | "
-                         f"{_f(row['train_cpu_s'], 0)} | {_f(row['render_s_per_image'])} | "
-                         f"{_f(row['render_cpu_s_per_image'])} | {_f(row['samples_per_ray'], 1)} | "
-                         f"{_f(row['considered_per_ray'], 1)} |")
-        else:
-            fp = work / v / "field.pt"
-            state = ("trained, not rendered/evaluated" if fp.is_file() else
-                     "worker stopped before the end of training: at the machine's load it would not have finished "
-                     "within the session; the comparison is run A below")
-            L.append(f"| {v} | -- | -- | NOT MEASURED ({state}) | | | | | | | | |")
-    L.append("")
-    # an earlier complete run of both variants (same functions and field config), when kept
-    run_a = work / "run_a"
-    ra = {}
-    for v in ("full", "body_only"):
-        if (run_a / v / "summary.json").is_file():
-            d = read_field_checkpoint(run_a / v / "field.pt").meta
-            ra[v] = {"summary": json.loads((run_a / v / "summary.json").read_text()), "wall_s": d["wall_s"],
-                     "steps": d["steps"], "sampling": d["sampling"],
-                     "np": json.loads((run_a / v / "render_np.json").read_text()),
-                     "nv": json.loads((run_a / v / "render_nv.json").read_text())}
-    if len(ra) == 2:
-        L.append("### Run A: both variants trained and evaluated in one earlier run (the comparison)\n")
-        L.append("Same scene, frames, cameras, field config (600 steps, every default above) and code path "
-                 "(`run_train` / `run_render` / `run_evaluate`, scripts kept in `benchmarks/runs/field/run_a/`: "
-                 "`skirt_exp.py VARIANT a '{\"train\":{\"steps\":600}}'` then `skirt_eval.py VARIANT a 15`), the two "
-                 "variants side by side on one thread each; ground-truth masks; rig: a stand-in SSDR rig (25 bones, "
-                 "30 iterations, at most 40 frames per simulated sequence; it only matters for `full`), garment "
-                 "poses: the same `fit_transforms` stand-in. Code differences to the run above: the wide-margin "
-                 "occupancy path (body_only's garment) used max pooling (same coverage), and its renders were made (partly) "
-                 "before early ray termination and the projected-occupancy ray mask (same images within 2e-3, tested).\n")
-        L.append("| variant | kind | images | PSNR (dB) | SSIM | IoU | train wall (s) | samples/ray (train) | "
-                 "render wall (s/image) |")
-        L.append("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-        for v, w in ra.items():
-            for m in w["summary"]["metrics"]:
-                r = w["nv"] if m["kind"] == "novel_view" else w["np"]
-                L.append(f"| {v} (run A) | {m['kind']} ({m['sequence']}) | {m['images']} | {_f(m['psnr_db'])} | "
-                         f"{_f(m['ssim'], 4)} | {_f(m['iou'], 4)} | {_f(w['wall_s'], 0)} | "
-                         f"{_f(w['sampling']['samples_per_ray'], 1)} | {_f(r['seconds_per_image_median'])} |")
-                rows.append({"method": f"{v} (run A)", "kind": m["kind"], "sequence": m["sequence"],
-                             "images": m["images"], "psnr_db": m["psnr_db"], "ssim": m["ssim"], "iou": m["iou"],
-                             "lpips": m["lpips"], "dists": m["dists"], "train_wall_s": w["wall_s"],
-                             "train_steps": w["steps"], "render_s_per_image": r["seconds_per_image_median"],
-                             "samples_per_ray": w["sampling"]["samples_per_ray"],
-                             "considered_per_ray": w["sampling"]["considered_per_ray"],
-                             "reference": "body_only (run A)" if v == "full" else ""})
-        L.append("")
-    L.append("## Criteria\n")
-    if len(ra) == 2:
-        g = {(r["method"], r["kind"]): r for r in rows}
-        f_, b_ = g[("full (run A)", "novel_pose")], g[("body_only (run A)", "novel_pose")]
-        L.append(f"- run A, full beats body_only on novel-pose PSNR: {_f(f_['psnr_db'])} vs {_f(b_['psnr_db'])} dB "
-                 f"({f_['psnr_db'] - b_['psnr_db']:+.2f} dB; paper +0.48) -- "
-                 f"**{'MET' if f_['psnr_db'] > b_['psnr_db'] else 'NOT MET'}**")
-        L.append(f"- run A, full beats body_only on novel-pose IoU: {_f(f_['iou'], 4)} vs {_f(b_['iou'], 4)} "
-                 f"({100 * (f_['iou'] - b_['iou']):+.2f} IoU points; paper +1.3) -- "
-                 f"**{'MET' if f_['iou'] > b_['iou'] else 'NOT MET'}**")
-    if "full" in res and "body_only" in res:
-        g = {(r["method"], r["kind"]): r for r in rows}
-        f_, b_ = g[("full", "novel_pose")], g[("body_only", "novel_pose")]
-        L.append(f"- full beats body_only on novel-pose PSNR: {_f(f_['psnr_db'])} vs {_f(b_['psnr_db'])} dB -- "
-                 f"**{'MET' if f_['psnr_db'] > b_['psnr_db'] else 'NOT MET'}**")
-        L.append(f"- full beats body_only on novel-pose IoU: {_f(f_['iou'], 4)} vs {_f(b_['iou'], 4)} -- "
-                 f"**{'MET' if f_['iou'] > b_['iou'] else 'NOT MET'}**")
-    else:
-        L.append("- full vs body_only on novel pose in the run of the first table: **NOT MEASURED** (body_only stopped, "
-                 "see the table); the comparison is run A")
-    for v, w in res.items():
-        L.append(f"- {v}: training loop {w['train']['wall_s']:.0f} s wall / {w['train']['cpu_s']:.0f} s CPU "
-                 f"(10-minute criterion: wall {'MET' if w['train']['wall_s'] <= 600 else 'NOT MET'} at this load, "
-                 f"CPU {'within' if w['train']['cpu_s'] <= 600 else 'over'} 600 s)")
-    L.append("")
-    L.append("## Sampling: what the occupancy grid and joint culling save (variant full)\n")
-    L.append("| configuration | train steps | train CPU s/step | samples/ray kept (train) | samples/ray in grid box (train) "
-             "| render CPU s/image | samples/ray (render) |")
-    L.append("| --- | --- | --- | --- | --- | --- | --- |")
-    abl = {}
-    for name in ("default", "occupancy_off", "joint_culling_off"):
-        fp = work / "ablation" / name / "field.pt"
-        rj = work / "ablation" / name / "render" / "render.json"
-        a = {}
-        if fp.is_file():
-            d = read_field_checkpoint(fp).meta
-            a.update(steps=d["steps"], cpu=d["cpu_s"] / d["steps"], kept=d["sampling"]["samples_per_ray"],
-                     seen=d["sampling"]["considered_per_ray"])
-        if rj.is_file():
-            r = json.loads(rj.read_text())
-            a.update(rcpu=r["cpu_seconds_per_image_median"], rspr=r["samples_per_ray"], rseen=r["considered_per_ray"])
-        abl[name] = a
-        L.append(f"| {name} | {a.get('steps', 'NOT MEASURED')} | {_f(a.get('cpu'), 3)} | {_f(a.get('kept'), 1)} | "
-                 f"{_f(a.get('seen'), 1)} | {_f(a.get('rcpu'))} | {_f(a.get('rspr'), 1)} |")
-        rows.append({"method": f"full/{name}", "kind": "sampling", "train_steps": a.get("steps"),
-                     "train_cpu_s_per_step": a.get("cpu"), "samples_per_ray": a.get("kept"),
-                     "considered_per_ray": a.get("seen"), "render_cpu_s_per_image": a.get("rcpu"),
-                     "reference": "" if name == "default" else "full/default"})
-    d0, o0, c0 = abl["default"], abl["occupancy_off"], abl["joint_culling_off"]
-    L.append("")
-    L.append("- occupancy_off: every sample inside the frame's grid box is evaluated; where no voxel is occupied "
-             "there is no candidate list either, so those samples evaluate all K = 49 joints (the grid carries "
-             "both). joint_culling_off: the occupancy stays, every sample evaluates all 49 joints. Renders: 8 "
-             "images of `dance` (test cameras, frames 0 and 30) with the trained full field; occupancy_off casts a "
-             "ray through every pixel of the projected grid box.")
-    if "kept" in d0 and "seen" in d0:
-        L.append(f"- fraction of samples skipped by the occupancy grid while training: "
-                 f"{100 * (1 - d0['kept'] / d0['seen']):.1f}% ({d0['kept']:.1f} of {d0['seen']:.1f} samples per ray "
-                 "inside the frame's grid box are kept)")
-    if "cpu" in d0 and "cpu" in o0:
-        L.append(f"- speed-up of the occupancy grid, measured by turning it off: {o0['cpu'] / d0['cpu']:.2f}x CPU time "
-                 "per training step")
-    else:
-        L.append("- speed-up of the occupancy grid (turned off): training step NOT MEASURED in this run")
-    if "rcpu" in d0 and "rcpu" in o0:
-        L.append(f"- ... per rendered image: {o0['rcpu'] / d0['rcpu']:.2f}x")
-    if "cpu" in d0 and "cpu" in c0:
-        L.append(f"- joint culling turned off: {c0['cpu'] / d0['cpu']:.2f}x CPU time per training step")
-    cols = ["method", "kind", "sequence", "images", "psnr_db", "ssim", "iou", "lpips", "dists", "train_wall_s",
-            "train_cpu_s", "train_steps", "train_cpu_s_per_step", "render_s_per_image", "render_cpu_s_per_image",
-            "samples_per_ray", "considered_per_ray", "reference"]
-    with files.atomic_path(ROOT / "benchmarks" / "field.csv") as tmp:
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else ("" if v is None else v)) for k, v in r.items()})
-    with files.atomic_path(ROOT / "benchmarks" / "field.md") as tmp:
-        tmp.write_text("\n".join(L) + "\n")
-    print("\n".join(L))
+    for k, name in (("nv", "novel view"), ("np", "novel pose")):
+        margins = []
+        for sc in held:
+            f = [r for r in dflt if r["scene"] == sc and r["variant"] == "full" and r["code"] == "."]
+            b = [r for r in dflt if r["scene"] == sc and r["variant"] == "body_only" and r["code"] == "."]
+            if f and b:
+                margins.append((sc, f[0][f"{k}_psnr_garment_db"] - b[0][f"{k}_psnr_garment_db"]))
+        if margins:
+            L.append(f"- `full` - `body_only`, garment PSNR, {name}, this code: " +
+                     ", ".join(f"{sc} {v:+.2f}" for sc, v in margins) +
+                     f"; `full` ahead on {sum(v > 0 for _, v in margins)} of {len(margins)}")
+    L += ["", "### Time to the reference's quality (held out)", ""] + _time_to_quality_lines(rows, "held out")
+    return L
+
+
+def convergence_table(d: dict) -> list[str]:
+    m, rows = d["meta"], d["rows"]
+    L = ["## Convergence on the tuning scenes (the budget was chosen here)", ""] + _suite_head(m, "convergence", CURVE)
+    L += ["", "| scene | variant | code | steps | train wall s (CPU s) | novel view subject / garment PSNR | "
+          "novel pose subject / garment PSNR |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in sorted(rows, key=lambda r: (r["scene"], r["variant"], r["code"] == ".", r["steps"])):
+        L.append(f"| {r['scene']} | {r['variant']} | {r['method']} | {r['steps']} | {_f(r['train_wall_s'], 1)} "
+                 f"({_f(r['train_cpu_s'], 1)}) | {_f(r['nv_psnr_subject_db'])} / {_f(r['nv_psnr_garment_db'])} | "
+                 f"{_f(r['np_psnr_subject_db'])} / {_f(r['np_psnr_garment_db'])} |")
+    L += ["", "Time to the reference's quality (tuning):", ""] + _time_to_quality_lines(rows, "tuning")
+    return L
+
+
+def attribution_table(d: dict) -> list[str]:
+    m, rows = d["meta"], d["rows"]
+    L = ["## What blurs the garment: attribution on the tuning scenes", "",
+         f"- command: `.venv/bin/python -m benchmarks.bench_field attribution` (git {m['git']}, {m['date']}); "
+         f"{m['cpu']}; load {m['load_start']} at the start, {m['load_end']} at the end",
+         "- one row per cause, the same training budget (this code's default steps and rays) unless the row is the "
+         "budget; `full` unless named. Rig floor: the rig's bone transforms fitted to the ground-truth garment "
+         "meshes. Dense ground-truth deformation (benchmarks/field_oracle.py): each garment sample carried to the "
+         "template through the ground-truth mesh of its frame (nearest face, barycentric coordinates and the offset "
+         "along its normal), which approximately bounds any deformation model of the garment; where folds bring "
+         "two layers within a centimetre a sample may take the wrong one (its share is in the job's log)", "",
+         "| row | scene | novel view garment / subject PSNR | novel pose garment / subject PSNR | novel pose box PSNR, "
+         "IoU | train wall s |", "| --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        L.append(f"| {r['method']} | {r['scene']} | {_f(r['nv_psnr_garment_db'])} / {_f(r['nv_psnr_subject_db'])} | "
+                 f"{_f(r['np_psnr_garment_db'])} / {_f(r['np_psnr_subject_db'])} | {_f(r['np_psnr_db'])}, "
+                 f"{_f(r['np_iou'], 4)} | {_f(r['train_wall_s'], 0)} |")
+    return L
+
+
+def write(args) -> None:
+    L = ["# Pose-driven radiance field benchmark (`anidress_core.field`): this code against git 6aee398", "",
+         "Generated by `benchmarks/bench_field.py` (its module docstring has the commands); each section names the "
+         "run it comes from. PSNR `box`: inside the projected 3D box of the subject (the paper's and Neural Body's "
+         "convention, mostly black background); `subject` / `garment` / `body`: pooled over the pixels inside the "
+         "ground-truth subject mask and its garment and body labels (evaluate_field). LPIPS / DISTS: not available "
+         "on this machine (no pretrained weights), not replaced.", ""]
+    rows_csv = []
+    for kind, table in (("demo", demo_table), ("profile", profile_table), ("suite", suite_table),
+                        ("convergence", convergence_table), ("attribution", attribution_table)):
+        d = read(kind)
+        if d is None:
+            L += [f"## {kind}", "", f"not run (`python -m benchmarks.bench_field {kind}`)", ""]
+            continue
+        L += table(d) + [""]
+        for r in d["rows"]:
+            if kind == "profile":
+                flat = {"section": kind, "method": r["method"], "scene": r["scene"], "variant": r["variant"],
+                        "threads": r["threads"], "train_cpu_s_per_step": r["train_cpu_s_per_step"],
+                        "render_cpu_s_per_image": r["render_cpu_s_per_image"],
+                        **{f"part_{k}_cpu_s": v for k, v in r["parts_cpu_s"].items()}}
+            else:
+                flat = {"section": kind, **{k: v for k, v in r.items() if k != "spec"}}
+            flat["reference"] = "" if r.get("method") == REFERENCE else REFERENCE
+            rows_csv.append(flat)
+    (ROOT / "benchmarks" / "field.md").write_text("\n".join(L).rstrip() + "\n")
+    cols = []
+    for r in rows_csv:
+        cols += [k for k in r if k not in cols]
+    with open(ROOT / "benchmarks" / "field.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols, lineterminator="\n")
+        w.writeheader()
+        for r in rows_csv:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    print(ROOT / "benchmarks" / "field.md")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("what", choices=["demo", "profile", "suite", "convergence", "attribution", "write"])
+    ap.add_argument("--workers", type=int, default=2, help="jobs side by side (one torch thread each)")
+    args = ap.parse_args()
+    {"demo": run_demo, "profile": run_profile, "suite": run_suite, "convergence": run_convergence,
+     "attribution": run_attribution, "write": write}[args.what](args)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from .deform import backward_warp, channel_last
 from .encoding import HashGridConfig
 from .mlp import CanonicalField, trunc_exp
-from .render import composite
+from .render import composite, distortion
 from .sampler import OccupancyGrid, march
 from .weights import MotionWeightVolume
 
@@ -115,13 +115,15 @@ class RayBatchResult(NamedTuple):
     """Samples evaluated (after the occupancy test)."""
     considered: int
     """Samples inside the grid boxes before the occupancy test."""
+    distortion: Tensor | None = None
+    """(R,) Mip-NeRF 360's distortion loss of every ray, when asked for (:func:`anidress_core.field.render.distortion`)."""
 
 
 def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Tensor, transforms: Tensor,
                 grid: OccupancyGrid, step: float, background: Tensor, generator: torch.Generator | None = None,
                 jitter: bool = False, volume: Tensor | None = None, use_occupancy: bool = True,
                 cull_joints: bool = True, early_stop: float = 0.0, round_samples: int = 4,
-                skip: CanonicalOccupancy | None = None) -> RayBatchResult:
+                skip: CanonicalOccupancy | None = None, with_distortion: bool = False) -> RayBatchResult:
     """Render rays (R, 3) of frames (R,) (indices into transforms (T, K, 4, 4) and grid).
 
     ``transforms``: the unified pose S of every frame, canonical -> world per joint.
@@ -131,7 +133,8 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
     only): samples are evaluated front to back in rounds of ``round_samples`` per ray and
     a ray stops once its transmittance falls below ``early_stop`` (what it leaves out
     weighs less than that). ``skip`` (inference only): samples whose canonical point falls in an empty
-    cell of this occupancy get no density and skip the canonical field.
+    cell of this occupancy get no density and skip the canonical field. ``with_distortion`` (training, without
+    early termination): also the rays' distortion loss.
     """
     R = origins.shape[0]
     # 1. samples where the posed subject can be, with their candidate joints
@@ -162,7 +165,8 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
         rgb, sigma = shade(None)
         # 4. compositing
         out = composite(sigma, rgb, s.t, step, s.ray, R, background)
-        return RayBatchResult(out.rgb, out.alpha, out.depth, int(s.ray.shape[0]), s.considered)
+        dist = distortion(out.weights, s.t, step, s.ray, R) if with_distortion else None
+        return RayBatchResult(out.rgb, out.alpha, out.depth, int(s.ray.shape[0]), s.considered, dist)
     # front-to-back rounds with early termination
     S = s.ray.shape[0]
     first = torch.ones(S, dtype=torch.bool, device=s.ray.device)

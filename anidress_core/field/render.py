@@ -16,7 +16,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["RenderResult", "composite", "composite_reference"]
+__all__ = ["RenderResult", "composite", "composite_reference", "distortion", "distortion_reference"]
 
 
 class RenderResult(NamedTuple):
@@ -88,3 +88,40 @@ def composite_reference(sigma: Tensor, rgb: Tensor, t: Tensor, delta: float, ray
         deps.append(torch.as_tensor(d, dtype=sigma.dtype) / max(float(a), 1e-8))
     tot = torch.zeros(num_rays, dtype=sigma.dtype).index_add(0, ray, sigma * delta)
     return RenderResult(torch.stack(cols), torch.stack(accs), torch.stack(deps), ws, tot)
+
+
+def _exclusive_in_ray(v: Tensor, ray: Tensor) -> Tensor:
+    """sum_{j < i, ray_j = ray_i} v_j for packed samples sorted by ray: (S, ...) -> (S, ...)."""
+    S = v.shape[0]
+    c = torch.cumsum(v, 0) - v
+    first = torch.ones(S, dtype=torch.bool, device=v.device)
+    if S > 1:
+        first[1:] = ray[1:] != ray[:-1]
+    start = torch.cummax(torch.where(first, torch.arange(S, device=v.device), torch.zeros_like(ray)), 0)[0]
+    return c - c[start]
+
+
+def distortion(w: Tensor, t: Tensor, delta: float, ray: Tensor, num_rays: int) -> Tensor:
+    """Mip-NeRF 360's distortion loss of every ray (Barron et al. 2022, eq. 15), (R,):
+
+        sum_{i,j} w_i w_j |t_i - t_j| + 1/3 sum_i w_i^2 delta
+
+    for packed samples sorted by ray then depth: weights w (S,), depths t (S,) (metres), intervals of
+    length ``delta``. Small when a ray's weight sits in one short interval (a surface), large when it is
+    spread along the ray (haze, floaters). The double sum is 2 sum_i w_i (t_i W_i - U_i) with W_i, U_i
+    the sums of w_j and w_j t_j over the ray's samples before i. Differentiable w.r.t. w.
+    """
+    W = _exclusive_in_ray(w, ray)
+    U = _exclusive_in_ray(w * t, ray)
+    per = 2 * w * (t * W - U) + w * w * (delta / 3)
+    return torch.zeros(num_rays, dtype=w.dtype, device=w.device).index_add(0, ray, per)
+
+
+def distortion_reference(w: Tensor, t: Tensor, delta: float, ray: Tensor, num_rays: int) -> Tensor:
+    """Slow reference of :func:`distortion`: the double sum, ray by ray."""
+    out = []
+    for r in range(num_rays):
+        i = (ray == r).nonzero()[:, 0]
+        wi, ti = w[i], t[i]
+        out.append((wi[:, None] * wi[None] * (ti[:, None] - ti[None]).abs()).sum() + (wi * wi).sum() * delta / 3)
+    return torch.stack(out) if out else w.new_zeros(0)

@@ -47,6 +47,9 @@ class TrainConfig:
     """Adam learning rate of the motion-weight volume decoder."""
     lr_final_ratio: float = 0.1
     """Learning rates decay exponentially to this fraction at the last step."""
+    distortion_weight: float = 0.0
+    """Weight of Mip-NeRF 360's distortion loss (mean over the rays; depths in metres): pulls each ray's
+    density into one short interval, a surface (0: off)."""
     weights_every: int = 4
     """Steps per decode of the motion-weight volume. In between, the last decoded volume is used and
     its gradients add up; the decoder takes one optimiser step per block with their sum (the decoder
@@ -218,9 +221,12 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
                 state = None
         o, d, fr, target, bgr, n_patch = _sample_batch(data, valid, cfg, gen, patches)
         out = render_rays(model, o, d, fr, data.transforms, data.grid, cfg.step_m, bgr, generator=gen, jitter=True,
-                          volume=volume, use_occupancy=cfg.use_occupancy, cull_joints=cfg.cull_joints)
+                          volume=volume, use_occupancy=cfg.use_occupancy, cull_joints=cfg.cull_joints,
+                          with_distortion=cfg.distortion_weight > 0)
         n_rand = o.shape[0] - n_patch
         loss = ((out.rgb[:n_rand] - target[:n_rand]) ** 2).mean()
+        if cfg.distortion_weight > 0:
+            loss = loss + cfg.distortion_weight * out.distortion.mean()
         if n_patch:
             P = cfg.patch_size
             pr = out.rgb[n_rand:].view(patches, P, P, 3).permute(0, 3, 1, 2)

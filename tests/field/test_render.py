@@ -42,3 +42,18 @@ def test_gradients_float64():
     bg = torch.rand(5, 3, generator=g, dtype=torch.float64)  # per-ray background
     f = lambda s, c: composite(s, c, t, 0.05, ray, 5, bg)[:2]  # noqa: E731
     assert torch.autograd.gradcheck(f, (sigma, rgb))
+
+
+def test_distortion_matches_its_double_sum_and_favours_a_surface():
+    from anidress_core.field.render import distortion, distortion_reference
+
+    g = torch.Generator().manual_seed(0)
+    ray = torch.tensor([0, 0, 0, 1, 1, 3, 3, 3, 3])  # ray 2 has no samples
+    t = torch.rand(9, generator=g, dtype=torch.float64).sort().values + ray.double()
+    w = torch.rand(9, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.allclose(distortion(w, t, 0.02, ray, 4), distortion_reference(w, t, 0.02, ray, 4), atol=1e-12)
+    assert torch.autograd.gradcheck(lambda w_: distortion(w_, t, 0.02, ray, 4), (w,))
+    # the same total weight in one sample costs less than spread over three
+    one = distortion(torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 0.1, 0.2]), 0.02, torch.zeros(3, dtype=torch.long), 1)
+    spread = distortion(torch.full((3,), 1 / 3), torch.tensor([0.0, 0.1, 0.2]), 0.02, torch.zeros(3, dtype=torch.long), 1)
+    assert one < spread

@@ -131,3 +131,13 @@ def test_early_termination_and_projected_occupancy_change_nothing_visible(scene,
     r = render_view(model, data.ray_origins[0], data.ray_dirs[0], full_box, 1, data.transforms, data.grid, 0.01,
                     torch.zeros(3), early_stop=1e-3, volume=vol, skip=none)
     assert (r.alpha == 0).all()
+
+
+def test_distortion_loss_trains_and_stays_finite(scene):
+    data, box, prior = scene
+    model = new_model(box, prior)
+    cfg = TrainConfig(steps=6, rays_per_step=128, images_per_step=2, step_m=0.015, checkpoint_every=0,
+                      distortion_weight=0.01)
+    res = train_field(model, data, cfg, progress=False, log_every=2)
+    assert all(torch.isfinite(torch.tensor(h["loss"])) for h in res.history)
+    assert all(torch.isfinite(p).all() for p in model.parameters())
