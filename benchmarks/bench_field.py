@@ -33,7 +33,8 @@ import yaml
 
 from benchmarks.benchutil import cpu_model, git_rev
 from benchmarks.fit_suite import FIELD_SUITE, FIELD_TUNING
-from benchmarks.field_runs import REFERENCE, Job, code_dir, load, rig_floor_poses, run_jobs, scene_sequences
+from benchmarks.field_runs import (REFERENCE, Job, code_dir, load, noisy_bodies, rig_floor_poses, run_jobs,
+                                   scene_sequences)
 
 ROOT = Path(__file__).resolve().parents[1]
 WORK = ROOT / "benchmarks" / "runs" / "field"
@@ -164,10 +165,17 @@ def attribution_jobs(scene: str) -> list[Job]:
             Job("dense ground-truth deformation", scene, "full", d / "dense_gt", oracle="dense_gt"),
             Job("warp: HumanNeRF blend (the paper's)", scene, "full", d / "blend",
                 overlay={"field": {"model": {"warp_iterations": 0}}}),
+            Job("warp: HumanNeRF blend, rig floor", scene, "full", d / "blend_floor", poses=floor,
+                overlay={"field": {"model": {"warp_iterations": 0}}}),
             Job("capacity: hash 2^19 x 8 levels to 512, MLP 128", scene, "full", d / "capacity",
                 overlay={"field": {"model": {"hash_log2_size": 19, "hash_max_resolution": 512, "width": 128}}}),
             Job("training: 4x the steps", scene, "full", d / "steps4x",
                 overlay={"field": {"train": {"steps": 4 * int(config()["field"]["train"]["steps"])}}})]
+    jobs.append(Job("density: Mip-NeRF 360 distortion loss, weight 0.01", scene, "full", d / "distortion",
+                    overlay={"field": {"train": {"distortion_weight": 0.01}}}))
+    noisy = {s: str(noisy_bodies(scene, s, 2.0, d / f"bodies_2cm_{s}")) for s in (train, pose)}
+    jobs.append(Job("body poses with 2 cm noise (the field only; fits from exact poses)", scene, "full",
+                    d / "body_noise", body=noisy))
     for bones in (40, 60):
         rig = d / f"rig_{bones}.npz"
         if not rig.is_file():
@@ -180,10 +188,46 @@ def attribution_jobs(scene: str) -> list[Job]:
     return jobs
 
 
+#: the texture rows: the first tuning scene (a plain skirt) synthesised again with these fabrics
+TEXTURES = ("plain", "plaid", "floral")
+
+
+def texture_jobs(scene: str) -> list[Job]:
+    """The same garment, motion and cloth in other fabrics (``anidress synth`` of a copy of the scene's section
+    with another texture, sharing its template and rig): rig-floor poses and ground-truth masks for all, so that
+    only the texture differs (plain < plaid < floral in frequency)."""
+    d = WORK / "attribution" / f"{scene}_texture"
+    d.mkdir(parents=True, exist_ok=True)
+    base = yaml.safe_load(FIELD_SUITE.read_text())["scenes"][scene]
+    train, pose = scene_sequences(scene)
+    jobs = []
+    for tex in TEXTURES:
+        name = scene if tex == base["garment"]["texture"] else f"{scene}_{tex}"
+        if not (ROOT / "data" / name / "scene.yaml").is_file():
+            sec = json.loads(json.dumps(base))
+            sec["garment"]["texture"] = tex
+            cfg = config()
+            cfg["scenes"] = {name: sec}
+            cfg["run_scenes"] = [name]
+            (d / f"{name}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+            subprocess.run([str(Path(sys.executable).parent / "anidress"), "synth", "--config", str(d / f"{name}.yaml"),
+                            "--scene", name, "--threads", "1", "--quiet"], cwd=ROOT, check=True)
+        res = ROOT / "results" / name
+        if name != scene:
+            res.mkdir(parents=True, exist_ok=True)
+            for f in ("template.npz", "rig.npz"):
+                if not (res / f).exists():
+                    (res / f).symlink_to(ROOT / "results" / scene / f)
+        floor = {s: str(rig_floor_poses(name, s, res / "rig.npz", d / f"floor_{tex}_{s}.npz")) for s in (train, pose)}
+        jobs.append(Job(f"texture: {tex} (rig floor, ground-truth masks)", name, "full", d / tex, poses=floor,
+                        masks=str(ROOT / "data" / name / train / "gt" / "masks")))
+    return jobs
+
+
 def run_attribution(args) -> None:
     tuning, _ = suite_scenes()
     meta = {**machine(), "load_start": load(), "command": "attribution", "scenes": tuning}
-    jobs = [j for s in tuning for j in attribution_jobs(s)]
+    jobs = [j for s in tuning for j in attribution_jobs(s)] + texture_jobs(tuning[0])
     rows = run_jobs(jobs, args.workers)
     meta["load_end"] = load()
     save("attribution", rows, meta)
@@ -269,6 +313,10 @@ def profile_table(d: dict) -> list[str]:
                                                                     for r in rows) + " |")
     L.append("| rays per CPU second | " + " | ".join(f"{r['rays_per_step'] / r['train_cpu_s_per_step'] / 1e3:.1f} K"
                                                      for r in rows) + " |")
+    for name in rows[0].get("ablations_cpu_s_per_step", {}):
+        L.append(f"| step with {name} (x the whole step) | " + " | ".join(
+            f"{_f(1e3 * r['ablations_cpu_s_per_step'][name], 0)} ({r['ablations_cpu_s_per_step'][name] / r['train_cpu_s_per_step']:.1f}x)"
+            for r in rows) + " |")
     L.append("| render CPU s per image (samples per ray) | " + " | ".join(
         f"{_f(r['render_cpu_s_per_image'], 3)} ({_f(r['render_samples_per_ray'], 1)})" for r in rows) + " |")
     return L

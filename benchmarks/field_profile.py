@@ -10,7 +10,8 @@ train_field builds it (the pipeline's masks, rig and fitted garment poses):
   decode (per step: divided by ``field/train/weights_every`` where the code has it); the hash
   encoding; the MLPs; compositing, the loss and the optimiser step. What the whole step spends beyond
   the parts is Python and launch overhead;
-* one rendered image: ``render_view`` of test cameras on training frames, CPU seconds per image.
+* one rendered image: ``render_view`` of test cameras on training frames, CPU seconds per image;
+* what the skipping saves: a step without the occupancy grid and without joint culling.
 
 Writes one JSON (``--out``). Not a test.
 """
@@ -156,6 +157,11 @@ def profile(scene: str, variant: str, steps: int, reps: int, images: int) -> dic
              "motion-weight volume decode": _cpu(decode, reps) / every, "hash encoding": _cpu(encode, reps),
              "MLPs": _cpu(mlps, reps), "compositing, loss and optimiser": _cpu(comp_opt, reps)}
     parts["Python and launch overhead"] = step_s - sum(parts.values())
+    # what skipping saves (DESIGN.md section 6): the step without the occupancy grid, without joint culling
+    ablations = {}
+    for name, flag in (("occupancy off", {"use_occupancy": False}), ("joint culling off", {"cull_joints": False})):
+        r = TR.train_field(model, data, dataclasses.replace(cfg, steps=6, **flag), progress=False, log_every=1)
+        ablations[name] = (r.history[-1]["cpu_s"] - r.history[1]["cpu_s"]) / (r.history[-1]["step"] - r.history[1]["step"])
     # 3. rendering: test cameras of training frames, as rule render_novel_view (early termination)
     from anidress_core.config import load_config
 
@@ -181,7 +187,8 @@ def profile(scene: str, variant: str, steps: int, reps: int, images: int) -> dic
     return {"scene": scene, "variant": variant, "threads": torch.get_num_threads(), "train_cpu_s_per_step": step_s,
             "rays_per_step": cfg.rays_per_step, "samples_per_step": int(s.ray.shape[0]), "parts_cpu_s": parts,
             "render_cpu_s_per_image": sorted(times)[len(times) // 2], "render_rays": rays / len(times),
-            "render_samples_per_ray": samples / max(1, rays), "warp_iterations": iters, "weights_every": every}
+            "render_samples_per_ray": samples / max(1, rays), "warp_iterations": iters, "weights_every": every,
+            "ablations_cpu_s_per_step": ablations}
 
 
 def main() -> None:

@@ -62,6 +62,8 @@ class Job:
     """Every n-th frame rendered (0: field/render/frame_stride of the config)."""
     oracle: str = ""
     """An oracle deformation of :mod:`benchmarks.field_oracle` (``dense_gt``) for train and render (this code only)."""
+    body: dict | None = None
+    """{sequence: folder of EasyMocap body files} read instead of data/<scene>/<seq>/smpl (``--body``)."""
 
     def spec(self) -> str:
         d = dataclasses.asdict(self)
@@ -143,16 +145,17 @@ def run_job(job: Job) -> dict:
         g_args += ["--rig", rig]
     p_args = {s: (["--poses", poses[s]] if garment and job.variant == "full" else []) for s in (train, pose)}
     stride = ["--frame-stride", str(job.render_stride)] if job.render_stride else []
+    b_args = {q: (["--body", job.body[q]] if job.body and q in job.body else []) for q in (train, pose)}
     log = out / "job.log"
     log.write_text("")
     common = ["--config", str(out / "config.yaml"), "--threads", "1", "--quiet"]
     t0 = time.perf_counter()
     _run([*cli, "train", str(data), train, "--variant", job.variant, "--masks", job.masks or str(res / train / "masks"),
-          *g_args, *p_args[train], *common, "-o", str(out / "field.pt")], env, log)
-    _run([*cli, "render", str(out / "field.pt"), str(data), "--seq", train, *p_args[train], *g_args, "--cameras",
-          "test", *stride, *common, "-o", str(out / "nv")], env, log)
-    _run([*cli, "render", str(out / "field.pt"), str(data), "--seq", pose, *p_args[pose], *g_args, "--cameras",
-          "all", *stride, *common, "-o", str(out / "np")], env, log)
+          *g_args, *p_args[train], *b_args[train], *common, "-o", str(out / "field.pt")], env, log)
+    _run([*cli, "render", str(out / "field.pt"), str(data), "--seq", train, *p_args[train], *b_args[train], *g_args,
+          "--cameras", "test", *stride, *common, "-o", str(out / "nv")], env, log)
+    _run([*cli, "render", str(out / "field.pt"), str(data), "--seq", pose, *p_args[pose], *b_args[pose], *g_args,
+          "--cameras", "all", *stride, *common, "-o", str(out / "np")], env, log)
     wall = time.perf_counter() - t0
     # scored by this checkout's evaluate, whichever code rendered
     _run([ANIDRESS, "evaluate", str(data), f"novel_view:{train}:{out / 'nv'}", f"novel_pose:{pose}:{out / 'np'}",
@@ -236,6 +239,31 @@ def rig_floor_poses(scene: str, seq: str, rig_npz: str | Path, out: Path) -> Pat
                          "faces": np.asarray(tpl.faces, np.int64), "loss": np.zeros(T), "iterations": np.zeros(T, np.int64)},
                    meta={"rig_floor": "anidress_core.rig.fit_transforms on the ground-truth garment meshes",
                          "rmse_m": rmse(verts, mapped)})
+    return out
+
+
+def noisy_bodies(scene: str, seq: str, cm: float, out: Path, seed: int = 0) -> Path:
+    """data/<scene>/<seq>/smpl with EasyMocap-like errors of ``cm`` mean joint error (the noise of
+    ``anidress export-capture``: slow drift and jitter), written as EasyMocap files under ``out`` (when absent)."""
+    import numpy as np
+    import torch
+
+    from anidress_core.io.motion import read_easymocap_smpl_dir
+    from anidress_core.io.scene import load_body, read_scene
+    from anidress_core.stages.export_capture import fold_root_pose, noisy_body, write_easymocap_02
+
+    if out.is_dir() and any(out.iterdir()):
+        return out
+    data = ROOT / "data" / scene
+    info = read_scene(data)
+    body = load_body(data, info)
+    sm = read_easymocap_smpl_dir(data / seq / "smpl")
+    _, J = body.shaped(torch.as_tensor(sm["shapes"][0], dtype=torch.float32))
+    P, Rh, Th = fold_root_pose(sm["poses"], sm["Rh"], sm["Th"], J[0].double().numpy())
+    nz = noisy_body(body, P, Rh, Th, sm["shapes"][0], cm, float(info["fps"]), seed)
+    shapes = np.broadcast_to(np.asarray(sm["shapes"][0]), (P.shape[0], len(sm["shapes"][0])))
+    for t, f in enumerate(sm["frames"]):
+        write_easymocap_02(out / f"{f:06d}.json", nz.poses[t], nz.Rh[t], nz.Th[t], shapes[t])
     return out
 
 

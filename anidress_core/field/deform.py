@@ -45,7 +45,11 @@ from torch import Tensor
 from . import kernels
 from .weights import sample_channels
 
-__all__ = ["WarpResult", "backward_warp", "channel_last", "forward_lbs", "inverse_lbs", "invert_affine3"]
+__all__ = ["WarpResult", "backward_warp", "channel_last", "forward_lbs", "inverse_lbs", "invert_affine3", "CONVERGED_M"]
+
+CONVERGED_M = 1e-4
+"""Rendering (no gradient): a fixed-point step that moves a sample less than this (metres, largest coordinate)
+ends its iterations but the last; training takes every step."""
 
 
 class WarpResult(NamedTuple):
@@ -130,10 +134,11 @@ def channel_last(volume: Tensor, dt=None) -> Tensor:
 
 def _place_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, transforms: Tensor, cand: Tensor,
                 volume: Tensor, box: Tensor, iterations: int, eps: float,
-                volume_last: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                volume_last: Tensor | None = None, final: bool = False) -> tuple[Tensor, Tensor]:
     """The blend and ``iterations`` fixed-point steps, no gradient, in one Warp kernel
     (:func:`anidress_core.field.kernels.warp_place`): x_c (N, 3) and the weights' sum s (N,)
-    where the last step read them."""
+    where the last step read them. ``final``: the last of the steps is the warp's final one (rendering),
+    taken by every sample, converged or not."""
     N = x_o.shape[0]
     dev, dt = x_o.device, x_o.dtype
     out = torch.empty(N, 3, dtype=dt, device=dev)
@@ -149,7 +154,7 @@ def _place_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, trans
                       kernels.array(transforms[..., :3, :].reshape(-1, 12).to(dt)),
                       kernels.array(channel_last(volume, dt) if volume_last is None else volume_last.to(dt)),
                       kernels.array(lo), kernels.array(scale), D, H, W, C,
-                      int(iterations), float(eps), wp.from_torch(out),
+                      int(iterations), float(eps), CONVERGED_M, int(final), wp.from_torch(out),
                       wp.from_torch(s)],
               device=wdev, stream=stream)
     return out, s
@@ -217,10 +222,11 @@ def backward_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, can
             raise ValueError("backward_warp: iterations > 0 needs the forward transforms")
         if backend not in ("warp", "torch"):
             raise ValueError(f"backward_warp: backend must be 'warp' or 'torch', got {backend!r}")
-        if backend == "warp" and not (torch.is_grad_enabled() and (volume.requires_grad or transforms.requires_grad)):
+        needs_grad = torch.is_grad_enabled() and (volume.requires_grad or transforms.requires_grad)
+        if backend == "warp" and not needs_grad:
             # rendering: every step in one kernel
             x_c, s = _place_warp(x_o, frame, inv_transforms, transforms, cand, volume, box, iterations, eps,
-                                 volume_last)
+                                 volume_last, final=True)
             return WarpResult(x_c=x_c, fg=s.clamp(max=1.0))
     # 0. only (sample, candidate) pairs naming a joint are evaluated (packed)
     n_idx, m_idx = (cand < K).nonzero(as_tuple=True)
@@ -235,8 +241,13 @@ def backward_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, can
                                   volume_last)[0]
             else:
                 x_c = backward_warp(x_o, frame, inv_transforms, cand, volume, box, eps).x_c
+                active = torch.ones(N, dtype=torch.bool, device=x_o.device)
                 for _ in range(iterations - 1):
-                    x_c = _skinning_step(x_o, x_c, n_idx, c, fwd, volume, box, eps)[0]
+                    new = _skinning_step(x_o, x_c, n_idx, c, fwd, volume, box, eps)[0]
+                    moved = (new - x_c).abs().amax(-1)
+                    x_c = torch.where(active[:, None], new, x_c)
+                    if not needs_grad:  # rendering: converged (or singular) samples stay until the last step
+                        active &= moved >= CONVERGED_M
         # 2. the last step carries the gradient (volume weights at x_c, transforms)
         if backend == "warp":
             dhw, lo, scale = _volume_frame(volume, box, x_o.dtype)

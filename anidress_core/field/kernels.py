@@ -193,7 +193,8 @@ def _apply(T: wp.array2d(dtype=Any), row: int, px: Any, py: Any, pz: Any, a: int
 def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand: wp.array2d(dtype=wp.int16),
                num_joints: int, inv_t: wp.array2d(dtype=Any), fwd_t: wp.array2d(dtype=Any),
                vol: wp.array(dtype=Any), lo: wp.array(dtype=Any), scale: wp.array(dtype=Any), D: int, H: int,
-               W: int, C: int, iterations: int, eps: float, x_c: wp.array2d(dtype=Any), s_out: wp.array(dtype=Any)):
+               W: int, C: int, iterations: int, eps: float, tol: float, final: int, x_c: wp.array2d(dtype=Any),
+               s_out: wp.array(dtype=Any)):
     """Blend of the candidates' proposals, then ``iterations`` fixed-point steps of forward skinning,
     no gradients: one thread per sample (the torch reference: ``backward_warp`` without its last step).
 
@@ -201,7 +202,9 @@ def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand
     T_k); cand (N, M), K = no joint; vol (D H W C,) flat channel-last weights; voxel coordinate
     u = (p - lo) * scale, clamped to [-2, max(D, H, W) + 1] as the torch path. s_out (N,): the
     sum of the candidates' weights where the last step (or the blend) read them, the foreground
-    likelihood (before its clamp to 1) of the warp without gradients.
+    likelihood (before its clamp to 1) of the warp without gradients. With ``final`` 1 (rendering: the last
+    step is the warp's final one) a sample whose step moved it less than ``tol`` (metres, max norm) has
+    converged and skips the steps that follow but the last; with 0 every sample takes every step.
     """
     n = wp.tid()
     M = cand.shape[1]
@@ -236,7 +239,11 @@ def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand
     cy = cy / d
     cz = cz / d
     # 2. fixed point of x_o = (sum_k w_k(x_c) T_k) x_c: A = sum_k w_k T_k[:3, :] (w normalised)
+    done = int(0)
     for it in range(iterations):
+        # a converged sample (its last step moved it less than tol) skips the steps before the last one
+        if done == 1 and final == 1 and it < iterations - 1:
+            continue
         ux = wp.clamp((cx - lo[0]) * scale[0], lo2, hi)
         uy = wp.clamp((cy - lo[1]) * scale[1], lo2, hi)
         uz = wp.clamp((cz - lo[2]) * scale[2], lo2, hi)
@@ -296,9 +303,18 @@ def warp_place(x_o: wp.array2d(dtype=Any), frame: wp.array(dtype=wp.int32), cand
             c22 = r00 * r11 - r01 * r10
             det = r00 * c00 + r01 * c10 + r02 * c20
             if wp.abs(det) > type(x_o[0, 0])(1.0e-6):
-                cx = (c00 * bx + c01 * by + c02 * bz) / det
-                cy = (c10 * bx + c11 * by + c12 * bz) / det
-                cz = (c20 * bx + c21 * by + c22 * bz) / det
+                nx = (c00 * bx + c01 * by + c02 * bz) / det
+                ny = (c10 * bx + c11 * by + c12 * bz) / det
+                nz = (c20 * bx + c21 * by + c22 * bz) / det
+                if wp.max(wp.max(wp.abs(nx - cx), wp.abs(ny - cy)), wp.abs(nz - cz)) < type(x_o[0, 0])(tol):
+                    done = 1
+                cx = nx
+                cy = ny
+                cz = nz
+            else:
+                done = 1
+        else:
+            done = 1
     x_c[n, 0] = cx
     x_c[n, 1] = cy
     x_c[n, 2] = cz

@@ -8,7 +8,7 @@ from their mean (what smears a texture over the frames). Warps: HumanNeRF's blen
 proposals (the paper's, ``warp_iterations: 0``), then n fixed-point steps of forward skinning from the blend,
 and from the most weighted candidate's proposal instead of the blend.
 
-    PYTHONPATH=. .venv/bin/python studies/field/registration.py   # after make demo (its masks, rig, fits)
+    PYTHONPATH=. .venv/bin/python studies/field/registration.py [SCENE]   # default skirt, after make demo
 """
 from __future__ import annotations
 
@@ -19,24 +19,26 @@ from anidress_core.geometry import lbs
 from benchmarks.field_profile import prepare
 
 
-def main() -> None:
+def main(scene_name: str = "skirt") -> None:
     torch.manual_seed(0)
-    model, data, _, _ = prepare("skirt", "full")
+    model, data, _, _ = prepare(scene_name, "full")
     from benchmarks.field_profile import ROOT
     from anidress_core.io.garment_poses import read_garment_poses
     from anidress_core.io.rig import read_rig
     from anidress_core.io.scene import load_body, load_sequence_motion, read_scene
     from anidress_core.io.template import read_template
 
-    scene = ROOT / "data" / "skirt"
+    scene = ROOT / "data" / scene_name
     info = read_scene(scene)
-    m = load_sequence_motion(scene, "walk", info["fps"], None)
+    seq = [q["name"] for q in info["sequences"] if q["role"] == "train"][0]
+    m = load_sequence_motion(scene, seq, info["fps"], None)
     body = load_body(scene, info)
     posed = body.pose(m.poses, m.Rh, m.Th, m.shapes)
     rest_body, _ = body.shaped(m.shapes[None])
-    tpl = read_template(ROOT / "results" / "skirt" / "template.npz")
-    rig = read_rig(ROOT / "results" / "skirt" / "rig.npz")
-    G = torch.as_tensor(read_garment_poses(ROOT / "results" / "skirt" / "walk" / "garment_poses.npz").transforms).float()
+    res = ROOT / "results" / scene_name
+    tpl = read_template(res / "template.npz")
+    rig = read_rig(res / "rig.npz")
+    G = torch.as_tensor(read_garment_poses(res / seq / "garment_poses.npz").transforms).float()
     gv = torch.as_tensor(tpl.verts).float()
     S = data.transforms
     inv = torch.linalg.inv(S)
@@ -84,4 +86,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main(*sys.argv[1:])
