@@ -142,8 +142,9 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
               cull_joints=cull_joints)
     if volume is None:
         volume = model.weights()
-    inv_transforms = torch.linalg.inv(transforms)
     iterations = model.cfg.warp_iterations
+    # the blend differentiates through the inverses; the fixed point only places with them
+    inv_transforms = torch.linalg.inv(transforms if iterations == 0 else transforms.detach())
     volume_last = channel_last(volume) if iterations > 0 else None  # once for every round below
 
     def shade(sel: Tensor | None) -> tuple[Tensor, Tensor]:

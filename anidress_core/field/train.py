@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from .model import AnimatableField, CanonicalOccupancy, render_rays
+from .refine import PoseRefiner
 from .sampler import OccupancyGrid
 
 __all__ = ["TrainConfig", "TrainData", "TrainResult", "train_field", "render_view", "ViewRender", "psnr"]
@@ -47,6 +48,16 @@ class TrainConfig:
     """Adam learning rate of the motion-weight volume decoder."""
     lr_final_ratio: float = 0.1
     """Learning rates decay exponentially to this fraction at the last step."""
+    refine_garment: bool = False
+    """Refine the garment bones' poses of the training frames through the image loss (variant ``full``;
+    the stage builds the :class:`anidress_core.field.refine.PoseRefiner`)."""
+    refine_lr: float = 1e-3
+    """Adam learning rate of the pose corrections (:class:`anidress_core.field.refine.PoseRefiner`; radians
+    and metres), when the caller refines poses."""
+    refine_weight: float = 1.0
+    """Weight of the corrections' regulariser (their mean square, rotations as the displacement at 10 cm)."""
+    refine_regrid_every: int = 100
+    """Steps between rebuilds of the occupancy grid from the refined poses."""
     distortion_weight: float = 0.0
     """Weight of Mip-NeRF 360's distortion loss (mean over the rays; depths in metres): pulls each ray's
     density into one short interval, a surface (0: off)."""
@@ -177,18 +188,26 @@ def _sample_batch(data: TrainData, valid: Tensor, cfg: TrainConfig, gen: torch.G
 
 def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state: dict | None = None,
                 checkpoint: Callable[[dict], None] | None = None, lpips: Callable[[Tensor, Tensor], Tensor] | None = None,
-                progress: bool = True, log_every: int = 50) -> TrainResult:
+                progress: bool = True, log_every: int = 50, refiner: PoseRefiner | None = None,
+                regrid: Callable[[Tensor], OccupancyGrid] | None = None) -> TrainResult:
     """Optimise ``model`` on ``data``; resume from ``state`` (a checkpoint) when given.
 
     lpips: None (MSE only) or a callable (B, 3, P, P) x 2 in [0, 1] -> (B,) distances.
     checkpoint: called with the training state every ``cfg.checkpoint_every`` steps.
+    refiner: pose corrections optimised with the field (the unified pose is ``refiner(data.transforms)``), with
+    ``regrid`` (refined unified pose (T, K, 4, 4) -> occupancy grid) called every ``cfg.refine_regrid_every``
+    steps so that the sampled region follows them.
     """
     valid = ((data.boxes[..., 1] > data.boxes[..., 0]) & (data.boxes[..., 3] > data.boxes[..., 2])).nonzero()
     if valid.shape[0] == 0:
         raise ValueError("train_field: every ray box is empty (no subject in any mask)")
     # fused: one kernel over each parameter tensor; the hash table has millions of entries and the
     # per-element Adam loop was about a tenth of a CPU training step
-    opt = torch.optim.Adam(_param_groups(model, cfg), betas=(0.9, 0.99), fused=True)
+    groups = _param_groups(model, cfg)
+    if refiner is not None:
+        groups.append({"params": list(refiner.parameters()), "lr": cfg.refine_lr})
+    opt = torch.optim.Adam(groups, betas=(0.9, 0.99), fused=True)
+    grid_pose = None  # the refined pose the current grid was built from
     gamma = cfg.lr_final_ratio ** (1.0 / max(1, cfg.steps))
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: gamma**k)
     gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
@@ -201,6 +220,11 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
         gen.set_state(state["generator"])
         start, history, wall0 = int(state["step"]), list(state["history"]), float(state.get("wall_s", 0.0))
         cpu0 = float(state.get("cpu_s", 0.0))
+        if refiner is not None:
+            refiner.load_state_dict(state["refiner"])
+            grid_pose = state.get("grid_pose")
+            if grid_pose is not None:
+                data = data._replace(grid=regrid(grid_pose.to(data.transforms)))
     patches = cfg.patches_per_step if lpips is not None else 0
     steps = range(start, cfg.steps)
     bar = None
@@ -219,14 +243,22 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
             if state is not None and state.get("volume_grad") is not None:  # resumed inside a block
                 volume.grad = state["volume_grad"].to(volume)
                 state = None
+        pose = data.transforms
+        if refiner is not None:
+            pose = refiner(data.transforms)
+            if regrid is not None and k > 0 and k % max(1, cfg.refine_regrid_every) == 0:
+                grid_pose = pose.detach()
+                data = data._replace(grid=regrid(grid_pose))
         o, d, fr, target, bgr, n_patch = _sample_batch(data, valid, cfg, gen, patches)
-        out = render_rays(model, o, d, fr, data.transforms, data.grid, cfg.step_m, bgr, generator=gen, jitter=True,
+        out = render_rays(model, o, d, fr, pose, data.grid, cfg.step_m, bgr, generator=gen, jitter=True,
                           volume=volume, use_occupancy=cfg.use_occupancy, cull_joints=cfg.cull_joints,
                           with_distortion=cfg.distortion_weight > 0)
         n_rand = o.shape[0] - n_patch
         loss = ((out.rgb[:n_rand] - target[:n_rand]) ** 2).mean()
         if cfg.distortion_weight > 0:
             loss = loss + cfg.distortion_weight * out.distortion.mean()
+        if refiner is not None:
+            loss = loss + cfg.refine_weight * refiner.regulariser()
         if n_patch:
             P = cfg.patch_size
             pr = out.rgb[n_rand:].view(patches, P, P, 3).permute(0, 3, 1, 2)
@@ -257,7 +289,9 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
                         "generator": gen.get_state(), "step": k + 1, "history": history,
                         "wall_s": wall0 + time.perf_counter() - t0, "cpu_s": cpu0 + time.process_time() - c0,
                         "train_config": asdict(cfg),
-                        "volume_grad": None if volume is None or volume.grad is None else volume.grad.detach().cpu()})
+                        "volume_grad": None if volume is None or volume.grad is None else volume.grad.detach().cpu(),
+                        "refiner": None if refiner is None else refiner.state_dict(),
+                        "grid_pose": None if grid_pose is None else grid_pose.cpu()})
     if bar is not None:
         bar.close()
     model.eval()

@@ -43,6 +43,7 @@ from ..field.encoding import HashGridConfig
 from ..field.model import AnimatableField, FieldConfig, canonical_occupancy
 from ..field.sampler import build_occupancy, mask_boxes, occupancy_pixels, occupied_centres
 from ..field.subject import BodyRest, GarmentRest, canonical_setup, posed_parts, unified_pose
+from ..field.refine import PoseRefiner
 from ..field.train import TrainConfig, TrainData, render_view, train_field
 from ..io import files
 from ..io.garment_poses import read_garment_poses
@@ -254,7 +255,20 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
         s["config_hash"], s["resume_key"] = cfg_hash, resume_key
         write_training_state(ckpt_path, s)
 
-    res = _train_maybe_partial(model, data, tcfg, state, save_ckpt, lp, progress, max_steps)
+    refiner = regrid = None
+    if tcfg.refine_garment and G is not None:
+        # the garment bones' centres: their rig weights' mean of the template, posed by the fit
+        W = inp.garment.rig_weights.float()
+        c = (W.T @ inp.garment.verts.float()) / W.sum(0)[:, None].clamp_min(1e-8)  # (B, 3)
+        centres = (G[..., :3, :3] @ c[None, :, :, None])[..., 0] + G[..., :3, 3]  # (T, B, 3)
+        refiner = PoseRefiner(centres, first=24).to(dev)
+
+        def regrid(pose: torch.Tensor):
+            p2 = posed_parts(inp.body, posed.vertices.float(), inp.garment, variant, posed.transforms.float(),
+                             pose[:, 24:].float().cpu(), sp["dilate_m"], sp["body_only_garment_dilate_m"])
+            return build_occupancy(p2, (sp["res"],) * 3, sp["max_joints"], sp["min_weight"]).to(dev)
+
+    res = _train_maybe_partial(model, data, tcfg, state, save_ckpt, lp, progress, max_steps, refiner, regrid)
     if res is None:  # stopped early on purpose: the checkpoint stays
         return {"stopped_at": max_steps}
     kept = float(np.mean([h["samples_per_ray"] for h in res.history])) if res.history else float("nan")
@@ -271,6 +285,15 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
         "config_hash": cfg_hash, "code_version": __version__, "device": str(dev),
         "stage_wall_s": time.perf_counter() - t_start,
     }
+    if refiner is not None:
+        with torch.no_grad():
+            refined = refiner(S.to(dev))[:, 24:].cpu()
+            d = refiner.delta.detach().cpu()
+        out["refined_garment_transforms"] = refined
+        out["refinement"] = {"rotation_deg_mean": float(d[..., :3].norm(dim=-1).mean()) * 57.29578,
+                             "translation_mm_mean": float(d[..., 3:].norm(dim=-1).mean()) * 1e3}
+        log.info("garment poses refined through the images: mean correction %.2f deg, %.1f mm",
+                 out["refinement"]["rotation_deg_mean"], out["refinement"]["translation_mm_mean"])
     write_field_checkpoint(out_pt, FieldCheckpoint(meta=out, state_dict=model.state_dict()))
     if ckpt_path.exists():
         ckpt_path.unlink()
@@ -319,9 +342,10 @@ def _tensor_digest(*objs) -> str:
     return h.hexdigest()
 
 
-def _train_maybe_partial(model, data, cfg, state, save_ckpt, lp, progress, max_steps):
+def _train_maybe_partial(model, data, cfg, state, save_ckpt, lp, progress, max_steps, refiner=None, regrid=None):
+    kw = {"refiner": refiner, "regrid": regrid}
     if max_steps is None or max_steps >= cfg.steps:
-        return train_field(model, data, cfg, state=state, checkpoint=save_ckpt, lpips=lp, progress=progress)
+        return train_field(model, data, cfg, state=state, checkpoint=save_ckpt, lpips=lp, progress=progress, **kw)
 
     class _Stop(Exception):
         pass
@@ -332,7 +356,7 @@ def _train_maybe_partial(model, data, cfg, state, save_ckpt, lp, progress, max_s
             raise _Stop
 
     try:
-        train_field(model, data, cfg, state=state, checkpoint=ckpt_then_stop, lpips=lp, progress=progress)
+        train_field(model, data, cfg, state=state, checkpoint=ckpt_then_stop, lpips=lp, progress=progress, **kw)
     except _Stop:
         return None
     return None
@@ -438,6 +462,13 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
             if garment_poses_npz is None:
                 raise ValueError("rendering variant 'full' needs the garment poses of the sequence")
             G = torch.as_tensor(read_garment_poses(garment_poses_npz, T_all, inp.num_bones).transforms).float()[idx]
+            if seq == meta["sequence"] and "refined_garment_transforms" in meta:
+                # the training frames' poses as the field refined them (the fit's elsewhere)
+                trained = {f: i for i, f in enumerate(meta["frames"])}
+                for i, f in enumerate(frames):
+                    if f in trained:
+                        G[i] = meta["refined_garment_transforms"][trained[f]].float()
+                source += " (training frames refined through the images)"
     S = unified_pose(posed.transforms.float(), G, variant)
     parts = posed_parts(inp.body, posed.vertices.float(), inp.garment, variant, posed.transforms.float(), G,
                         sp["dilate_m"], sp["body_only_garment_dilate_m"])
