@@ -171,6 +171,8 @@ def attribution_jobs(scene: str) -> list[Job]:
                 overlay={"field": {"model": {"hash_log2_size": 19, "hash_max_resolution": 512, "width": 128}}}),
             Job("training: 4x the steps", scene, "full", d / "steps4x",
                 overlay={"field": {"train": {"steps": 4 * int(config()["field"]["train"]["steps"])}}})]
+    jobs.append(Job("garment poses refined through the images (field/train/refine_garment)", scene, "full",
+                    d / "refine", overlay={"field": {"train": {"refine_garment": True}}}))
     jobs.append(Job("density: Mip-NeRF 360 distortion loss, weight 0.01", scene, "full", d / "distortion",
                     overlay={"field": {"train": {"distortion_weight": 0.01}}}))
     noisy = {s: str(noisy_bodies(scene, s, 2.0, d / f"bodies_2cm_{s}")) for s in (train, pose)}
