@@ -244,7 +244,8 @@ def rig_floor_poses(scene: str, seq: str, rig_npz: str | Path, out: Path) -> Pat
 
 def noisy_bodies(scene: str, seq: str, cm: float, out: Path, seed: int = 0) -> Path:
     """data/<scene>/<seq>/smpl with EasyMocap-like errors of ``cm`` mean joint error (the noise of
-    ``anidress export-capture``: slow drift and jitter), written as EasyMocap files under ``out`` (when absent)."""
+    ``anidress export-capture``: slow drift and jitter), written as EasyMocap files under ``out/smpl`` (the layout
+    ``--body`` reads, as rule refine_body writes it; when absent)."""
     import numpy as np
     import torch
 
@@ -252,7 +253,7 @@ def noisy_bodies(scene: str, seq: str, cm: float, out: Path, seed: int = 0) -> P
     from anidress_core.io.scene import load_body, read_scene
     from anidress_core.stages.export_capture import fold_root_pose, noisy_body, write_easymocap_02
 
-    if out.is_dir() and any(out.iterdir()):
+    if (out / "smpl").is_dir() and any((out / "smpl").iterdir()):
         return out
     data = ROOT / "data" / scene
     info = read_scene(data)
@@ -263,7 +264,7 @@ def noisy_bodies(scene: str, seq: str, cm: float, out: Path, seed: int = 0) -> P
     nz = noisy_body(body, P, Rh, Th, sm["shapes"][0], cm, float(info["fps"]), seed)
     shapes = np.broadcast_to(np.asarray(sm["shapes"][0]), (P.shape[0], len(sm["shapes"][0])))
     for t, f in enumerate(sm["frames"]):
-        write_easymocap_02(out / f"{f:06d}.json", nz.poses[t], nz.Rh[t], nz.Th[t], shapes[t])
+        write_easymocap_02(out / "smpl" / f"{f:06d}.json", nz.poses[t], nz.Rh[t], nz.Th[t], shapes[t])
     return out
 
 
