@@ -467,7 +467,12 @@ def write(args) -> None:
         if d is None:
             L += [f"## {kind}", "", f"not run (`python -m benchmarks.bench_field {kind}`)", ""]
             continue
+        failed = [r for r in d["rows"] if "failed" in r]
+        d["rows"] = [r for r in d["rows"] if "failed" not in r]
         L += table(d) + [""]
+        if failed:
+            L += [f"- failed jobs of this run (not in the table): " + "; ".join(
+                f"{r['method']}, {r['scene']} {r['variant']}: {r['failed']}" for r in failed), ""]
         for r in d["rows"]:
             if kind == "profile":
                 flat = {"section": kind, "method": r["method"], "scene": r["scene"], "variant": r["variant"],

@@ -194,9 +194,14 @@ def collect(job: Job, out: Path) -> dict:
 
 def run_jobs(jobs: list[Job], workers: int = 2) -> list[dict]:
     """Run ``jobs`` ``workers`` at a time (one torch thread each, as profiles/default runs the demo's jobs),
-    printing a line as each ends."""
+    printing a line as each ends. A job that fails gives a row with its error under ``failed``."""
     def one(job: Job) -> dict:
-        r = run_job(job)
+        try:
+            r = run_job(job)
+        except Exception as e:  # noqa: BLE001 -- one failed job is reported in its row, the others still run
+            print(f"{time.strftime('%H:%M:%S')} {job.method} {job.scene} {job.variant} FAILED: {e}", flush=True)
+            return {"method": job.method, "code": job.code, "scene": job.scene, "variant": job.variant,
+                    "failed": str(e)}
         print(f"{time.strftime('%H:%M:%S')} {job.method} {job.scene} {job.variant} {r['steps']} steps: train "
               f"{r['train_wall_s']:.0f} s, garment PSNR nv {r.get('nv_psnr_garment_db', float('nan')):.2f} "
               f"np {r.get('np_psnr_garment_db', float('nan')):.2f} ({job.out})", flush=True)
