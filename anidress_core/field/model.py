@@ -123,7 +123,8 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
                 grid: OccupancyGrid, step: float, background: Tensor, generator: torch.Generator | None = None,
                 jitter: bool = False, volume: Tensor | None = None, use_occupancy: bool = True,
                 cull_joints: bool = True, early_stop: float = 0.0, round_samples: int = 4,
-                skip: CanonicalOccupancy | None = None, with_distortion: bool = False) -> RayBatchResult:
+                skip: CanonicalOccupancy | None = None, with_distortion: bool = False,
+                volume_last: Tensor | None = None) -> RayBatchResult:
     """Render rays (R, 3) of frames (R,) (indices into transforms (T, K, 4, 4) and grid).
 
     ``transforms``: the unified pose S of every frame, canonical -> world per joint.
@@ -134,7 +135,8 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
     a ray stops once its transmittance falls below ``early_stop`` (what it leaves out
     weighs less than that). ``skip`` (inference only): samples whose canonical point falls in an empty
     cell of this occupancy get no density and skip the canonical field. ``with_distortion`` (training, without
-    early termination): also the rays' distortion loss.
+    early termination): also the rays' distortion loss. ``volume_last``: ``volume`` as
+    :func:`anidress_core.field.deform.channel_last` gives it, when the caller renders many batches with it.
     """
     R = origins.shape[0]
     # 1. samples where the posed subject can be, with their candidate joints
@@ -145,7 +147,8 @@ def render_rays(model: AnimatableField, origins: Tensor, dirs: Tensor, frame: Te
     iterations = model.cfg.warp_iterations
     # the blend differentiates through the inverses; the fixed point only places with them
     inv_transforms = torch.linalg.inv(transforms if iterations == 0 else transforms.detach())
-    volume_last = channel_last(volume) if iterations > 0 else None  # once for every round below
+    if volume_last is None and iterations > 0:
+        volume_last = channel_last(volume)  # once for every round below
 
     def shade(sel: Tensor | None) -> tuple[Tensor, Tensor]:
         x, r, c = (s.x, s.ray, s.cand) if sel is None else (s.x[sel], s.ray[sel], s.cand[sel])

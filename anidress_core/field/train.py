@@ -21,6 +21,7 @@ from typing import Callable, NamedTuple
 import torch
 from torch import Tensor
 
+from .deform import channel_last
 from .model import AnimatableField, CanonicalOccupancy, render_rays
 from .refine import PoseRefiner
 from .sampler import OccupancyGrid
@@ -316,13 +317,14 @@ def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tenso
                 transforms: Tensor, grid: OccupancyGrid, step: float, background: Tensor,
                 chunk: int = 8192, volume: Tensor | None = None, use_occupancy: bool = True,
                 cull_joints: bool = True, early_stop: float = 1e-3, pixels: Tensor | None = None,
-                skip: CanonicalOccupancy | None = None) -> ViewRender:
+                skip: CanonicalOccupancy | None = None, volume_last: Tensor | None = None) -> ViewRender:
     """Render one image: origin (3,), dirs (H, W, 3), box (4,) y0, y1, x0, x1 of the rays cast.
 
     ``frame`` indexes transforms (T, K, 4, 4) (the unified pose) and ``grid``. ``early_stop``: rays stop
     once their transmittance is below it (0: every sample). ``pixels`` (H, W) bool:
     cast rays only there (inside the box); elsewhere the background. ``skip``: the canonical cells
-    without density (:func:`anidress_core.field.model.canonical_occupancy`), not shaded.
+    without density (:func:`anidress_core.field.model.canonical_occupancy`), not shaded. ``volume_last``: the
+    weight volume channel-last (:func:`anidress_core.field.deform.channel_last`), made once per image otherwise.
     """
     H, W, _ = dirs.shape
     dev = dirs.device
@@ -334,6 +336,8 @@ def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tenso
         return ViewRender(rgb, alpha, depth, 0, 0, 0)
     if volume is None:
         volume = model.weights()
+    if volume_last is None and model.cfg.warp_iterations > 0:
+        volume_last = channel_last(volume)
     d = dirs[y0:y1, x0:x1].reshape(-1, 3)
     keep = None
     if pixels is not None:
@@ -347,7 +351,8 @@ def render_view(model: AnimatableField, origin: Tensor, dirs: Tensor, box: Tenso
         o = origin.expand_as(dd)
         fr = torch.full((dd.shape[0],), frame, dtype=torch.long, device=dev)
         out = render_rays(model, o, dd, fr, transforms, grid, step, background, volume=volume,
-                          use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early_stop, skip=skip)
+                          use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early_stop, skip=skip,
+                          volume_last=volume_last)
         cols.append(out.rgb)
         alps.append(out.alpha)
         deps.append(out.depth)

@@ -39,6 +39,7 @@ import torch
 
 from .. import __version__
 from ..camera import pixel_rays, project
+from ..field.deform import channel_last
 from ..field.encoding import HashGridConfig
 from ..field.model import AnimatableField, FieldConfig, canonical_occupancy
 from ..field.sampler import build_occupancy, mask_boxes, occupancy_pixels, occupied_centres
@@ -483,6 +484,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     chunk = int(params.get("render", {}).get("chunk", 8192))
     with torch.no_grad():
         volume = model.weights()
+        volume_last = channel_last(volume) if model.cfg.warp_iterations > 0 else None
     rp = params.get("render", {})
     skip = None
     if float(rp.get("skip_density", 0.0)) > 0:
@@ -507,7 +509,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
             t0, c0 = time.perf_counter(), time.process_time()
             r = render_view(model, origins[c], dirs[c], boxes[c], i, S, grid, sp["step_m"], bg, chunk=chunk,
                             volume=volume, use_occupancy=use_occupancy, cull_joints=cull_joints, early_stop=early,
-                            skip=skip,
+                            skip=skip, volume_last=volume_last,
                             pixels=None if pix is None else pix[c])
             dt, dc = time.perf_counter() - t0, time.process_time() - c0
             files.write_png(out_dir / "rgb" / name / f"{f:06d}.png", r.rgb.cpu().numpy())
