@@ -819,7 +819,7 @@ def write(out: Path, runner: Runner, fits: dict, paper: list[dict], args, wall_s
     hi_img = plan.paper["image"][1]
     data_gb = plan.paper["frames"][1] * plan.paper["views"][1] * hi_img * 4 / 1e9
     L += ["", f"- train_field holds the training images and labels of every frame and view in memory (uint8 RGB + "
-              f"uint8 label, `stages.field._read_views`): {plan.paper['frames'][1]} frames x {plan.paper['views'][1]} "
+              f"uint8 label, `stages.field.read_views`): {plan.paper['frames'][1]} frames x {plan.paper['views'][1]} "
               f"views x {hi_img} pixels x 4 bytes = {data_gb:.1f} GB before any tensor is built from them (the "
               f"estimate above: {fmt(paper_by(paper, 'train_field')['high']['rss_mb'] / 1024)} GB peak)."]
     L += ["", "## Notes", "",

@@ -117,7 +117,7 @@ def _skinning_step(x_o: Tensor, x_c: Tensor, pair: Tensor, c: Tensor, fwd: Tenso
     return torch.where((ok & (s > eps))[:, None], new, x_c), wq, s
 
 
-def _volume_frame(volume: Tensor, box: Tensor, dt) -> tuple[tuple[int, int, int, int], Tensor, Tensor]:
+def volume_frame(volume: Tensor, box: Tensor, dt) -> tuple[tuple[int, int, int, int], Tensor, Tensor]:
     """Grid size (D, H, W, C), corner (3,) and scale (3,) of voxel coordinates u = (p - lo) * scale."""
     C, D, H, W = volume.shape
     box = box.to(device=volume.device, dtype=dt)
@@ -146,7 +146,7 @@ def _place_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, trans
     if N == 0:
         return out, s
     wdev, stream = kernels.device_of(x_o, "backward_warp")
-    (D, H, W, C), lo, scale = _volume_frame(volume, box, dt)
+    (D, H, W, C), lo, scale = volume_frame(volume, box, dt)
     fr = torch.zeros(N, dtype=torch.int32, device=dev) if frame is None else frame.to(torch.int32)
     wp.launch(kernels.warp_place, N,
               inputs=[kernels.array(x_o), kernels.array(fr), kernels.array(cand.to(torch.int16)), inv_transforms.shape[-3],
@@ -160,7 +160,7 @@ def _place_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, trans
     return out, s
 
 
-class _StepWarp(torch.autograd.Function):
+class StepWarp(torch.autograd.Function):
     """:func:`_skinning_step` (x_c, s) through the Warp kernel ``warp_step``, differentiable with respect to
     the flat channel-last volume (D H W C,) and the transforms' 3x4 table (T K, 12)."""
 
@@ -250,10 +250,10 @@ def backward_warp(x_o: Tensor, frame: Tensor | None, inv_transforms: Tensor, can
                         active &= moved >= CONVERGED_M
         # 2. the last step carries the gradient (volume weights at x_c, transforms)
         if backend == "warp":
-            dhw, lo, scale = _volume_frame(volume, box, x_o.dtype)
+            dhw, lo, scale = volume_frame(volume, box, x_o.dtype)
             fr = torch.zeros(N, dtype=torch.int32, device=x_o.device) if frame is None else frame.to(torch.int32)
             vl = channel_last(volume, x_o.dtype) if volume_last is None else volume_last
-            x_c, s = _StepWarp.apply(vl, transforms[..., :3, :].reshape(-1, 12), x_o.detach(), x_c,
+            x_c, s = StepWarp.apply(vl, transforms[..., :3, :].reshape(-1, 12), x_o.detach(), x_c,
                                      fr, cand.to(torch.int16), K, lo, scale, dhw, eps)
         else:
             x_c, _, s = _skinning_step(x_o, x_c, n_idx, c, fwd, volume, box, eps)

@@ -124,7 +124,7 @@ def psnr(a: Tensor, b: Tensor) -> float:
     return float("inf") if mse == 0 else -10 * math.log10(mse)
 
 
-def _param_groups(model: AnimatableField, cfg: TrainConfig) -> list[dict]:
+def param_groups(model: AnimatableField, cfg: TrainConfig) -> list[dict]:
     return [
         {"params": [model.canonical.encoding.table], "lr": cfg.lr, "eps": 1e-15},
         {"params": list(model.canonical.density_net.parameters()) + list(model.canonical.color_net.parameters()),
@@ -133,7 +133,7 @@ def _param_groups(model: AnimatableField, cfg: TrainConfig) -> list[dict]:
     ]
 
 
-def _sample_batch(data: TrainData, valid: Tensor, cfg: TrainConfig, gen: torch.Generator, patches: int):
+def sample_batch(data: TrainData, valid: Tensor, cfg: TrainConfig, gen: torch.Generator, patches: int):
     """Random rays in the boxes of random images (+ ``patches`` whole patches).
 
     Returns origins (R, 3), dirs (R, 3), frame (R,), target (R, 3), background (R, 3)
@@ -204,7 +204,7 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
         raise ValueError("train_field: every ray box is empty (no subject in any mask)")
     # fused: one kernel over each parameter tensor; the hash table has millions of entries and the
     # per-element Adam loop was about a tenth of a CPU training step
-    groups = _param_groups(model, cfg)
+    groups = param_groups(model, cfg)
     if refiner is not None:
         groups.append({"params": list(refiner.parameters()), "lr": cfg.refine_lr})
     opt = torch.optim.Adam(groups, betas=(0.9, 0.99), fused=True)
@@ -250,7 +250,7 @@ def train_field(model: AnimatableField, data: TrainData, cfg: TrainConfig, state
             if regrid is not None and k > 0 and k % max(1, cfg.refine_regrid_every) == 0:
                 grid_pose = pose.detach()
                 data = data._replace(grid=regrid(grid_pose))
-        o, d, fr, target, bgr, n_patch = _sample_batch(data, valid, cfg, gen, patches)
+        o, d, fr, target, bgr, n_patch = sample_batch(data, valid, cfg, gen, patches)
         out = render_rays(model, o, d, fr, pose, data.grid, cfg.step_m, bgr, generator=gen, jitter=True,
                           volume=volume, use_occupancy=cfg.use_occupancy, cull_joints=cfg.cull_joints,
                           with_distortion=cfg.distortion_weight > 0)

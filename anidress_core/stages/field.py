@@ -105,7 +105,7 @@ class _Inputs:
     num_bones: int
 
 
-def _rest_inputs(scene_dir: Path, info: dict, template_npz, rig_npz, variant: str, shapes) -> _Inputs:
+def rest_inputs(scene_dir: Path, info: dict, template_npz, rig_npz, variant: str, shapes) -> _Inputs:
     body_model = load_body(scene_dir, info)
     v, J = body_model.shaped(shapes[None] if shapes is not None else None)
     body = BodyRest(v.reshape(-1, 3).float(), body_model.faces, body_model.weights.float(), J.reshape(24, 3).float())
@@ -128,7 +128,7 @@ def _rest_inputs(scene_dir: Path, info: dict, template_npz, rig_npz, variant: st
     return _Inputs(body, g, B)
 
 
-def _read_views(seq_dir: Path, cams: Sequence[str], frames: Sequence[int], masks_dir: Path | None,
+def read_views(seq_dir: Path, cams: Sequence[str], frames: Sequence[int], masks_dir: Path | None,
                 background: Sequence[float]):
     """Images (T, C, H, W, 3) uint8 masked onto the background and labels (T, C, H, W) uint8."""
     imgs, labs = [], []
@@ -151,7 +151,7 @@ def _read_views(seq_dir: Path, cams: Sequence[str], frames: Sequence[int], masks
     return torch.from_numpy(np.stack(imgs)), (torch.from_numpy(np.stack(labs)) if labs else None)
 
 
-def _sampler_params(p: dict) -> dict:
+def sampler_params(p: dict) -> dict:
     s = p.get("sampler", {})
     return {"res": int(s.get("occupancy_res", 64)), "dilate_m": float(s.get("dilate_m", 0.03)),
             "body_only_garment_dilate_m": float(s.get("body_only_garment_dilate_m", 0.12)),
@@ -186,7 +186,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     # the interval between checkpoints does not shape the field (a resumed training is exact)
     shaping = dict(params, train={k: v for k, v in params.get("train", {}).items() if k != "checkpoint_every"})
     cfg_hash = files.config_hash({"params": shaping, "variant": variant, "seq": seq})
-    sp = _sampler_params(params)
+    sp = sampler_params(params)
     tcfg = train_config_from_params(params)
     fcfg = field_config_from_params(params)
     stride = int(params.get("train", {}).get("frame_stride", 1))
@@ -197,7 +197,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     log.info("train %s/%s %s: %d frames (stride %d) x %d cameras, device %s", scene_dir.name, seq, variant,
              len(frames), stride, len(cams), dev)
     # 1. the subject: rest body/garment, unified pose of the frames, posed surfaces
-    inp = _rest_inputs(scene_dir, info, template_npz, rig_npz, variant, motion.shapes)
+    inp = rest_inputs(scene_dir, info, template_npz, rig_npz, variant, motion.shapes)
     body_model = load_body(scene_dir, info)
     idx = torch.tensor(frames)
     posed = body_model.pose(motion.poses[idx], motion.Rh[idx], motion.Th[idx], motion.shapes)
@@ -221,7 +221,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
     # 2. the images: training cameras, masked; rays in the dilated mask boxes
     src = sequence_source(scene_dir, seq, undistorted_dir, info)
     cameras = scene_cameras(scene_dir, seq, list(cams), info, seq_dir=src).to(dtype=torch.float32)
-    imgs, labels = _read_views(src, cams, frames, masks_dir, tcfg.background)
+    imgs, labels = read_views(src, cams, frames, masks_dir, tcfg.background)
     Tn, C, H, W, _ = imgs.shape
     boxes = mask_boxes((labels > 0).reshape(Tn * C, H, W), sp["mask_dilate_px"]).reshape(Tn, C, 4)
     box_frac = float(((boxes[..., 1] - boxes[..., 0]) * (boxes[..., 3] - boxes[..., 2])).sum()) / (Tn * C * H * W)
@@ -434,7 +434,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     model, meta = lf.model, lf.meta
     variant = meta["variant"]
     info = read_scene(scene_dir)
-    sp = _sampler_params(params)
+    sp = sampler_params(params)
     bg = torch.tensor(params.get("render", {}).get("background", [0.0, 0.0, 0.0]), dtype=torch.float32, device=dev)
     cam_seq = seq if library_motion_npz is None else meta["sequence"]
     if library_motion_npz is not None:
@@ -445,7 +445,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
         source = str(garment_poses_npz) if garment_poses_npz else "none"
     T_all = motion.poses.shape[0]
     frames = list(range(0, T_all, max(1, int(frame_stride))))
-    inp = _rest_inputs(scene_dir, info, template_npz, rig_npz, variant, motion.shapes)
+    inp = rest_inputs(scene_dir, info, template_npz, rig_npz, variant, motion.shapes)
     if inp.num_bones != meta["num_bones"]:
         raise ValueError(f"{field_pt}: trained with {meta['num_bones']} garment bones, the rig has {inp.num_bones}")
     body_model = load_body(scene_dir, info)

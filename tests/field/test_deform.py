@@ -137,16 +137,16 @@ def test_warp_kernels_match_the_torch_path_in_values_and_gradients(iterations):
 
 def test_warp_step_kernel_gradcheck():
     """The kernel's hand-written backward pass against finite differences of its own forward (float64)."""
-    from anidress_core.field.deform import channel_last, _StepWarp, _volume_frame
+    from anidress_core.field.deform import channel_last, StepWarp, volume_frame
 
     x_o, frame, S, cand, vol, box = _random_warp_problem(4, N=12, K=3, T=2, M=3)
     x_bar = backward_warp(x_o, frame, torch.linalg.inv(S), cand, vol, box).x_c.detach()
-    dhw, lo, scale = _volume_frame(vol, box, x_o.dtype)
+    dhw, lo, scale = volume_frame(vol, box, x_o.dtype)
     table = S[..., :3, :].reshape(-1, 12).clone().requires_grad_()
     flat = channel_last(vol, vol.dtype).clone().requires_grad_()
 
     def f(v, t):
-        x_c, s = _StepWarp.apply(v, t, x_o, x_bar, frame.to(torch.int32), cand.to(torch.int16), 3, lo, scale, dhw, 1e-4)
+        x_c, s = StepWarp.apply(v, t, x_o, x_bar, frame.to(torch.int32), cand.to(torch.int16), 3, lo, scale, dhw, 1e-4)
         return x_c, s
 
     assert torch.autograd.gradcheck(f, (flat, table), atol=1e-6)
