@@ -21,9 +21,10 @@ settle length), which a capture does not share with the pipeline's simulations (
         --configfile config/config.yaml config/fit_heldout.yaml  # scenes, rigs, ensembles, cues
     .venv/bin/python -m benchmarks.bench_fit --suite config/fit_heldout.yaml              # benchmarks/fit.md
 
-The field suite (config/field_suite.yaml: ``--seed 25 --prefix field --count 4 --novel-pose``) adds a
+The field suite (config/field_suite.yaml: ``--seed 26 --prefix fsuite --count 6 --novel-pose``) adds a
 held-out sequence to each scene and is run through the whole pipeline (its targets include the fit
-evaluation and both field variants' metrics); ``benchmarks/collect_field_suite.py`` tabulates it.
+evaluation and both field variants' metrics); ``benchmarks/collect_field_suite.py`` tabulates it. The
+field's settings were chosen on :data:`FIELD_TUNING`; the other four are its held-out scenes.
 """
 from __future__ import annotations
 
@@ -100,7 +101,9 @@ def overlay(scenes: dict, seed: int, prefix: str = "suite", novel_pose: bool = F
             f"--prefix {prefix}{' --novel-pose' if novel_pose else ''}).\n"
             "# Written by that script; none has a fit section. The tuning subset (settings chosen on it) is\n"
             "# config/fit_suite.yaml (--seed 23) with the demo scenes; the held-out suite is --seed 24.\n"
-            "# Use: snakemake --configfile config/config.yaml <this file> (after config/config.yaml).\n")
+            + (f"# The field's settings were chosen on {', '.join(FIELD_TUNING)} of config/field_suite.yaml.\n"
+               if novel_pose else "")
+            + "# Use: snakemake --configfile config/config.yaml <this file> (after config/config.yaml).\n")
     return head + yaml.safe_dump({"run_scenes": list(scenes), "scenes": scenes}, sort_keys=False)
 
 
