@@ -125,6 +125,7 @@ def psnr(a: Tensor, b: Tensor) -> float:
 
 
 def param_groups(model: AnimatableField, cfg: TrainConfig) -> list[dict]:
+    """Adam's parameter groups of the field: the hash table, the MLPs, the weight-volume decoder (their rates)."""
     return [
         {"params": [model.canonical.encoding.table], "lr": cfg.lr, "eps": 1e-15},
         {"params": list(model.canonical.density_net.parameters()) + list(model.canonical.color_net.parameters()),

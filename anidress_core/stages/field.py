@@ -106,6 +106,7 @@ class _Inputs:
 
 
 def rest_inputs(scene_dir: Path, info: dict, template_npz, rig_npz, variant: str, shapes) -> _Inputs:
+    """The subject at rest: the shaped body, and for ``full`` the garment template with the rig's bones."""
     body_model = load_body(scene_dir, info)
     v, J = body_model.shaped(shapes[None] if shapes is not None else None)
     body = BodyRest(v.reshape(-1, 3).float(), body_model.faces, body_model.weights.float(), J.reshape(24, 3).float())
@@ -152,6 +153,7 @@ def read_views(seq_dir: Path, cams: Sequence[str], frames: Sequence[int], masks_
 
 
 def sampler_params(p: dict) -> dict:
+    """The ray sampler's settings of the config's ``field`` section (``sampler``), typed."""
     s = p.get("sampler", {})
     return {"res": int(s.get("occupancy_res", 64)), "dilate_m": float(s.get("dilate_m", 0.03)),
             "body_only_garment_dilate_m": float(s.get("body_only_garment_dilate_m", 0.12)),
