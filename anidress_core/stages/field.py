@@ -29,6 +29,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import math
 import os
 import time
 from pathlib import Path
@@ -293,7 +294,7 @@ def run_train(scene_dir: str | os.PathLike, seq: str, variant: str, masks_dir: s
             refined = refiner(S.to(dev))[:, 24:].cpu()
             d = refiner.delta.detach().cpu()
         out["refined_garment_transforms"] = refined
-        out["refinement"] = {"rotation_deg_mean": float(d[..., :3].norm(dim=-1).mean()) * 57.29578,
+        out["refinement"] = {"rotation_deg_mean": math.degrees(float(d[..., :3].norm(dim=-1).mean())),
                              "translation_mm_mean": float(d[..., 3:].norm(dim=-1).mean()) * 1e3}
         log.info("garment poses refined through the images: mean correction %.2f deg, %.1f mm",
                  out["refinement"]["rotation_deg_mean"], out["refinement"]["translation_mm_mean"])
