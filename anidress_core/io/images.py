@@ -1,4 +1,5 @@
-"""Image file headers: size and integrity of PNG / JPEG files and the OpenEXR magic, without decoding.
+"""Image files: where a frame's image is (any extension validate_scene accepts, any padding and letter case),
+and their headers: size and integrity of PNG / JPEG files and the OpenEXR magic, without decoding.
 
 Cheap checks for the scene validation (:mod:`anidress_core.stages.validate`): every
 image of a capture gets its header and end marker read. Errors are
@@ -18,7 +19,66 @@ from typing import NoReturn
 
 from .files import ArtifactError
 
-__all__ = ["image_size_from_header", "check_exr_magic"]
+__all__ = ["IMAGE_EXTS", "frame_file", "frame_files", "image_path", "plate_path", "image_size_from_header",
+           "check_exr_magic"]
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+"""Extensions of a sequence's ``images/<cam>/<frame>.<ext>`` files (any letter case), in the order they are
+looked for."""
+
+
+def frame_files(folder: Path) -> dict[int, Path]:
+    """{frame: path} of the ``<digits>.<ext>`` image files of ``folder``: any zero padding, the extensions of
+    :data:`IMAGE_EXTS` in any letter case (as validate_scene accepts them); {} for a missing folder. Where a
+    frame has several files, the first extension of IMAGE_EXTS wins (validate_scene refuses that case). The
+    listing is kept per folder until the folder changes (its mtime)."""
+    folder = Path(folder)
+    try:
+        stamp = folder.stat().st_mtime_ns
+    except (FileNotFoundError, NotADirectoryError):
+        return {}
+    hit = _FRAME_FILES.get(str(folder))
+    if hit is not None and hit[0] == stamp:
+        return hit[1]
+    found = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit()),
+                   key=lambda p: (int(p.stem), IMAGE_EXTS.index(p.suffix.lower()), p.name))
+    out: dict[int, Path] = {}
+    for p in found:
+        out.setdefault(int(p.stem), p)
+    _FRAME_FILES[str(folder)] = (stamp, out)
+    return out
+
+
+_FRAME_FILES: dict[str, tuple[int, dict[int, Path]]] = {}
+
+
+def frame_file(folder: Path, frame: int) -> Path:
+    """The image file of frame ``frame`` in a camera folder: ``<frame:06d>.png``, ``.jpg`` or ``.jpeg`` when
+    there, else any padding and letter case (:func:`frame_files`); the ``<frame:06d>.png`` path if there is
+    none (its reader then names the missing file)."""
+    base = Path(folder) / f"{int(frame):06d}"
+    for ext in IMAGE_EXTS:
+        p = base.with_suffix(ext)
+        if p.is_file():
+            return p
+    return frame_files(folder).get(int(frame), base.with_suffix(".png"))
+
+
+def image_path(seq_dir: Path, cam: str, frame: int) -> Path:
+    """The image of frame ``frame`` of camera ``cam``: ``<seq_dir>/images/<cam>/<frame>.<ext>`` (:func:`frame_file`)."""
+    return frame_file(Path(seq_dir) / "images" / cam, frame)
+
+
+def plate_path(seq_dir: Path, cam: str) -> Path:
+    """The background plate ``<seq_dir>/backgrounds/<cam>.<ext>`` (an image extension in any letter case;
+    ``<cam>.png`` if there is none)."""
+    folder = Path(seq_dir) / "backgrounds"
+    if folder.is_dir():
+        for p in sorted(folder.iterdir(), key=lambda p: (IMAGE_EXTS.index(p.suffix.lower())
+                                                          if p.suffix.lower() in IMAGE_EXTS else 9, p.name)):
+            if p.stem == cam and p.suffix.lower() in IMAGE_EXTS:
+                return p
+    return folder / f"{cam}.png"
 
 _PNG_SIG = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"IEND\xaeB`\x82"

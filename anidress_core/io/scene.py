@@ -15,21 +15,18 @@ from ..body.model import BodyModel, smpl_model
 from ..body.motions import Motion
 from ..camera import Cameras, load_cameras
 from . import easymocap, files
-from .images import image_size_from_header
+from .images import IMAGE_EXTS, frame_file, frame_files, image_path, image_size_from_header, plate_path
 from .motion import read_easymocap_smpl_dir, read_smpl_model_file, smpl_selection
 from .scene_info import (DIST_EPS, distorted_cameras, garment_texture_path,  # torch-free (the workflow reads
                          read_scene)                                          # them while it builds the DAG)
 
 __all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path",
+           "frame_file", "frame_files", "plate_path",
            "scene_image_size", "scene_cameras", "DIST_EPS", "UNDISTORT_RECORD", "distorted_cameras",
            "sequence_source"]
 
 UNDISTORT_RECORD = "undistort.json"
 """The record rule undistort writes last into its folder (its presence marks a complete folder)."""
-
-IMAGE_EXTS = (".png", ".jpg", ".jpeg")
-"""Extensions of a sequence's ``images/<cam>/<frame:06d>.<ext>`` files, in the order they are looked for."""
-
 
 def load_body(scene_dir: str | os.PathLike, info: dict | None = None) -> BodyModel:
     """The scene's body model: the bundled mannequin file or a SMPL model file the user owns."""
@@ -78,16 +75,6 @@ def load_sequence_motion(scene_dir: str | os.PathLike, seq: str, fps: float,
         Rh=torch.as_tensor(np.asarray(d["Rh"], np.float32)), Th=torch.as_tensor(np.asarray(d["Th"], np.float32)),
         shapes=torch.as_tensor(shapes[0] if shapes.ndim == 2 else shapes),
     )
-
-
-def image_path(seq_dir: Path, cam: str, frame: int) -> Path:
-    """``<seq_dir>/images/<cam>/<frame:06d>.{png,jpg,jpeg}`` (the first that exists; .png if none)."""
-    base = seq_dir / "images" / cam / f"{frame:06d}"
-    for ext in IMAGE_EXTS:
-        p = base.with_suffix(ext)
-        if p.is_file():
-            return p
-    return base.with_suffix(".png")
 
 
 def scene_image_size(scene_dir: str | os.PathLike, seq: str, info: dict | None = None) -> tuple[int, int]:

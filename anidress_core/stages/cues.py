@@ -43,7 +43,7 @@ from ..cues import flow as cue_flow
 from ..cues import masks as cue_masks
 from ..geometry import lbs
 from ..io import files
-from ..io.scene import (IMAGE_EXTS, image_path, load_body, load_sequence_motion, read_scene, scene_cameras,
+from ..io.scene import (IMAGE_EXTS, image_path, load_body, load_sequence_motion, plate_path, read_scene, scene_cameras,
                         sequence_source)
 from ..io.scene_info import select_cameras
 from ..io.template import read_template
@@ -189,9 +189,9 @@ class ShapePrior:
 
 def _plates(seq_dir: Path, cams: Sequence[str], frames: list[int], background: str, shape, median_frames: int,
             pool: ThreadPoolExecutor) -> np.ndarray:
-    """Background plates (C, H, W, 3): recorded ``backgrounds/<cam>.png`` or temporal medians."""
+    """Background plates (C, H, W, 3): recorded ``backgrounds/<cam>.<png|jpg|jpeg>`` or temporal medians."""
     if background == "plate":
-        paths = [seq_dir / "backgrounds" / f"{c}.png" for c in cams]
+        paths = [plate_path(seq_dir, c) for c in cams]
         return np.stack(list(pool.map(lambda p: _read_rgb(p, shape), paths)))
     if background != "temporal_median":
         raise ValueError(f"cues/masks/background must be 'plate' or 'temporal_median', got {background!r}")

@@ -59,7 +59,7 @@ import torch
 
 from .. import __version__
 from ..io import files
-from ..io.scene import load_body, load_sequence_motion, read_scene, scene_cameras, sequence_source
+from ..io.scene import image_path, load_body, load_sequence_motion, read_scene, scene_cameras, sequence_source
 from ..metrics import image as M
 
 __all__ = ["run_evaluate", "COLUMNS", "read_metrics_csv"]
@@ -174,7 +174,7 @@ def run_evaluate(scene_dir: str | os.PathLike, renders: Sequence[tuple[str, str,
             pred = torch.from_numpy(files.read_image(folder / "rgb" / cam / f"{f:06d}.png"))
             alpha_u16 = _read_u16(folder / "alpha" / cam / f"{f:06d}.png")
             alpha = torch.from_numpy(alpha_u16.astype(np.float32) / 65535.0)
-            img = torch.from_numpy(files.read_image(src / "images" / cam / f"{f:06d}.png"))
+            img = torch.from_numpy(files.read_image(image_path(src, cam, f)))
             if img.shape != pred.shape:
                 raise files.ArtifactError(f"{folder / 'rgb' / cam / f'{f:06d}.png'}: size {tuple(pred.shape)} differs "
                                           f"from the image {tuple(img.shape)} ({src / 'images' / cam})")

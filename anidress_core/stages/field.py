@@ -54,7 +54,7 @@ from ..io.field import FIELD_FORMAT as FORMAT
 from ..io.field import (FieldCheckpoint, read_field_checkpoint, read_training_state, training_state_path,
                         write_field_checkpoint, write_training_state)
 from ..io.rig import read_rig
-from ..io.scene import load_body, load_sequence_motion, read_scene, scene_cameras, sequence_source
+from ..io.scene import image_path, load_body, load_sequence_motion, read_scene, scene_cameras, sequence_source
 from ..io.template import read_template
 
 __all__ = ["run_train", "run_render", "load_field", "field_config_from_params", "train_config_from_params",
@@ -138,7 +138,7 @@ def read_views(seq_dir: Path, cams: Sequence[str], frames: Sequence[int], masks_
     for f in frames:
         ri, rl = [], []
         for c in cams:
-            img = files.read_image(seq_dir / "images" / c / f"{f:06d}.png")
+            img = files.read_image(image_path(seq_dir, c, f))
             if masks_dir is not None:
                 lab = files.read_mask(masks_dir / c / f"{f:06d}.png")
                 if lab.shape != img.shape[:2]:

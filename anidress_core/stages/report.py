@@ -45,6 +45,7 @@ import yaml
 
 from .. import __version__, plots
 from ..io import files
+from ..io.images import frame_file
 from ..io.rig import read_rig
 from ..io.sim import read_sim
 from ..resources import REFERENCE_TABLES
@@ -209,7 +210,7 @@ def _field(res: Path, data: Path, seq: str, info: dict) -> dict:
         # the first camera with a mask (a captured scene's test cameras may have none), else the first
         cam = next((c for c in cams if masks is not None and (masks / c / f"{f:06d}.png").is_file()), cams[0])
         try:
-            img = files.read_image(images / cam / f"{f:06d}.png")
+            img = files.read_image(frame_file(images / cam, f))
             mpath = None if masks is None else masks / cam / f"{f:06d}.png"
             mask = None
             if mpath is not None and (src["mask_source"] == "gt/masks" or mpath.is_file()):

@@ -88,6 +88,30 @@ def test_train_resume_render_evaluate(scene_dir, tmp_path):
     assert summ["lpips"] == "not requested"
 
 
+def test_a_jpeg_capture_trains_renders_and_is_scored(scene_dir, tmp_path):
+    """Images as JPEG under names validate_scene accepts (any padding, extension in any case) are read by the
+    field's training and by evaluate, which scores the renders against them."""
+    import shutil
+
+    import cv2
+
+    jpg = tmp_path / "jpg"
+    shutil.copytree(scene_dir, jpg)
+    for k, p in enumerate(sorted((jpg / "walk" / "images").glob("*/*.png"))):
+        name = f"{int(p.stem)}.JPG" if k % 2 else f"{p.stem}.jpeg"
+        cv2.imwrite(str(p.with_name(name)), cv2.imread(str(p)), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        p.unlink()
+    assert not list((jpg / "walk" / "images").glob("*/*.png"))
+    out = tmp_path / "field.pt"
+    run_train(jpg, "walk", "full", jpg / "walk" / "gt" / "masks", out, PARAMS, progress=False)
+    run_render(out, jpg, tmp_path / "nv", PARAMS, seq="walk", cameras=["02", "04"], progress=False)
+    summ = run_evaluate(jpg, [("novel_view", "walk", tmp_path / "nv")], tmp_path / "m.csv", tmp_path / "s.json", {},
+                        progress=False)
+    rows = read_metrics_csv(tmp_path / "m.csv")
+    assert len(rows) == 4 and all(np.isfinite(r["psnr_db"]) for r in rows)
+    assert summ["metrics"][0]["scored"] == 4
+
+
 def test_errors_name_the_problem(scene_dir, tmp_path):
     with pytest.raises(ValueError, match="variant"):
         run_train(scene_dir, "walk", "w/o G", scene_dir / "walk" / "gt" / "masks", tmp_path / "f.pt", PARAMS,
