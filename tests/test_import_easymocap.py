@@ -10,6 +10,8 @@ with poses of 69 (root in Rh) and two people per file (the order changing betwee
 from __future__ import annotations
 
 import json
+import logging
+import re
 import shutil
 from pathlib import Path
 
@@ -126,8 +128,13 @@ MALFORMED = {
                     r"images/02: camera '02' has 2 frames, camera '01' 3 \(frames \[1\]"),
     "missing body file": (lambda d: (d / "output-smpl-3d" / "smpl" / "000002.json").unlink(), {},
                           r"smpl/000002\.json: missing: no body parameters for image frame 2"),
-    "missing extrinsics": (lambda d: (d / "extri.yml").write_text(
-        (d / "extri.yml").read_text().replace("T_02", "X_02")), {}, r"extri\.yml: camera '02': missing key 'T_02'"),
+    "missing extrinsics of a camera asked for": (
+        lambda d: (d / "extri.yml").write_text((d / "extri.yml").read_text().replace("T_02", "X_02")),
+        {"cameras": "01,02,03,04"},
+        r"extri\.yml: cameras \['02'\] \(asked for by cameras\) have intrinsics in intri\.yml but no pose here"),
+    "no camera with extrinsics": (lambda d: (d / "extri.yml").write_text(
+        re.sub(r"\b(T)_0(\d):", r"X_0\2:", (d / "extri.yml").read_text())), {},
+        r"extri\.yml: none of the cameras of .*intri\.yml \(\['01', '02', '03', '04'\]\) has a pose"),
     "image size": (lambda d: cv2.imwrite(str(d / "images" / "04" / "000001.jpg"), np.zeros((10, 12, 3), np.uint8)), {},
                    r"images/04/000001\.jpg: image is 12x10 \(WxH\)"),
     "mask labels": (lambda d: cv2.imwrite(str(d / "mask" / "01" / "000000.png"), np.full((H, W), 7, np.uint8)),
@@ -145,6 +152,20 @@ def test_malformed_capture_names_file_and_field(tiny, tmp_path, case):
     with pytest.raises(ValueError, match=msg):
         _import(bad, tmp_path / "out", data, **kw)
     assert not (tmp_path / "out" / "scene.yaml").exists()
+
+
+def test_cameras_without_extrinsics_are_skipped_and_named(tiny, tmp_path, caplog):
+    """intri.yml listing more cameras than extri.yml poses (as trackmesh_gui writes them): those are left out."""
+    data, _, cap = tiny
+    src = _broken(cap, tmp_path, lambda d: (d / "extri.yml").write_text(
+        re.sub(r"\b(Rot|R|T)_03:", r"Unused\1_03:", (d / "extri.yml").read_text())))
+    with caplog.at_level(logging.WARNING, logger="anidress.import"):
+        _import(src, tmp_path / "s", data, sequence="walk", train="01,02")
+    info = yaml.safe_load((tmp_path / "s" / "scene.yaml").read_text())
+    assert info["cameras"] == {"train": ["01", "02"], "test": ["04"]}
+    assert any("1 of 4 cameras have intrinsics but no pose in extri.yml, skipped: 03" in r.getMessage()
+               for r in caplog.records)
+    assert validate_scene(tmp_path / "s")["sequences"]["walk"]["frames"] == 3
 
 
 def test_cli_import_easymocap(tiny, tmp_path, capsys):

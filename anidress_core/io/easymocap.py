@@ -55,6 +55,7 @@ from .files import write_text
 
 __all__ = [
     "read_names",
+    "extrinsic_names",
     "read_intri",
     "read_extri",
     "read_camera",
@@ -273,6 +274,17 @@ def read_extri(path: PathLike, names: Iterable[str] | None = None) -> dict[str, 
                         )
             cams[cam] = {"R": np.asarray(R, dtype=np.float64), "T": T}
         return cams
+    finally:
+        fs.release()
+
+
+def extrinsic_names(path: PathLike, names: Iterable[str]) -> list[str]:
+    """The cameras of ``names`` (in order) that ``extri.yml`` at ``path`` has a pose for: a rotation
+    (``Rot_<cam>`` or ``R_<cam>``) and ``T_<cam>``. The values are not checked here (:func:`read_extri` does)."""
+    path, fs = _open(path)
+    try:
+        return [cam for cam in names if (_node(fs, f"Rot_{cam}") is not None or _node(fs, f"R_{cam}") is not None)
+                and _node(fs, f"T_{cam}") is not None]
     finally:
         fs.release()
 

@@ -519,7 +519,23 @@ def run_import_easymocap(src: str | os.PathLike, dst: str | os.PathLike, sequenc
     seq = sequence or safe_camera_names([src.resolve().name])[0]
     # 1. cameras
     all_names = easymocap.read_names(src / "intri.yml")
-    sources = _pick_cameras(cameras, all_names, all_names, "cameras") if cameras is not None else all_names
+    posed = easymocap.extrinsic_names(src / "extri.yml", all_names)  # intri.yml may list more (trackmesh_gui)
+    if cameras is not None:
+        sources = _pick_cameras(cameras, all_names, all_names, "cameras")
+        unposed = [c for c in sources if c not in posed]
+        if unposed:
+            raise ValueError(f"{src / 'extri.yml'}: cameras {unposed} (asked for by cameras) have intrinsics in "
+                             f"intri.yml but no pose here (Rot_<cam> or R_<cam>, and T_<cam>); cameras with both: "
+                             f"{posed}")
+    else:
+        sources = posed
+        skipped = [c for c in all_names if c not in posed]
+        if not sources:
+            raise ValueError(f"{src / 'extri.yml'}: none of the cameras of {src / 'intri.yml'} ({all_names}) has a "
+                             f"pose here (Rot_<cam> or R_<cam>, and T_<cam>)")
+        if skipped:
+            log.warning("%s: %d of %d cameras have intrinsics but no pose in extri.yml, skipped: %s",
+                        src / "intri.yml", len(skipped), len(all_names), ", ".join(skipped))
     raw = easymocap.read_camera(src / "intri.yml", src / "extri.yml", sources)
     names = safe_camera_names(sources)
     # 2. image frames: the same numbers in every camera folder
