@@ -590,9 +590,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which ZJU mask folders make the masks (default: every one present)")
     s.add_argument("--train", help="training cameras: names, source folder names or 0-based indices, comma-separated")
     s.add_argument("--test", help="test cameras (default: the cameras not training)")
-    s.add_argument("--fps", type=float, default=50.0,
-                   help="the capture's frame rate (not in annots.npy; default %(default)s, an assumption: give the "
-                        "real one)")
+    s.add_argument("--fps", type=float, required=True,
+                   help="the capture's frame rate, frames/s (required: annots.npy does not store it; Neural Body's "
+                        "ZJU-MoCap sequences are usually taken as 50)")
     s.add_argument("--link", default="symlink", choices=["symlink", "hardlink", "copy"],
                    help="how images reach the scene (default: %(default)s)")
     s.add_argument("--threads", type=int, default=2, help="files placed / masks converted at a time")

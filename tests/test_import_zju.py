@@ -92,6 +92,7 @@ def _import(cap: Path, dst: Path, data: Path, **kw) -> dict:
     kw.setdefault("garment_kind", "skirt")
     kw.setdefault("body_model", data / "body_model.npz")
     kw.setdefault("train", "0,1,3")  # as the tiny scene: 01, 02, 04 train, 03 test
+    kw.setdefault("fps", 50.0)
     return run_import_zju(cap, dst, **kw)
 
 
@@ -290,14 +291,16 @@ def test_cli_import_zju(tiny, tmp_path, capsys):
     dst = tmp_path / "cli"
     rc = main(["import-zju", str(cap), str(dst), "--sequence", "walk", "--frames", "0:2", "--garment",
                str(data / "garment" / "template.obj"), "--garment-kind", "skirt", "--body-model",
-               str(data / "body_model.npz"), "--train", "Camera (1),Camera (2),Camera (4)"])
+               str(data / "body_model.npz"), "--train", "Camera (1),Camera (2),Camera (4)", "--fps", "50"])
     out = capsys.readouterr().out
     assert rc == 0 and "walk: 4 cameras x 2 frames" in out and ": OK (3 train + 1 test cameras" in out  # validated
     assert yaml.safe_load(out[out.index("scenes:"):])["scenes"]["cli"]["sequences"] == [
         {"name": "walk", "frames": 2, "role": "train"}]  # the config entry, ready to paste
     assert yaml.safe_load((dst / "scene.yaml").read_text())["cameras"]["test"] == ["Camera_3"]
     bad = _broken(cap, tmp_path, lambda d: (d / "params" / "2.npy").unlink())
-    assert main(["import-zju", str(bad), str(tmp_path / "x")]) == 2
+    assert main(["import-zju", str(bad), str(tmp_path / "x"), "--fps", "50"]) == 2
+    with pytest.raises(ValueError, match=r"annots\.npy: ZJU-MoCap's files do not store the frame rate: give"):
+        run_import_zju(cap, tmp_path / "nofps")
 
 
 # =========================================================================== through the pipeline

@@ -48,7 +48,7 @@ def wd(tmp_path_factory):
     np.save(cap / "annots.npy", raw, allow_pickle=True)
     wd = root / "wd"
     rec = run_import_zju(cap, wd / "data" / "zju", garment=data / "garment" / "template.obj", garment_kind="skirt",
-                         body_model=data / "body_model.npz", train="0,1,3", link="copy")
+                         body_model=data / "body_model.npz", train="0,1,3", link="copy", fps=50.0)
     (wd / "cfg.yaml").write_text(yaml.safe_dump({"run_scenes": ["zju"], "scenes": {"zju": rec["config_entry"]},
                                                  **SETTINGS}))
     return wd

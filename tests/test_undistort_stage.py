@@ -78,7 +78,8 @@ def test_validate_reports_the_undistortion_and_stages_refuse_the_raw_sequence(ca
                "working cameras by rule undistort" in n for n in s["notes"])
     assert "note: " in format_summary(s)
     assert distorted_cameras(data, "walk") == ["01", "02"]
-    with pytest.raises(ValueError, match=r"intri.yml: cameras 01, 02 have lens distortion: .*rule undistort"):
+    with pytest.raises(ValueError, match=r"intri.yml: cameras 01, 02 have lens distortion: .*rule undistort"
+                                         r".*command line: --undistorted DIR"):
         run_masks(data, "walk", tmp_path / "m", {}, res / "template.npz", progress=False)
     with pytest.raises(FileNotFoundError, match="undistort.json: not found"):
         sequence_source(data, "walk", tmp_path / "nothing")

@@ -140,7 +140,7 @@ def sequence_source(scene_dir: str | os.PathLike, seq: str, undistorted_dir: str
     if undistorted_dir is None:
         raise ValueError(f"{intri}: cameras {', '.join(bad)} have lens distortion: the stages read the sequence "
                          "undistorted to pinhole working cameras by rule undistort (anidress undistort); "
-                         "pass its folder (undistorted_dir)")
+                         "pass its folder (command line: --undistorted DIR; Python: undistorted_dir=)")
     d = Path(undistorted_dir)
     if not (d / UNDISTORT_RECORD).is_file():
         raise FileNotFoundError(f"{d / UNDISTORT_RECORD}: not found: {d} is not a complete undistorted sequence "

@@ -5,7 +5,7 @@
 the pipeline cannot read as it is: it has no scene.yaml and its body files are not in
 ``<seq>/smpl`` (:func:`run_import_easymocap`).
 
-``anidress import-zju SRC DST`` reads ``SRC/annots.npy`` (cameras K, D, R, T in
+``anidress import-zju SRC DST --fps F`` reads ``SRC/annots.npy`` (cameras K, D, R, T in
 millimetres, per-frame image lists), ``SRC/params/<i>.npy`` or ``SRC/new_params/<i>.npy``
 (poses, Rh, Th, shapes) and the masks ``SRC/mask/`` and / or ``SRC/mask_cihp/``
 (:mod:`anidress_core.io.zju`), and writes::
@@ -73,9 +73,9 @@ no copy of gigabytes), a hard link (same file system), or a copy."""
 PARAMS_DIRS = ("params", "new_params")
 """Body parameter folders of a ZJU-MoCap capture, in the order they are looked for."""
 ZJU_FPS = 50.0
-"""Frame rate written to scene.yaml when none is given. ``annots.npy`` does not store one, and
-this default is an assumption, not a property of the files: pass the capture's real rate
-(``fps``, ``--fps``); it sets the time scale of the cloth simulation of the sequence."""
+"""The frame rate Neural Body's ZJU-MoCap sequences are usually taken to have. ``annots.npy`` does not
+store one, so the import does not assume it: ``fps`` / ``--fps`` is required (it sets the time scale of
+the cloth simulation of the sequence)."""
 NEURALBODY_TRAIN_VIEWS = (0, 6, 12, 18)
 """Neural Body's training cameras of a 21- or 23-camera ZJU-MoCap capture (0-based indices)."""
 
@@ -371,9 +371,11 @@ def run_import_zju(src: str | os.PathLike, dst: str | os.PathLike, sequence: str
                    garment_labels: Sequence[int] = CIHP_GARMENT_LABELS, body_model: str | os.PathLike | None = None,
                    params: str | os.PathLike | None = None, masks: str = "auto",
                    train: str | Sequence[str] | None = None, test: str | Sequence[str] | None = None,
-                   role: str = "train", fps: float = ZJU_FPS, link: str = "symlink", height: float = 1.7,
+                   role: str = "train", fps: float | None = None, link: str = "symlink", height: float = 1.7,
                    threads: int = 2) -> dict:
     """Convert the ZJU-MoCap capture ``src`` into (or add a sequence to) the scene ``dst``; see the module doc.
+
+    fps: the capture's frame rate (frames/s), required: ZJU-MoCap's files do not store it.
 
     sequence: the sequence name (default: ``src``'s folder name made safe); frames: which
     ``ims`` entries (:func:`parse_frames`); garment / garment_kind / garment_texture: the
@@ -392,6 +394,9 @@ def run_import_zju(src: str | os.PathLike, dst: str | os.PathLike, sequence: str
     annots = src / "annots.npy"
     if link not in LINK_MODES:
         raise ValueError(f"link must be one of {list(LINK_MODES)}, got {link!r}")
+    if fps is None:
+        raise ValueError(f"{annots}: ZJU-MoCap's files do not store the frame rate: give the capture's (fps / --fps; "
+                         f"Neural Body's ZJU-MoCap sequences are usually taken as {ZJU_FPS:g} frames/s)")
     if not (isinstance(fps, (int, float)) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps!r}")
     seq = sequence or safe_camera_names([src.resolve().name])[0]
