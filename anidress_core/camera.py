@@ -32,6 +32,8 @@ from .io import easymocap
 
 __all__ = [
     "Cameras",
+    "scale_intrinsics",
+    "scaled_size",
     "Projection",
     "Rays",
     "project",
@@ -467,6 +469,26 @@ def ring_cameras(
 # --------------------------------------------------------------------------- files
 
 
+def scale_intrinsics(K: np.ndarray, s: float) -> np.ndarray:
+    """K (3, 3) of a calibration made for images ``1 / s`` times the size of the ones used: (3, 3) with
+    fx, fy times s and c' = s (c + 0.5) - 0.5 on both axes (pixel centres at integer coordinates, OpenCV:
+    the image's outer edge, -0.5, stays the outer edge)."""
+    K = np.array(K, dtype=np.float64, copy=True)
+    K[0, 0] *= s
+    K[1, 1] *= s
+    K[0, 1] *= s
+    K[:2, 2] = s * (K[:2, 2] + 0.5) - 0.5
+    return K
+
+
+def scaled_size(n: float, s: float, what: str) -> int:
+    """An image side ``n`` (pixels) of the calibration times ``s``; a whole number or ValueError naming ``what``."""
+    v = float(n) * s
+    if abs(v - round(v)) > 1e-6:
+        raise ValueError(f"{what} = {n:g} times cameras/scale {s:g} is {v:g}, not a whole number of pixels")
+    return int(round(v))
+
+
 def load_cameras(
     intri_path: str | os.PathLike,
     extri_path: str | os.PathLike,
@@ -474,18 +496,27 @@ def load_cameras(
     height: int | None = None,
     width: int | None = None,
     dtype: torch.dtype = torch.float64,
+    scale: float | None = None,
 ) -> Cameras:
     """Read EasyMocap ``intri.yml`` / ``extri.yml`` into :class:`Cameras`.
 
     ``names`` selects cameras (default: all, in file order). The image size comes from
     the files' ``H_``/``W_`` when present (all cameras must agree, and ``height``/
     ``width`` if given must match), else from ``height``/``width``. float64 keeps the
-    file's values exactly; cast with :meth:`Cameras.to`.
+    file's values exactly; cast with :meth:`Cameras.to`. ``scale``: the images are this factor of the
+    calibration's size (scene.yaml ``cameras/scale``); K and ``H_``/``W_`` are scaled
+    (:func:`scale_intrinsics`) before anything else.
     """
     raw = easymocap.read_camera(intri_path, extri_path, names)
     cam_names = list(raw)
     if not cam_names:
         raise ValueError(f"{intri_path}: no cameras")
+    if scale is not None:
+        for c in cam_names:
+            raw[c]["K"] = scale_intrinsics(raw[c]["K"], scale)
+            for key in ("H", "W"):
+                if key in raw[c]:
+                    raw[c][key] = scaled_size(raw[c][key], scale, f"{intri_path}: {key}_{c}")
     # 1. image size: from the files (all cameras agree), else from the arguments
     size = []
     for key, arg, what in (("H", height, "height"), ("W", width, "width")):

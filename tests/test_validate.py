@@ -122,6 +122,75 @@ def test_extrinsics_in_millimetres(scene):
     _fails(scene, p, "looks like millimetres")
 
 
+def _calibrate_at(scene: Path, factor: float, sizes: bool) -> dict:
+    """Rewrite walk/intri.yml as made for images ``factor`` times the size of the scene's (with or without
+    H_/W_); returns the original intrinsics."""
+    from anidress_core.camera import scale_intrinsics
+
+    p = scene / "walk" / "intri.yml"
+    orig = easymocap.read_intri(p)
+    new = {}
+    for c, v in orig.items():
+        new[c] = {"K": scale_intrinsics(v["K"], factor), "dist": v["dist"]}
+        if sizes:
+            new[c].update(H=int(v["H"] * factor), W=int(v["W"] * factor))
+    easymocap.write_intri(p, new)
+    return orig
+
+
+def _scene_yaml(scene: Path, **cameras) -> None:
+    p = scene / "scene.yaml"
+    info = yaml.safe_load(p.read_text())
+    info["cameras"].update(cameras)
+    p.write_text(yaml.safe_dump(info))
+
+
+@pytest.mark.parametrize("sizes", [False, True], ids=["no H_W_", "with H_W_"])
+def test_a_calibration_of_twice_the_image_size_names_the_factor(scene, sizes):
+    from anidress_core.io.scene import scene_cameras
+
+    orig = _calibrate_at(scene, 2.0, sizes)
+    if not sizes:  # EasyMocap's files: only the principal point tells
+        _fails(scene, scene / "walk" / "intri.yml", "camera '01': principal point", "of the 32x32 images",
+               "looks made for images 2x this size", "cameras/scale: 0.5")
+    else:
+        p = scene / "scene.yaml"
+        info = yaml.safe_load(p.read_text())
+        del info["image_size"]  # the size then comes from H_/W_, the images disagree
+        p.write_text(yaml.safe_dump(info))
+        _fails(scene, scene / "walk" / "images", "image is 32x32 (WxH), expected 64x64",
+               "the images are 0.5x the calibration's size", "cameras/scale: 0.5")
+    _scene_yaml(scene, scale=0.5)
+    assert validate_scene(scene)["sequences"]["walk"]["frames"] == 3
+    cams = scene_cameras(scene, "walk")
+    K0 = torch.as_tensor(np.stack([orig[c]["K"] for c in cams.names]))
+    assert torch.allclose(cams.K, K0, atol=1e-9) and (cams.height, cams.width) == (32, 32)
+
+
+def test_an_off_centre_principal_point_passes_only_when_declared(scene):
+    p = scene / "walk" / "intri.yml"
+    cams = easymocap.read_intri(p)
+    cams["02"]["K"][0, 2] = 28.0  # near the right edge of the 32 pixels
+    easymocap.write_intri(p, cams)
+    msg = _fails(scene, p, "camera '02': principal point (28.0, ", "cameras/off_centre: true")
+    assert "cameras/scale" not in msg  # no factor brings it near the centre on both axes
+    _scene_yaml(scene, off_centre=True)
+    assert "principal points not checked" in " ".join(validate_scene(scene)["checks"])
+
+
+def test_scaled_intrinsics_keep_the_pixel_centre_convention():
+    from anidress_core.camera import scale_intrinsics, scaled_size
+
+    K = np.array([[100.0, 0.0, 63.5], [0.0, 90.0, 31.5], [0.0, 0.0, 1.0]])  # the centre of 128x64 pixels
+    K2 = scale_intrinsics(K, 0.5)
+    assert np.allclose(K2, [[50.0, 0.0, 31.5], [0.0, 45.0, 15.5], [0.0, 0.0, 1.0]])  # the centre of 64x32
+    x = np.array([0.3, -0.2, 1.7])
+    u, u2 = (K @ x)[:2] / x[2], (K2 @ x)[:2] / x[2]
+    assert np.allclose(u2, 0.5 * (u + 0.5) - 0.5)  # the same point of the picture, resized
+    with pytest.raises(ValueError, match="H_01 = 33 times cameras/scale 0.5 is 16.5, not a whole number"):
+        scaled_size(33, 0.5, "H_01")
+
+
 def _use_cameras(scene: Path, train: list[str], test: list[str]) -> None:
     p = scene / "scene.yaml"
     info = yaml.safe_load(p.read_text())

@@ -21,7 +21,7 @@ from .scene_info import (DIST_EPS, distorted_cameras, garment_texture_path,  # t
                          read_scene)                                          # them while it builds the DAG)
 
 __all__ = ["IMAGE_EXTS", "read_scene", "garment_texture_path", "load_body", "load_sequence_motion", "image_path",
-           "frame_file", "frame_files", "plate_path",
+           "frame_file", "frame_files", "plate_path", "camera_scale",
            "scene_image_size", "scene_cameras", "DIST_EPS", "UNDISTORT_RECORD", "distorted_cameras",
            "sequence_source"]
 
@@ -98,6 +98,18 @@ def scene_image_size(scene_dir: str | os.PathLike, seq: str, info: dict | None =
                               "to take the image size from")
 
 
+def camera_scale(info: dict, scene_dir: str | os.PathLike = "") -> float | None:
+    """scene.yaml ``cameras/scale``: the images are this factor of the size the calibration was made for
+    (e.g. 0.5 for 960x540 images of a 1920x1080 calibration); None when absent (1)."""
+    s = (info.get("cameras") or {}).get("scale")
+    if s is None:
+        return None
+    if isinstance(s, bool) or not isinstance(s, (int, float)) or not (0 < float(s) < 100):
+        raise files.ArtifactError(f"{Path(scene_dir) / 'scene.yaml'}: cameras/scale must be a number > 0 (the "
+                                  f"images' size over the calibration's), got {s!r}")
+    return None if float(s) == 1.0 else float(s)
+
+
 def scene_cameras(scene_dir: str | os.PathLike, seq: str, names: list[str] | None = None,
                   info: dict | None = None, dtype: torch.dtype = torch.float64,
                   seq_dir: str | os.PathLike | None = None) -> Cameras:
@@ -112,9 +124,12 @@ def scene_cameras(scene_dir: str | os.PathLike, seq: str, names: list[str] | Non
     scene_dir = Path(scene_dir)
     seq_dir = scene_dir / seq if seq_dir is None else Path(seq_dir)
     intri = seq_dir / "intri.yml"
+    info = read_scene(scene_dir) if info is None else info
     h, w = scene_image_size(scene_dir, seq, info)
+    # scene.yaml cameras/scale applies to the capture's files; rule undistort writes its working cameras scaled
+    scale = camera_scale(info, scene_dir) if not (seq_dir / UNDISTORT_RECORD).is_file() else None
     try:
-        return load_cameras(intri, seq_dir / "extri.yml", names, height=h, width=w, dtype=dtype)
+        return load_cameras(intri, seq_dir / "extri.yml", names, height=h, width=w, dtype=dtype, scale=scale)
     except (ValueError, KeyError) as e:
         msg = str(e)
         raise ValueError(msg if str(intri) in msg else f"{intri}: {msg}") from e

@@ -66,7 +66,8 @@ from ..io.files import SceneError
 from ..io.images import check_exr_magic, image_size_from_header
 from ..io.mesh import read_mesh
 from ..io.motion import read_easymocap_smpl_dir, smpl_selection
-from ..io.scene import DIST_EPS, IMAGE_EXTS, garment_texture_path, load_body, read_scene
+from ..camera import scale_intrinsics, scaled_size
+from ..io.scene import DIST_EPS, IMAGE_EXTS, camera_scale, garment_texture_path, load_body, read_scene
 
 __all__ = [
     "SceneError",
@@ -312,6 +313,13 @@ def _check_cameras(sdir: Path, info: dict, checks: list[str]) -> tuple[list[str]
     intri = _wrap(read_intri, intri_p)
     if not intri:
         _fail(intri_p, "lists no cameras")
+    scale = _wrap(camera_scale, info, sdir.parent)
+    if scale is not None:  # the images are `scale` times the calibration's size (scene.yaml cameras/scale)
+        for c in intri:
+            intri[c]["K"] = scale_intrinsics(intri[c]["K"], scale)
+            for key in ("H", "W"):
+                if key in intri[c]:
+                    intri[c][key] = _wrap(scaled_size, intri[c][key], scale, f"{intri_p}: {key}_{c}")
     # 1. the same cameras in both files: presence of keys, by OpenCV's own parser
     try:
         fs = cv2.FileStorage(str(extri_p), cv2.FILE_STORAGE_READ)
@@ -364,9 +372,52 @@ def _check_cameras(sdir: Path, info: dict, checks: list[str]) -> tuple[list[str]
     if sizes:
         (hw,) = sizes
         if size is not None and hw != size:
-            _fail(intri_p, f"image size H_/W_ is {hw[0]}x{hw[1]} but scene.yaml image_size is {size[0]}x{size[1]}")
+            _fail(intri_p, f"image size H_/W_ is {hw[0]}x{hw[1]} but scene.yaml image_size is {size[0]}x{size[1]}"
+                  + _size_factor_hint(size, hw))
         size = hw
     return used, raw, size
+
+
+def _size_factor_hint(images: tuple, calib: tuple) -> str:
+    """': the images are f times ... set cameras/scale: f' when both sides differ by one factor f, else ''."""
+    fy, fx = images[0] / calib[0], images[1] / calib[1]
+    if abs(fy - fx) > 1e-9 * max(fx, fy):
+        return ""
+    return (f"; the images are {fx:.6g}x the calibration's size: if the calibration is right for the images at "
+            f"full size, set scene.yaml cameras/scale: {fx:.6g}")
+
+
+#: the principal point must lie within this fraction of the image size from its centre, on both axes
+CENTRE_BAND = 0.15
+#: image-size factors a calibration is commonly off by (resized images), tried when the principal point is not
+#: near the centre
+SIZE_FACTORS = (1 / 4, 1 / 3, 1 / 2, 2 / 3, 3 / 4, 4 / 3, 3 / 2, 2, 3, 4)
+
+
+def _check_principal_points(intri_p: Path, info: dict, raw: dict, used: list[str], size: tuple,
+                            checks: list[str]) -> None:
+    """Each camera's principal point near the centre of the images (|c / size - 0.5| <= CENTRE_BAND): a
+    calibration made for another image size puts it elsewhere. The error names the factor that would fit
+    (scene.yaml cameras/scale); ``cameras/off_centre: true`` skips the check (a lens whose axis is off-centre)."""
+    if (info.get("cameras") or {}).get("off_centre") is True:
+        checks.append("principal points not checked (scene.yaml cameras/off_centre: true)")
+        return
+    H, W = size
+    for c in used:
+        cx, cy = float(raw[c]["K"][0, 2]), float(raw[c]["K"][1, 2])
+        rx, ry = (cx + 0.5) / W, (cy + 0.5) / H
+        if abs(rx - 0.5) <= CENTRE_BAND and abs(ry - 0.5) <= CENTRE_BAND:
+            continue
+        fits = sorted((max(abs((f * (cx + 0.5)) / W - 0.5), abs((f * (cy + 0.5)) / H - 0.5)), f)
+                      for f in SIZE_FACTORS)
+        dev, f = fits[0]
+        scale = camera_scale(info) or 1.0
+        hint = (f"the calibration looks made for images {1 / f:.3g}x this size: set scene.yaml cameras/scale: "
+                f"{scale * f:.6g} (K scaled about the pixel centres), " if dev <= CENTRE_BAND else "")
+        _fail(intri_p, f"camera '{c}': principal point ({cx:.1f}, {cy:.1f}) lies at ({rx:.2f}, {ry:.2f}) of the "
+                       f"{W}x{H} images, not within {CENTRE_BAND} of their centre: {hint}or, for a lens whose axis "
+                       f"is off-centre, scene.yaml cameras/off_centre: true")
+    checks.append(f"principal points within {CENTRE_BAND} of the image centre")
 
 
 # =========================================================================== frames and images
@@ -426,7 +477,8 @@ def _check_images(sdir: Path, used: list[str], size: tuple | None, images: str, 
                 expect = hw
             elif hw != tuple(expect):
                 src = "camera files / scene.yaml image_size" if size is not None else f"as {per[used[0]][frames[0]]}"
-                _fail(p, f"image is {hw[1]}x{hw[0]} (WxH), expected {expect[1]}x{expect[0]} ({src})")
+                _fail(p, f"image is {hw[1]}x{hw[0]} (WxH), expected {expect[1]}x{expect[0]} ({src})"
+                         + _size_factor_hint(hw, expect))
     checks.append("image headers and sizes (every frame)")
     # full decodes: the first and last frame of each camera, or all
     pick = frames if images == "all" else sorted({frames[0], frames[-1]})
@@ -595,6 +647,7 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_textu
                          "and normals will be undistorted to pinhole working cameras by rule undistort "
                          f"(results/<scene>/{name}/undistorted), which every later stage reads")
         frames, size, decoded = _check_images(sdir, used, size, images, checks)
+        _check_principal_points(sdir / "intri.yml", info, raw, used, size, checks)
         if "frames" in s and s["frames"] != len(frames):
             _fail(scene_dir / "scene.yaml", f"sequence '{name}' has frames: {s['frames']} but {sdir / 'images'} "
                                             f"holds {len(frames)} per camera")
