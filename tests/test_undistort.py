@@ -148,3 +148,37 @@ def test_bad_inputs_name_the_problem():
         undistort_labels(np.zeros((H, W), np.float32), maps, 0)
     nan = np.full((H, W, 3), np.nan, np.float32)
     assert (undistort_normals(nan, maps, 0) == 0).all()
+
+
+def test_fold_radius_is_where_the_lens_polynomial_stops_growing():
+    from anidress_core.undistort import fold_radius
+
+    dist = torch.tensor([[0.0, -1.49, 0.0, 0.0, 0.0], [-0.5, 0.05, 0.0, 0.0, 0.0], [0.1, 0.01, 0.0, 0.0, 0.0],
+                         [0.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    r = fold_radius(dist)
+    assert abs(float(r[0]) - (1 / (5 * 1.49)) ** 0.25) < 1e-12
+    for c in range(2):  # the derivative of r (1 + k1 r^2 + k2 r^4 + k3 r^6) is zero there, positive before
+        k1, k2, _, _, k3 = dist[c].tolist()
+        d = lambda x: 1 + 3 * k1 * x**2 + 5 * k2 * x**4 + 7 * k3 * x**6  # noqa: E731
+        x = float(r[c])
+        assert abs(d(x)) < 1e-9 and all(d(t) > 0 for t in np.linspace(0, x, 50)[:-1])
+    assert torch.isinf(r[2:]).all()  # pincushion and pinhole lenses never fold
+
+
+def test_pixels_past_the_fold_are_invalid_and_the_rest_match_opencv():
+    """A strong EasyMocap-like calibration (k2 = -1.49) at 960 x 540: the working image's corners lie past the
+    fold, where the lens model sends rays back inward; the maps are float32 within 0.05 px of OpenCV elsewhere."""
+    from anidress_core.undistort import fold_radius
+
+    Hh, Ww = 540, 960
+    K = torch.tensor([[[600.0, 0.0, 479.5], [0.0, 600.0, 269.5], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    D = torch.tensor([[0.05, -1.49, 2e-4, -1e-4, 0.0]], dtype=torch.float64)
+    maps = undistort_maps(K, D, Hh, Ww)
+    v, u = np.mgrid[0:Hh, 0:Ww].astype(np.float64)
+    r = np.hypot((u - 479.5) / 600.0, (v - 269.5) / 600.0)
+    past = r >= float(fold_radius(D)[0])
+    assert past.mean() > 0.01 and not maps.valid[0][past].any()
+    mx, my = cv2.initUndistortRectifyMap(K[0].numpy(), D[0].numpy(), None, K[0].numpy(), (Ww, Hh), cv2.CV_32FC1)
+    ok = maps.valid[0]
+    assert ok.mean() > 0.5
+    assert np.abs(maps.map_x[0][ok] - mx[ok]).max() < 0.05 and np.abs(maps.map_y[0][ok] - my[ok]).max() < 0.05

@@ -82,8 +82,7 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
     names = cams.names
     bad = distorted_cameras(scene_dir, seq, info)
     H, W = cams.height, cams.width
-    # 1. the maps of every camera (identity for the pinhole ones, which are copied instead)
-    maps = undistort_maps(cams.K, cams.dist, H, W)
+    # 1. the working cameras; the maps are made one camera at a time below (a distorted camera's only)
     work = working_cameras(cams)
     # 2. what to undistort: images of every camera; shipped masks / normals and gt masks where present
     jobs = []  # (kind, cam index, source, target)
@@ -112,46 +111,56 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
              "yes" if have["masks"] else "no", "yes" if have["normals"] else "no", "yes" if have["gt/masks"] else "no")
     distorted = {names.index(c) for c in bad if c in names}
 
-    def one(job, tmp: Path) -> None:
-        kind, ci, src, rel = job
+    def one(job, tmp: Path, maps) -> None:
+        """One file of camera ``cam_i``; ``maps``: that camera's alone (index 0), None for a pinhole camera."""
+        kind, cam_i, src, rel = job
         dst = tmp / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
         if kind == "normals":
             n = files.read_exr(src)
             if n.ndim != 3 or n.shape[:2] != (H, W) or n.shape[-1] < 3:
                 raise files.ArtifactError(f"{src}: normal map must be ({H}, {W}, 3), got {n.shape}")
-            files.write_exr(dst, undistort_normals(n, maps, ci) if ci in distorted else n[..., :3])
+            files.write_exr(dst, undistort_normals(n, maps, 0) if cam_i in distorted else n[..., :3])
             return
         if kind in ("masks", "gt/masks"):
             m = files.read_mask(src)
             if m.shape != (H, W):
                 raise files.ArtifactError(f"{src}: mask is {m.shape[1]}x{m.shape[0]}, the images are {W}x{H}")
-            files.write_mask(dst, undistort_labels(m, maps, ci) if ci in distorted else m)
+            files.write_mask(dst, undistort_labels(m, maps, 0) if cam_i in distorted else m)
             return
-        if ci not in distorted and src.suffix.lower() == ".png":
+        if cam_i not in distorted and src.suffix.lower() == ".png":
             shutil.copyfile(src, dst)
             return
         img = _read_raw(src)
         if img.shape[:2] != (H, W):
             raise files.ArtifactError(f"{src}: image is {img.shape[1]}x{img.shape[0]}, expected {W}x{H}")
-        _write_raw(dst, undistort_image(img, maps, ci) if ci in distorted else img)
+        _write_raw(dst, undistort_image(img, maps, 0) if cam_i in distorted else img)
 
     with files.atomic_dir(out_dir) as tmp:
-        # 3. remap every file (OpenCV releases the GIL: threads share the work)
+        # 3. remap every file, one camera at a time with its maps (OpenCV releases the GIL: threads share the
+        #    camera's files)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+            bar = tqdm(total=len(jobs), desc=f"undistort {seq}", unit="file")
+        valid_fraction = {}
         with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-            it = pool.map(lambda job: one(job, tmp), jobs)
-            if progress:
-                from tqdm import tqdm
-                it = tqdm(it, total=len(jobs), desc=f"undistort {seq}", unit="file")
-            for _ in it:
-                pass
+            for ci, cam in enumerate(names):
+                maps = undistort_maps(cams.K[ci:ci + 1], cams.dist[ci:ci + 1], H, W) if ci in distorted else None
+                valid_fraction[cam] = 1.0 if maps is None else round(float(maps.valid[0].mean()), 6)
+                for _ in pool.map(lambda job: one(job, tmp, maps), [j for j in jobs if j[1] == ci]):
+                    if bar is not None:
+                        bar.update()
+                del maps
+        if bar is not None:
+            bar.close()
         # 4. the working cameras, the original intrinsics, the record (last: it marks a complete folder)
         save_cameras(work, tmp / "intri.yml", tmp / "extri.yml")
         shutil.copyfile(seq_dir / "intri.yml", tmp / "original_intri.yml")
         rec = {"scene": scene_dir.name, "sequence": seq, "source": str(seq_dir), "cameras": names,
                "distorted": bad, "image_size": [H, W], "frames": n_frames,
                "working_camera": "pinhole, the source K, zero distortion, the same image size",
-               "valid_fraction": {c: round(float(maps.valid[i].mean()), 6) for i, c in enumerate(names)},
+               "valid_fraction": valid_fraction,
                "undistorted": ["images"] + [k for k in ("masks", "normals", "gt/masks", "backgrounds") if have[k]],
                "files": len(jobs), "wall_s": round(time.perf_counter() - t0, 3), "code_version": __version__}
         files.write_json(tmp / UNDISTORT_RECORD, rec)
