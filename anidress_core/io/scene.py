@@ -105,7 +105,7 @@ def camera_scale(info: dict, scene_dir: str | os.PathLike = "") -> float | None:
     if s is None:
         return None
     if isinstance(s, bool) or not isinstance(s, (int, float)) or not (0 < float(s) < 100):
-        raise files.ArtifactError(f"{Path(scene_dir) / 'scene.yaml'}: cameras/scale must be a number > 0 (the "
+        raise files.ArtifactError(f"{Path(scene_dir) / 'scene.yaml'}: cameras/scale must be a number in (0, 100) (the "
                                   f"images' size over the calibration's), got {s!r}")
     return None if float(s) == 1.0 else float(s)
 
