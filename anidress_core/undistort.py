@@ -114,7 +114,8 @@ def undistort_maps(K: Tensor, dist: Tensor, height: int, width: int, K_new: Tens
         #    the inverse's entries, computed in float64, applied in float32)
         Ki = torch.linalg.inv(K_new[c]).to(f32)
         w = Ki[2, 0] * u + Ki[2, 1] * v + Ki[2, 2]
-        xy = torch.stack([(Ki[0, 0] * u + Ki[0, 1] * v + Ki[0, 2]) / w, (Ki[1, 0] * u + Ki[1, 1] * v + Ki[1, 2]) / w], -1)
+        xy = torch.stack([(Ki[0, 0] * u + Ki[0, 1] * v + Ki[0, 2]) / w,
+                          (Ki[1, 0] * u + Ki[1, 1] * v + Ki[1, 2]) / w], -1)
         # 2. the source lens, then the source intrinsics
         xy_d = distort_normalized(xy.reshape(1, -1, 2), dist[c:c + 1].to(f32))[0].view(H, W, 2)
         Kc = K[c].to(f32)

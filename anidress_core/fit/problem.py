@@ -128,8 +128,8 @@ class Views(NamedTuple):
         bad = [f"{n} ({k} non-zero coefficient{'s' if k > 1 else ''})" for n, k in zip(cams.names, nonzero) if k]
         if bad:
             raise ValueError(f"fit: cameras {', '.join(bad)} have lens distortion, which the rasteriser does not "
-                             "model: read the sequence undistorted by rule undistort (command line: --undistorted DIR; Python: "
-                             "undistorted_dir=, anidress_core.io.scene.sequence_source)")
+                             "model: read the sequence undistorted by rule undistort (command line: --undistorted "
+                             "DIR; Python: undistorted_dir=, anidress_core.io.scene.sequence_source)")
         # Rotations read from float32 files are orthonormal to ~1e-7 only; the normal term
         # uses R^T = R^-1 (per-face grouping in world space), so they are projected onto SO(3).
         E = cams.world_to_cam.double().clone()
