@@ -1,8 +1,9 @@
 """A capture without ground truth through the whole workflow (issue 24 item 4).
 
 `anidress export-capture` writes a tiny synthetic skirt scene as a user's capture: distorted
-cameras whose intri.yml has no H_/W_, 4:3 images, noisy EasyMocap >= 0.2 body files, no gt/, no
-background plates, no garment texture, no masks. With the config entry it prints:
+cameras whose intri.yml has no H_/W_, 4:3 images (re-encoded here as JPEG, one camera's frames without
+zero padding), noisy EasyMocap >= 0.2 body files, no gt/, no background plates, no garment texture, no
+masks. With the config entry it prints:
 
 1. the default cues/masks/background 'plate' stops at validate_scene with one message naming the
    missing backgrounds/ folder and the setting (before any long stage);
@@ -26,6 +27,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import pytest
 import torch
 import yaml
@@ -73,6 +75,11 @@ def capture(tmp_path_factory):
     src = run_synth(cfg["scenes"]["s"], "s", root / "src" / "s", threads=1, progress=False)
     wd = root / "wd"
     rec = run_export_capture(src, wd / "data" / "cap", masks="none", seed=1, threads=1)
+    # as cameras deliver them: JPEG (quality 95), the frames of camera 02 named without zero padding
+    for p in sorted((wd / "data" / "cap").glob("*/images/*/*.png")):
+        name = f"{int(p.stem)}.JPG" if p.parent.name == "02" else f"{p.stem}.jpg"
+        cv2.imwrite(str(p.with_name(name)), cv2.imread(str(p), cv2.IMREAD_COLOR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        p.unlink()
     return wd, rec["config_entry"]
 
 
@@ -120,6 +127,7 @@ def test_capture_runs_end_to_end_without_ground_truth(ran):
     data = wd / "data" / "cap"
     assert "H_" not in (data / "walk" / "intri.yml").read_text()
     assert not list(data.rglob("gt")) and not list(data.rglob("backgrounds")) and not list(data.rglob("masks"))
+    assert (data / "walk" / "images" / "02" / "1.JPG").is_file() and not list(data.rglob("images/*/*.png"))
     out = wd / "results" / "cap"
     for v in ("full", "body_only"):
         with open(out / "walk" / v / "metrics.csv", newline="") as fh:
