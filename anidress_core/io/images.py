@@ -27,29 +27,30 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 looked for."""
 
 
-def frame_files(folder: Path) -> dict[int, Path]:
-    """{frame: path} of the ``<digits>.<ext>`` image files of ``folder``: any zero padding, the extensions of
-    :data:`IMAGE_EXTS` in any letter case (as validate_scene accepts them); {} for a missing folder. Where a
-    frame has several files, the first extension of IMAGE_EXTS wins (validate_scene refuses that case). The
-    listing is kept per folder until the folder changes (its mtime)."""
+def frame_files(folder: Path, exts: tuple[str, ...] = IMAGE_EXTS) -> dict[int, Path]:
+    """{frame: path} of the ``<digits>.<ext>`` files of ``folder``: any zero padding, the (lower-case)
+    extensions ``exts`` in any letter case (as validate_scene accepts them); {} for a missing folder. Where a
+    frame has several files, the first extension of ``exts`` wins (validate_scene refuses that case). The
+    listing is kept per folder and extensions until the folder changes (its mtime)."""
     folder = Path(folder)
     try:
         stamp = folder.stat().st_mtime_ns
     except (FileNotFoundError, NotADirectoryError):
         return {}
-    hit = _FRAME_FILES.get(str(folder))
+    key = (str(folder), tuple(exts))
+    hit = _FRAME_FILES.get(key)
     if hit is not None and hit[0] == stamp:
         return hit[1]
-    found = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit()),
-                   key=lambda p: (int(p.stem), IMAGE_EXTS.index(p.suffix.lower()), p.name))
+    found = sorted((p for p in folder.iterdir() if p.suffix.lower() in exts and p.stem.isdigit()),
+                   key=lambda p: (int(p.stem), exts.index(p.suffix.lower()), p.name))
     out: dict[int, Path] = {}
     for p in found:
         out.setdefault(int(p.stem), p)
-    _FRAME_FILES[str(folder)] = (stamp, out)
+    _FRAME_FILES[key] = (stamp, out)
     return out
 
 
-_FRAME_FILES: dict[str, tuple[int, dict[int, Path]]] = {}
+_FRAME_FILES: dict[tuple[str, tuple[str, ...]], tuple[int, dict[int, Path]]] = {}
 
 
 def frame_file(folder: Path, frame: int) -> Path:

@@ -43,7 +43,7 @@ from ..cues import flow as cue_flow
 from ..cues import masks as cue_masks
 from ..geometry import lbs
 from ..io import files
-from ..io.scene import (IMAGE_EXTS, image_path, load_body, load_sequence_motion, plate_path, read_scene, scene_cameras,
+from ..io.scene import (frame_files, image_path, load_body, load_sequence_motion, plate_path, read_scene, scene_cameras,
                         sequence_source)
 from ..io.scene_info import select_cameras
 from ..io.template import read_template
@@ -75,7 +75,7 @@ def sequence_frames(seq_dir: str | os.PathLike, cams: Sequence[str]) -> list[int
         d = seq_dir / "images" / cam
         if not d.is_dir():
             raise FileNotFoundError(f"{d}: image folder not found")
-        fr = sorted(int(p.stem) for p in d.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.stem.isdigit())
+        fr = sorted(frame_files(d))
         if not fr:
             raise FileNotFoundError(f"{d}: no <frame>.png/.jpg images")
         if frames is None:

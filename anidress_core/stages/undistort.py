@@ -33,7 +33,7 @@ import numpy as np
 from .. import __version__
 from ..camera import save_cameras
 from ..io import files
-from ..io.scene import IMAGE_EXTS, UNDISTORT_RECORD, distorted_cameras, read_scene, scene_cameras
+from ..io.scene import IMAGE_EXTS, UNDISTORT_RECORD, distorted_cameras, frame_files, read_scene, scene_cameras
 from ..undistort import undistort_image, undistort_labels, undistort_maps, undistort_normals, working_cameras
 
 log = logging.getLogger("anidress.undistort")
@@ -44,7 +44,7 @@ __all__ = ["run_undistort"]
 def _frames(d: Path, exts: tuple[str, ...]) -> dict[int, Path]:
     if not d.is_dir():
         raise FileNotFoundError(f"{d}: folder not found")
-    return {int(p.stem): p for p in sorted(d.iterdir()) if p.suffix.lower() in exts and p.stem.isdigit()}
+    return frame_files(d, exts)
 
 
 def _read_raw(path: Path) -> np.ndarray:
