@@ -34,6 +34,7 @@ __all__ = [
     "Cameras",
     "scale_intrinsics",
     "scaled_size",
+    "scale_calibration",
     "Projection",
     "Rays",
     "project",
@@ -489,6 +490,19 @@ def scaled_size(n: float, s: float, what: str) -> int:
     return int(round(v))
 
 
+def scale_calibration(raw: dict[str, dict], s: float, path: str | os.PathLike) -> dict[str, dict]:
+    """EasyMocap camera entries ``{name: {"K", ["H", "W"], ...}}`` (as :mod:`anidress_core.io.easymocap` reads
+    them, from file ``path``) for images ``s`` times the calibration's size: K by :func:`scale_intrinsics`,
+    ``H``/``W`` by :func:`scaled_size`; changed in place and returned."""
+    for c, entry in raw.items():
+        if "K" in entry:
+            entry["K"] = scale_intrinsics(entry["K"], s)
+        for key in ("H", "W"):
+            if key in entry:
+                entry[key] = scaled_size(entry[key], s, f"{path}: {key}_{c}")
+    return raw
+
+
 def load_cameras(
     intri_path: str | os.PathLike,
     extri_path: str | os.PathLike,
@@ -512,11 +526,7 @@ def load_cameras(
     if not cam_names:
         raise ValueError(f"{intri_path}: no cameras")
     if scale is not None:
-        for c in cam_names:
-            raw[c]["K"] = scale_intrinsics(raw[c]["K"], scale)
-            for key in ("H", "W"):
-                if key in raw[c]:
-                    raw[c][key] = scaled_size(raw[c][key], scale, f"{intri_path}: {key}_{c}")
+        scale_calibration(raw, scale, intri_path)
     # 1. image size: from the files (all cameras agree), else from the arguments
     size = []
     for key, arg, what in (("H", height, "height"), ("W", width, "width")):

@@ -66,7 +66,7 @@ from ..io.files import SceneError
 from ..io.images import check_exr_magic, image_size_from_header
 from ..io.mesh import read_mesh
 from ..io.motion import read_easymocap_smpl_dir, smpl_selection
-from ..camera import scale_intrinsics, scaled_size
+from ..camera import scale_calibration
 from ..io.scene import DIST_EPS, IMAGE_EXTS, camera_scale, garment_texture_path, load_body, read_scene
 
 __all__ = [
@@ -315,11 +315,7 @@ def _check_cameras(sdir: Path, info: dict, checks: list[str]) -> tuple[list[str]
         _fail(intri_p, "lists no cameras")
     scale = _wrap(camera_scale, info, sdir.parent)
     if scale is not None:  # the images are `scale` times the calibration's size (scene.yaml cameras/scale)
-        for c in intri:
-            intri[c]["K"] = scale_intrinsics(intri[c]["K"], scale)
-            for key in ("H", "W"):
-                if key in intri[c]:
-                    intri[c][key] = _wrap(scaled_size, intri[c][key], scale, f"{intri_p}: {key}_{c}")
+        _wrap(scale_calibration, intri, scale, intri_p)
     # 1. the same cameras in both files: presence of keys, by OpenCV's own parser
     try:
         fs = cv2.FileStorage(str(extri_p), cv2.FILE_STORAGE_READ)
