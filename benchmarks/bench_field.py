@@ -367,6 +367,21 @@ def _med_worst(vals: list[float], worst=min) -> str:
     return f"median {statistics.median(vals):+.2f}, worst {worst(vals):+.2f}" if vals else "n/a"
 
 
+def _change_summary(ref: list[dict], new: list[dict], scenes: list[str], k: str) -> str:
+    """'garment median .., worst ..; subject ..; box ..; IoU ..': ``new`` minus ``ref`` (rows of one kind of
+    run each, one per scene) over ``scenes``, for kind ``k`` (nv, np)."""
+    parts = []
+    for f, nd in (("psnr_garment_db", "garment"), ("psnr_subject_db", "subject"), ("psnr_db", "box"), ("iou", "IoU")):
+        vals = []
+        for sc in scenes:
+            a = [r for r in ref if r["scene"] == sc]
+            b = [r for r in new if r["scene"] == sc]
+            if a and b:
+                vals.append(b[0][f"{k}_{f}"] - a[0][f"{k}_{f}"])
+        parts.append(f"{nd} {_med_worst(vals)}")
+    return "; ".join(parts)
+
+
 def _suite_head(m: dict, what: str, budgets: tuple[float, ...]) -> list[str]:
     return [f"- command: `.venv/bin/python -m benchmarks.bench_field {what}` (git {m['git']}, {m['date']}); {m['cpu']}; "
             f"load {m['load_start']} at the start, {m['load_end']} at the end",
@@ -412,18 +427,10 @@ def suite_table(d: dict) -> list[str]:
                  f"{_figs(r, 'np')} |")
     L += ["", "This code at its defaults minus the reference, over the held-out scenes (PSNR dB; IoU):", ""]
     for variant in ("full", "body_only"):
+        ref = [r for r in dflt if r["variant"] == variant and r["code"] != "."]
+        new = [r for r in dflt if r["variant"] == variant and r["code"] == "."]
         for k, name in (("nv", "novel view"), ("np", "novel pose")):
-            parts = []
-            for f, nd in (("psnr_garment_db", "garment"), ("psnr_subject_db", "subject"), ("psnr_db", "box"),
-                          ("iou", "IoU")):
-                vals = []
-                for sc in held:
-                    a = [r for r in dflt if r["scene"] == sc and r["variant"] == variant and r["code"] != "."]
-                    b = [r for r in dflt if r["scene"] == sc and r["variant"] == variant and r["code"] == "."]
-                    if a and b:
-                        vals.append(b[0][f"{k}_{f}"] - a[0][f"{k}_{f}"])
-                parts.append(f"{nd} {_med_worst(vals)}")
-            L.append(f"- `{variant}`, {name}: " + "; ".join(parts))
+            L.append(f"- `{variant}`, {name}: " + _change_summary(ref, new, held, k))
     L.append("")
     for k, name in (("nv", "novel view"), ("np", "novel pose")):
         margins = []
@@ -486,19 +493,11 @@ def options_table(d: dict) -> list[str]:
         L.append(f"| {r['scene']} | {r['method']} | {_f(r['train_wall_s'], 0)} | {_figs(r, 'nv')} | "
                  f"{_figs(r, 'np')} |")
     L += ["", "Each row minus the defaults, over the held-out scenes (PSNR dB; IoU):", ""]
+    ref = [r for r in rows if r["method"] == base]
     for label, _, _ in OPTIONS[1:]:
+        new = [r for r in rows if r["method"] == label]
         for k, name in (("nv", "novel view"), ("np", "novel pose")):
-            parts = []
-            for f, nd in (("psnr_garment_db", "garment"), ("psnr_subject_db", "subject"), ("psnr_db", "box"),
-                          ("iou", "IoU")):
-                vals = []
-                for sc in m["held_out"]:
-                    a = [r for r in rows if r["scene"] == sc and r["method"] == base]
-                    b = [r for r in rows if r["scene"] == sc and r["method"] == label]
-                    if a and b:
-                        vals.append(b[0][f"{k}_{f}"] - a[0][f"{k}_{f}"])
-                parts.append(f"{nd} {_med_worst(vals)}")
-            L.append(f"- {label}, {name}: " + "; ".join(parts))
+            L.append(f"- {label}, {name}: " + _change_summary(ref, new, m["held_out"], k))
     return L
 
 
