@@ -33,7 +33,8 @@ import numpy as np
 from .. import __version__
 from ..camera import save_cameras
 from ..io import files
-from ..io.scene import IMAGE_EXTS, UNDISTORT_RECORD, distorted_cameras, frame_files, read_scene, scene_cameras
+from ..io.scene import (IMAGE_EXTS, UNDISTORT_RECORD, distorted_cameras, frame_files, plate_path, read_scene,
+                        scene_cameras)
 from ..undistort import undistort_image, undistort_labels, undistort_maps, undistort_normals, working_cameras
 
 log = logging.getLogger("anidress.undistort")
@@ -102,8 +103,7 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
                 raise FileNotFoundError(f"{root / cam}: no <frame>.png/.jpg images")
             jobs += [(kind, ci, p, Path(kind) / cam / f"{f:06d}{ext}") for f, p in fr.items()]
     n_frames = len({j[3].name for j in jobs if j[0] == "images"})
-    plates = [(ci, p) for ci, cam in enumerate(names) for p in sorted((seq_dir / "backgrounds").glob(f"{cam}.*"))
-              if p.suffix.lower() in IMAGE_EXTS]
+    plates = [(ci, p) for ci, p in ((ci, plate_path(seq_dir, cam)) for ci, cam in enumerate(names)) if p.is_file()]
     jobs += [("images", ci, p, Path("backgrounds") / f"{names[ci]}.png") for ci, p in plates]
     have["backgrounds"] = bool(plates)
     log.info("undistort %s/%s: %d cameras (%s distorted) x %d frames at %dx%d, masks %s, normals %s, gt masks %s",
