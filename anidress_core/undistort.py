@@ -21,7 +21,9 @@ model maps farther rays back inward and the source position belongs to another r
 
 Images are interpolated bilinearly, label masks by nearest neighbour (labels never blend),
 normal maps bilinearly and renormalised (the camera rotation is unchanged, so camera-space
-normals keep their frame). Pure functions: arrays in, arrays out; files are written by the stage.
+normals keep their frame). A flow field's *vectors* are remapped, not only resampled
+(:func:`undistort_flow`): a flow is a displacement between two source pixels, and the working
+flow is the displacement between where those two points lie in the working image. Pure functions: arrays in, arrays out; files are written by the stage.
 """
 from __future__ import annotations
 
@@ -32,11 +34,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .camera import Cameras, distort_normalized
+from .camera import Cameras, distort_normalized, undistort_normalized
 from .io.scene import DIST_EPS
 
 __all__ = ["UndistortMaps", "undistort_maps", "fold_radius", "working_cameras", "undistort_image", "undistort_labels",
-           "undistort_normals", "distorted_camera_names", "DIST_EPS"]
+           "undistort_normals", "remap_flow", "undistort_flow", "distorted_camera_names", "DIST_EPS"]
 
 class UndistortMaps(NamedTuple):
     """Per-camera lookup maps from the working (pinhole) image into the source (distorted) image."""
@@ -182,3 +184,56 @@ def undistort_normals(normals: np.ndarray, maps: UndistortMaps, cam: int, eps: f
     norm = np.linalg.norm(out, axis=-1, keepdims=True)
     ok = maps.valid[cam][..., None] & np.isfinite(norm) & (norm > eps)
     return np.where(ok, out / np.where(ok, norm, 1.0), 0.0).astype(np.float32)
+
+
+def remap_flow(flow: np.ndarray, valid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, map_valid: np.ndarray,
+               to_target) -> tuple[np.ndarray, np.ndarray]:
+    """A forward flow field moved to another camera model of the same camera: the vectors remapped.
+
+    flow: (H, W, 2) source-image flow ``F`` from frame t-1 to t on frame t-1's source pixel grid; valid:
+    (H, W) bool; map_x, map_y: (H', W') float32, the source pixel ``s`` of each target pixel ``p``;
+    map_valid: (H', W') bool; to_target: (N, 2) float64 source pixels -> (N, 2) target pixels (the inverse
+    of the maps). The point at ``s`` moves to ``s + F(s)`` (F bilinear) in the source image, i.e. to
+    ``p' = to_target(s + F(s))``; the target flow is ``p' - p``. Valid where ``map_valid`` is, the four source
+    neighbours of ``s`` are valid and ``p'`` is finite. Returns (flow (H', W', 2) float32, valid (H', W')
+    bool); invalid pixels hold 0.
+    """
+    import cv2
+
+    if flow.ndim != 3 or flow.shape[-1] != 2 or valid.shape != flow.shape[:2]:
+        raise ValueError(f"remap_flow: flow must be (H, W, 2) with valid (H, W), got {flow.shape}, {valid.shape}")
+    H, W = map_x.shape
+    f = np.where(valid[..., None], flow, 0).astype(np.float32)
+    fs = cv2.remap(np.ascontiguousarray(f), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # every bilinear neighbour valid: the minimum of the validity over the 2 x 2 neighbourhood of s
+    nb = cv2.erode(valid.astype(np.uint8), np.ones((2, 2), np.uint8), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
+    ok = map_valid & (cv2.remap(nb, np.floor(map_x), np.floor(map_y), cv2.INTER_NEAREST,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0)
+    s1 = np.stack([map_x + fs[..., 0], map_y + fs[..., 1]], -1).reshape(-1, 2).astype(np.float64)
+    p1 = np.asarray(to_target(s1), np.float64).reshape(H, W, 2)
+    v, u = np.mgrid[0:H, 0:W]
+    out = (p1 - np.stack([u, v], -1)).astype(np.float32)
+    ok &= np.isfinite(out).all(-1)
+    out[~ok] = 0
+    return out, ok
+
+
+def undistort_flow(flow: np.ndarray, valid: np.ndarray, maps: UndistortMaps, cam: int, K: Tensor, dist: Tensor,
+                   K_new: Tensor | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A forward flow field of camera ``cam`` (source camera K (3, 3), dist (5,)) in the working camera
+    (K_new, default K): :func:`remap_flow` with ``to_target(s) = K_new undistort(K^-1 s)``. flow: (H, W, 2),
+    valid: (H, W) bool -> (flow (H, W, 2) float32, valid (H, W) bool)."""
+    _check(flow, maps, cam, "undistort_flow")
+    K = torch.as_tensor(K, dtype=torch.float64)
+    Kn = K if K_new is None else torch.as_tensor(K_new, dtype=torch.float64)
+    d = torch.as_tensor(dist, dtype=torch.float64).reshape(5)
+
+    def to_target(s: np.ndarray) -> np.ndarray:
+        s = torch.from_numpy(s)
+        y = (s[:, 1] - K[1, 2]) / K[1, 1]
+        x = (s[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        xu = undistort_normalized(torch.stack([x, y], -1), d)
+        return torch.stack([Kn[0, 0] * xu[:, 0] + Kn[0, 1] * xu[:, 1] + Kn[0, 2],
+                            Kn[1, 1] * xu[:, 1] + Kn[1, 2]], -1).numpy()
+
+    return remap_flow(flow, valid, maps.map_x[cam], maps.map_y[cam], maps.valid[cam], to_target)

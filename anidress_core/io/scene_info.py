@@ -18,7 +18,7 @@ import yaml
 from . import easymocap, files
 
 __all__ = ["DIST_EPS", "read_scene", "garment_texture_path", "distorted_cameras", "scene_config_entry",
-           "select_cameras"]
+           "select_cameras", "SHIPPED_CUE_FORMATS", "SCHP_LABEL_SET_NAMES", "cue_formats"]
 
 DIST_EPS = 1e-9
 """A distortion coefficient of magnitude at most this counts as zero (a pinhole camera)."""
@@ -37,6 +37,66 @@ def read_scene(scene_dir: str | os.PathLike) -> dict:
         if key not in info:
             raise files.ArtifactError(f"{path}: missing key {key!r}")
     return info
+
+
+SHIPPED_CUE_FORMATS = {"masks": ("labels", "schp"), "normals": ("exr", "sapiens", "png", "icon"),
+                       "flows": ("exr", "raft", "kitti")}
+"""The formats of the cue files a captured sequence may ship (scene.yaml ``cues/<kind>/format``), the
+pipeline's own first (the default). Readers: :mod:`anidress_core.io.shipped_cues`."""
+SCHP_LABEL_SET_NAMES = ("lip", "atr", "cihp")
+"""The label sets of SCHP's palette masks (``cues/masks/label_set``)."""
+
+
+def cue_formats(info: dict, scene_dir: str | os.PathLike = "") -> dict:
+    """scene.yaml ``cues``: the formats of the cue files the scene's sequences ship, checked.
+
+    Returns ``{"masks": {"format", "label_set", "garment_labels", "person"}, "normals": {"format"},
+    "flows": {"format"}}``, every key present: ``format`` defaults to the pipeline's own (labels,
+    exr, exr); ``label_set`` (schp masks: lip | atr | cihp, default lip); ``garment_labels``
+    (a list of label values, None: the label set's default, :data:`anidress_core.io.cue_files.SCHP_GARMENT_LABELS`);
+    ``person`` (EasyMocap's per-person ``<frame>_<i>.png`` masks: whose file; None: the only one).
+    """
+    where = Path(scene_dir) / "scene.yaml"
+    sec = info.get("cues") or {}
+    if not isinstance(sec, dict):
+        raise files.ArtifactError(f"{where}: cues must be a mapping (masks, normals, flows), got {sec!r}")
+    unknown = set(sec) - set(SHIPPED_CUE_FORMATS)
+    if unknown:
+        raise files.ArtifactError(f"{where}: cues/{sorted(unknown)[0]}: unknown key (known: masks, normals, flows)")
+    allowed = {"masks": {"format", "label_set", "garment_labels", "person"}, "normals": {"format"},
+               "flows": {"format"}}
+    out = {}
+    for kind, formats in SHIPPED_CUE_FORMATS.items():
+        c = sec.get(kind) or {}
+        if not isinstance(c, dict):
+            raise files.ArtifactError(f"{where}: cues/{kind} must be a mapping with a format, got {c!r}")
+        bad = set(c) - allowed[kind]
+        if bad:
+            raise files.ArtifactError(f"{where}: cues/{kind}/{sorted(bad)[0]}: unknown key (known: "
+                                      f"{', '.join(sorted(allowed[kind]))})")
+        fmt = c.get("format", formats[0])
+        if fmt not in formats:
+            raise files.ArtifactError(f"{where}: cues/{kind}/format must be one of {list(formats)}, got {fmt!r}")
+        out[kind] = {"format": fmt}
+    m, msec = out["masks"], sec.get("masks") or {}
+    m["label_set"] = msec.get("label_set", "lip")
+    if m["label_set"] not in SCHP_LABEL_SET_NAMES:
+        raise files.ArtifactError(f"{where}: cues/masks/label_set must be one of {list(SCHP_LABEL_SET_NAMES)}, "
+                                  f"got {m['label_set']!r}")
+    gl = msec.get("garment_labels")
+    if gl is not None and (not isinstance(gl, list) or not all(isinstance(v, int) and not isinstance(v, bool)
+                                                               and 0 <= v < 256 for v in gl)):
+        raise files.ArtifactError(f"{where}: cues/masks/garment_labels must be a list of label values 0..255, "
+                                  f"got {gl!r}")
+    m["garment_labels"] = gl
+    person = msec.get("person")
+    if person is not None and (isinstance(person, bool) or not isinstance(person, int) or person < 0):
+        raise files.ArtifactError(f"{where}: cues/masks/person must be a person index >= 0, got {person!r}")
+    m["person"] = person
+    if m["format"] != "schp" and any(k in msec for k in ("label_set", "garment_labels", "person")):
+        raise files.ArtifactError(f"{where}: cues/masks: label_set, garment_labels and person apply to format "
+                                  f"schp, the format is {m['format']!r}")
+    return out
 
 
 def garment_texture_path(scene_dir: str | os.PathLike, info: dict) -> Path:

@@ -9,12 +9,18 @@ cameras, ``all``: every camera), directory outputs::
                                         to frame in pixels on frame-1's pixel grid; no file
                                         for the first frame; valid = 1 inside the processed
                                         region (dilated subject box of both frames), else 0
-    <out>/normals.json                  the normal cue: the shipped folder used as it is,
-                                        or {"skipped": true, "reason": ..., "normal_weight": 0}
+    <out>/normals.json                  the normal cue: the folder the fit reads and the axis convention
+                                        found, or {"skipped": true, "reason": ..., "normal_weight": 0}
+    <out>/normals/<cam>/<frame:06d>.exr a captured sequence's shipped normals in the pipeline's format and
+                                        axes (run_normals with out_dir); empty otherwise
 
-Masks and normals shipped with a sequence (``data/<scene>/<seq>/masks``, ``normals``)
-are used as they are; ``data/<scene>/<seq>/gt`` is ground truth for evaluation only
-and is never read by the estimators. A sequence whose cameras have lens distortion is read
+Masks, normals and flows shipped with a sequence (``data/<scene>/<seq>/masks``, ``normals``,
+``flows``) in the formats scene.yaml's ``cues`` names (:mod:`anidress_core.io.shipped_cues`) are
+used, not estimated: label masks as they are, a human parser's masks converted to labels
+(:func:`run_convert_masks`), flows converted with ``cues/flows/method: files``
+(:func:`run_convert_flows`), normals checked for their axis convention against the posed body
+(:func:`run_normals`). ``data/<scene>/<seq>/gt`` is ground truth for evaluation only and is never
+read by the estimators. A sequence whose cameras have lens distortion is read
 from its copy undistorted to pinhole working cameras (``undistorted_dir``, rule undistort;
 :func:`anidress_core.io.scene.sequence_source` decides). A directory output is written into a hidden
 temporary sibling and renamed into place at the end: a failure leaves nothing
@@ -41,11 +47,12 @@ from .. import __version__
 from ..cues import evaluate as cue_eval
 from ..cues import flow as cue_flow
 from ..cues import masks as cue_masks
+from ..cues import normals as cue_normals
 from ..geometry import lbs
-from ..io import files
+from ..io import cue_files, files, shipped_cues
 from ..io.scene import (frame_files, image_path, load_body, load_sequence_motion, plate_path, read_scene, scene_cameras,
                         sequence_source)
-from ..io.scene_info import select_cameras
+from ..io.scene_info import cue_formats, select_cameras
 from ..io.template import read_template
 from ..synth import LABEL_GARMENT
 
@@ -55,8 +62,11 @@ __all__ = [
     "mask_params",
     "ShapePrior",
     "run_masks",
+    "run_convert_masks",
     "run_flows",
+    "run_convert_flows",
     "run_normals",
+    "body_normals",
     "evaluate_cues",
     "format_table",
 ]
@@ -157,6 +167,17 @@ class ShapePrior:
         g = None if self.garment_verts is None else self.garment_verts[t]
         return cue_masks.render_prior(self.body_verts[t], self.body_faces, g, self.garment_faces, self.cams.K,
                                       self.cams.world_to_cam, self.cams.height, self.cams.width).numpy()
+
+    def body_normals(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """Where the posed body is seen (C, H, W) bool (not hidden by the skinned garment template) and the
+        camera-space normals (C, H, W, 3) of the visible surface, OpenCV axes, facing the camera."""
+        from ..raster import rasterize, render_face_normals
+
+        v, faces = self._mesh(self.frame_pos[frame])
+        K, w2c = self.cams.K.float(), self.cams.world_to_cam.float()
+        frags = rasterize(v, faces, K, w2c, self.cams.height, self.cams.width)
+        body = (frags.face_id >= 0) & (frags.face_id < self.body_faces.shape[0])
+        return body.numpy(), render_face_normals(v, faces, w2c, frags).numpy()
 
     def _mesh(self, t: int) -> tuple[Tensor, Tensor]:
         if self.garment_verts is None:
@@ -290,6 +311,53 @@ def run_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike
     return stats
 
 
+def run_convert_masks(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike, garment: bool = True,
+                      threads: int = 2, progress: bool = True,
+                      undistorted_dir: str | os.PathLike | None = None) -> dict:
+    """A sequence's shipped masks in scene.yaml's ``cues/masks`` format (a human parser's) as labels
+    ``out_dir/<cam>/<frame:06d>.png`` (0 background, 1 body, 2 garment), every camera they cover.
+
+    garment False: a tight-clothed scene (garment labels are body). Returns the counts.
+    """
+    t_start = time.perf_counter()
+    scene_dir = Path(scene_dir)
+    info = read_scene(scene_dir)
+    cfg = cue_formats(info, scene_dir)["masks"]
+    seq_dir = sequence_source(scene_dir, seq, undistorted_dir, info)
+    root = seq_dir / "masks"
+    names = [c for c in select_cameras(info, "all", scene_dir) if (root / c).is_dir()]
+    if not names:
+        raise FileNotFoundError(f"{root}: no camera folders of shipped masks")
+    cams = _cameras(seq_dir, names[:1], info)
+    shape = (cams.height, cams.width)
+    frames = sequence_frames(seq_dir, names[:1])
+    labels = shipped_cues.garment_labels(cfg) if cfg["format"] == "schp" else (2,)
+    log.info("masks %s/%s: shipped %s masks (%s) of %d cameras x %d frames converted to labels; garment labels %s",
+             scene_dir.name, seq, cfg["format"], cfg.get("label_set"), len(names), len(frames),
+             list(labels) if garment else "none (tight)")
+    garment_px = subject_px = 0
+    with files.atomic_dir(out_dir) as tmp, ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        def one(job):
+            cam, f = job
+            lab = shipped_cues.read_mask_labels(root, cam, f, cfg, shape, garment)
+            files.write_mask(tmp / cam / f"{f:06d}.png", lab)
+            return int((lab == 2).sum()), int((lab > 0).sum())
+
+        jobs = [(c, f) for c in names for f in frames]
+        for g, a in tqdm(pool.map(one, jobs), total=len(jobs), desc=f"masks {seq}", unit="mask",
+                         disable=not progress):
+            garment_px += g
+            subject_px += a
+    if garment and garment_px == 0:
+        raise ValueError(f"{root}: no pixel of the shipped masks carries a garment label {list(labels)} of label set "
+                         f"{cfg.get('label_set')!r}: set scene.yaml cues/masks/garment_labels (or label_set)")
+    stats = {"cameras": len(names), "frames": len(frames), "garment_fraction": garment_px / max(1, subject_px),
+             "wall_s": time.perf_counter() - t_start}
+    log.info("masks %s/%s: wrote %s in %.1f s (garment %.0f%% of the subject's pixels)", scene_dir.name, seq, out_dir,
+             stats["wall_s"], 100 * stats["garment_fraction"])
+    return stats
+
+
 # --------------------------------------------------------------------------- flows
 
 
@@ -353,7 +421,8 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
               threads: int = 2, progress: bool = True, undistorted_dir: str | os.PathLike | None = None) -> dict:
     """Forward optical flow of one sequence into ``out_dir/<cam>/<frame>.exr`` (no file for the first frame).
 
-    cfg: the ``cues/flows`` config section (``method``, ``margin_px``, ``prior``, ``refine``,
+    cfg: the ``cues/flows`` config section (``method`` (``files``: :func:`run_convert_flows`), ``margin_px``,
+    ``prior``, ``refine``,
     ``refine_window``; with ``refine: lk`` the garment's pixels of frame t-1 are then
     re-estimated by :func:`anidress_core.cues.flow.refine_lk`).
     masks_dir: the sequence's masks (shipped or estimated), which bound the processed
@@ -362,6 +431,8 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
     (:func:`anidress_core.cues.flow.estimate_flow`). The cameras of a frame run in
     parallel on ``threads`` threads (OpenCV itself single-threaded).
     """
+    if cfg["method"] == "files":
+        return run_convert_flows(scene_dir, seq, out_dir, cameras, threads, progress, undistorted_dir)
     t_start = time.perf_counter()
     scene_dir, masks_dir = Path(scene_dir), Path(masks_dir)
     info = read_scene(scene_dir)
@@ -414,24 +485,93 @@ def run_flows(scene_dir: str | os.PathLike, seq: str, masks_dir: str | os.PathLi
     return stats
 
 
+def run_convert_flows(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.PathLike,
+                      cameras: str | Sequence[str] = "train", threads: int = 2, progress: bool = True,
+                      undistorted_dir: str | os.PathLike | None = None) -> dict:
+    """``cues/flows/method: files``: a sequence's shipped flows (scene.yaml ``cues/flows/format``; a distorted
+    capture's, remapped by rule undistort) in the pipeline's ``out_dir/<cam>/<frame:06d>.exr`` (X, Y, valid).
+
+    Every selected camera needs a file per frame but the first (forward flow from frame t-1 to t, named by
+    t): each is checked (size, RAFT's padding, finite values) and an error names the first bad or missing
+    file. Returns the counts.
+    """
+    t_start = time.perf_counter()
+    scene_dir = Path(scene_dir)
+    info = read_scene(scene_dir)
+    seq_dir = sequence_source(scene_dir, seq, undistorted_dir, info)
+    root = seq_dir / "flows"
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: cues/flows/method is 'files' but the sequence ships no flows/ folder "
+                                "(<cam>/<frame>.flo, .png (KITTI) or .exr; scene.yaml cues/flows/format)")
+    fmt = shipped_cues.source_format(seq_dir, "flows", cue_formats(info, scene_dir)["flows"]["format"])
+    names = select_cameras(info, cameras, scene_dir)
+    frames = sequence_frames(seq_dir, names)
+    cams = _cameras(seq_dir, names[:1], info)
+    shape = (cams.height, cams.width)
+    for cam in names:
+        have = shipped_cues.cue_frames(root / cam, "flows", fmt)
+        missing = [f for f in frames[1:] if f not in have]
+        if missing:
+            raise FileNotFoundError(f"{root / cam}: no {fmt} flow for frames {missing[:5]} (one file per frame but "
+                                    f"the first, <frame>{shipped_cues.CUE_SUFFIX[('flows', fmt)]}: the flow from the "
+                                    "frame before to it)")
+    log.info("flows %s/%s: shipped %s flows of %d cameras x %d pairs", scene_dir.name, seq, fmt, len(names),
+             len(frames) - 1)
+    valid_px = 0
+    with files.atomic_dir(out_dir) as tmp, ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        def one(job):
+            cam, f = job
+            fl, ok = shipped_cues.read_flow(root, cam, f, fmt, shape)
+            files.write_exr(tmp / cam / f"{f:06d}.exr", np.concatenate(
+                [np.where(ok[..., None], fl, 0), ok[..., None]], -1).astype(np.float32), ("X", "Y", "valid"))
+            return int(ok.sum())
+
+        jobs = [(c, f) for c in names for f in frames[1:]]
+        for n in tqdm(pool.map(one, jobs), total=len(jobs), desc=f"flows {seq}", unit="flow", disable=not progress):
+            valid_px += n
+    stats = {"method": "files", "format": fmt, "pairs": len(jobs), "wall_s": time.perf_counter() - t_start,
+             "valid_fraction": valid_px / max(1, len(jobs) * shape[0] * shape[1])}
+    log.info("flows %s/%s: wrote %s in %.1f s (%.0f%% of the pixels valid)", scene_dir.name, seq, out_dir,
+             stats["wall_s"], 100 * stats["valid_fraction"])
+    return stats
+
+
 # --------------------------------------------------------------------------- normals
+
+
+def body_normals(scene_dir: Path, seq: str, info: dict, seq_dir: Path, names: Sequence[str], frames: list[int],
+                 template_npz: str | os.PathLike | None) -> ShapePrior:
+    """The shape prior of the frames ``frames`` of a sequence (its :meth:`ShapePrior.body_normals` give the posed
+    body's normals where it is seen)."""
+    return ShapePrior(scene_dir, seq, info, template_npz, _cameras(seq_dir, names, info), frames)
 
 
 def run_normals(scene_dir: str | os.PathLike, seq: str, normals_dir: str | os.PathLike | None,
                 out_json: str | os.PathLike, cameras: str | Sequence[str] = "train",
-                reason: str | None = None, undistorted_dir: str | os.PathLike | None = None) -> dict:
-    """Record the normal cue of a sequence in ``out_json`` (normals are never estimated here).
+                reason: str | None = None, undistorted_dir: str | os.PathLike | None = None,
+                template_npz: str | os.PathLike | None = None, out_dir: str | os.PathLike | None = None,
+                check_frames: int = 4, threads: int = 2) -> dict:
+    """The normal cue of a sequence: shipped normal maps checked, their axis convention found, or the skip.
 
-    With a folder: every selected camera and frame must have a readable (H, W, 3) EXR
-    of the image size with finite values (an error names the first bad file); the
-    record points at the folder, used as it is. Without (``normals_dir`` None): the
-    stage is skipped, the fitting's normal weight is 0, and the record says why.
+    With a folder (scene.yaml ``cues/normals/format``, :mod:`anidress_core.io.shipped_cues`): every
+    selected camera and frame must have a readable map of the image size with finite values (an error
+    names the first bad file). The axis convention is found on ``check_frames`` frames spread over the
+    sequence: the signed axis permutation that turns the maps into the posed body's rendered normals
+    on the pixels where the body is seen (:func:`anidress_core.cues.normals.find_convention`; none
+    agreeing is an error). ``out_dir`` given (a captured sequence): every map is written there in the
+    pipeline's format and axes, ``<cam>/<frame:06d>.exr``, and the fit reads it; None (synthetic: the
+    pipeline's own maps): a convention other than the identity is an error, the folder is used as it is.
+    Without a folder (``normals_dir`` None): the stage is skipped, the fitting's normal weight is 0, and
+    the record says why. ``out_json`` records the folder the fit reads (``dir``) and the convention.
     """
+    t0 = time.perf_counter()
     scene_dir = Path(scene_dir)
     info = read_scene(scene_dir)
     seq_dir = sequence_source(scene_dir, seq, undistorted_dir, info)
     names = select_cameras(info, cameras, scene_dir)
     rec = {"scene": scene_dir.name, "sequence": seq, "cameras": names, "code_version": __version__}
+    if out_dir is not None:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
     if normals_dir is None:
         why = reason or f"{seq_dir / 'normals'}: the sequence ships no normal maps"
         log.warning("normals %s/%s skipped: %s; the fitting's normal weight is 0", scene_dir.name, seq, why)
@@ -439,20 +579,65 @@ def run_normals(scene_dir: str | os.PathLike, seq: str, normals_dir: str | os.Pa
         files.write_json(out_json, rec)
         return rec
     normals_dir = Path(normals_dir)
+    fmt = shipped_cues.source_format(normals_dir.parent, "normals", cue_formats(info, scene_dir)["normals"]["format"])
+    crops = cue_files.read_crops(normals_dir / shipped_cues.CROPS_FILE) if fmt == "icon" else None
     frames = sequence_frames(seq_dir, names)
-    size = info.get("image_size")
+    cams = _cameras(seq_dir, names[:1], info)
+    shape = (cams.height, cams.width)
     for cam in names:
-        for f in frames:
-            p = normals_dir / cam / f"{f:06d}.exr"
-            n = files.read_exr(p)
-            if n.ndim != 3 or n.shape[-1] != 3 or (size and n.shape[:2] != tuple(size)):
-                raise files.ArtifactError(f"{p}: normal map must be ({size[0] if size else 'H'}, "
-                                          f"{size[1] if size else 'W'}, 3), got {n.shape}")
-            if not np.isfinite(n).all():
-                raise files.ArtifactError(f"{p}: normal map has non-finite values")
-    rec.update(skipped=False, reason=None, dir=str(normals_dir), source="shipped", frames=len(frames))
-    log.info("normals %s/%s: %s used as they are (%d cameras x %d frames checked)", scene_dir.name, seq,
-             normals_dir, len(names), len(frames))
+        have = shipped_cues.cue_frames(normals_dir / cam, "normals", fmt)
+        missing = [f for f in frames if f not in have]
+        if missing:
+            raise FileNotFoundError(f"{normals_dir / cam}: no {fmt} normal map for frames {missing[:5]}")
+
+    def read(job):
+        cam, f = job
+        return shipped_cues.read_normals(normals_dir, cam, f, fmt, shape, crops)
+
+    # 1. the axis convention, on a few frames spread over the sequence
+    pick = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(check_frames, len(frames))).round()
+                                         .astype(int))]
+    prior = body_normals(scene_dir, seq, info, seq_dir, names, pick, template_npz)
+    pred, ref, image = [], [], []
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        for k, f in enumerate(pick):
+            seen, nb = prior.body_normals(f)
+            maps = np.stack(list(pool.map(read, [(c, f) for c in names])))
+            sel = seen & (np.linalg.norm(maps, axis=-1) > 0.5)
+            pred.append(maps[sel])
+            ref.append(nb[sel])
+            image.append(k * len(names) + np.nonzero(sel)[0])
+    conv = cue_normals.find_convention(np.concatenate(pred), np.concatenate(ref), np.concatenate(image),
+                                       where=f"{normals_dir} (scene.yaml cues/normals/format {fmt})")
+    identity = bool(np.array_equal(conv.matrix, np.eye(3)))
+    log.info("normals %s/%s: %s maps; axis convention (%s) agrees with the posed body at a mean cosine of %.3f over "
+             "%d body pixels of %d frames (%.2f needed; next best %.3f, beaten in %.0f%% of the images)",
+             scene_dir.name, seq, fmt, cue_normals.describe(conv.matrix), conv.score, conv.pixels, len(pick),
+             cue_normals.AGREEMENT, conv.runner_up, 100 * conv.consistency)
+    rec.update(skipped=False, reason=None, format=fmt, frames=len(frames), convention=conv.matrix.tolist(),
+               convention_axes=cue_normals.describe(conv.matrix), agreement=round(conv.score, 4),
+               runner_up=round(conv.runner_up, 4), consistency=round(conv.consistency, 4), check_pixels=conv.pixels,
+               check_frames=pick)
+    # 2. every map checked; a captured sequence's written in the pipeline's format and axes
+    if out_dir is None:
+        if not identity or fmt != "exr":
+            raise ValueError(f"{normals_dir}: normal maps read in place must be the pipeline's (exr, OpenCV axes); "
+                             f"found format {fmt}, axes {cue_normals.describe(conv.matrix)}")
+        with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+            list(pool.map(read, [(c, f) for c in names for f in frames]))
+        rec.update(dir=str(normals_dir), source="shipped, used as they are")
+    else:
+        M = conv.matrix.astype(np.float32)
+        with files.atomic_dir(out_dir) as tmp, ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+            def write(job):
+                cam, f = job
+                files.write_exr(tmp / cam / f"{f:06d}.exr", (read(job) @ M.T).astype(np.float32))
+
+            list(pool.map(write, [(c, f) for c in names for f in frames]))
+        rec.update(dir=str(out_dir), source=f"shipped {fmt}, converted to exr in OpenCV axes")
+    rec["wall_s"] = round(time.perf_counter() - t0, 3)
+    log.info("normals %s/%s: %s (%d cameras x %d frames checked, %.1f s)", scene_dir.name, seq, rec["source"],
+             len(names), len(frames), rec["wall_s"])
     files.write_json(out_json, rec)
     return rec
 

@@ -6,8 +6,13 @@ writes the sequence as the pinhole *working* cameras see it, and every later sta
 instead of the scene's folder (:func:`anidress_core.io.scene.sequence_source` decides)::
 
     <out>/images/<cam>/<frame:06d>.png   bilinear; black where the source image does not reach
-    <out>/masks/<cam>/<frame:06d>.png    shipped label masks, nearest neighbour (0 outside)
-    <out>/normals/<cam>/<frame:06d>.exr  shipped normal maps, bilinear, renormalised (0 outside)
+    <out>/masks/<cam>/<frame:06d>.png    shipped masks, nearest neighbour (0 outside): labels, or a human
+                                         parser's label indices (scene.yaml cues/masks/format schp: the
+                                         person's file picked, written as plain 8-bit indices)
+    <out>/normals/<cam>/<frame:06d>.exr  shipped normal maps of any format (scene.yaml cues/normals), bilinear,
+                                         renormalised (0 outside), in the file's own axes
+    <out>/flows/<cam>/<frame:06d>.exr    shipped flows of any format (cues/flows): X, Y, valid, the vectors
+                                         remapped through the lens (anidress_core.undistort.undistort_flow)
     <out>/gt/masks/<cam>/<frame:06d>.png ground-truth masks, when the sequence has them
     <out>/backgrounds/<cam>.png          recorded background plates (as the images), when present
     <out>/intri.yml, extri.yml           the working cameras: K (the source's), dist 0, H_/W_
@@ -32,10 +37,12 @@ import numpy as np
 
 from .. import __version__
 from ..camera import save_cameras
-from ..io import files
+from ..io import cue_files, files, shipped_cues
 from ..io.scene import (IMAGE_EXTS, UNDISTORT_RECORD, distorted_cameras, frame_files, plate_path, read_scene,
                         scene_cameras)
-from ..undistort import undistort_image, undistort_labels, undistort_maps, undistort_normals, working_cameras
+from ..io.scene_info import cue_formats
+from ..undistort import (undistort_flow, undistort_image, undistort_labels, undistort_maps, undistort_normals,
+                         working_cameras)
 
 log = logging.getLogger("anidress.undistort")
 
@@ -87,10 +94,10 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
     work = working_cameras(cams)
     # 2. what to undistort: images of every camera; shipped masks / normals and gt masks where present
     jobs = []  # (kind, cam index, source, target)
-    kinds = {"images": (IMAGE_EXTS, ".png"), "masks": ((".png",), ".png"), "normals": ((".exr",), ".exr"),
-             "gt/masks": ((".png",), ".png")}
+    fmts = cue_formats(info, scene_dir)
+    kinds = {"images": ".png", "masks": ".png", "normals": ".exr", "flows": ".exr", "gt/masks": ".png"}
     have = {}
-    for kind, (exts, ext) in kinds.items():
+    for kind, ext in kinds.items():
         root = seq_dir / kind
         have[kind] = root.is_dir() and kind != "images"
         if kind != "images" and not root.is_dir():
@@ -98,29 +105,49 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
         for ci, cam in enumerate(names):
             if kind != "images" and not (root / cam).is_dir():
                 continue  # shipped cues may cover the training cameras only
-            fr = _frames(root / cam, exts)
+            if kind == "images":
+                fr = _frames(root / cam, IMAGE_EXTS)
+            else:
+                fr = shipped_cues.cue_frames(root / cam, kind.split("/")[-1],
+                                             "labels" if kind == "gt/masks" else fmts[kind]["format"])
             if kind == "images" and not fr:
                 raise FileNotFoundError(f"{root / cam}: no <frame>.png/.jpg images")
-            jobs += [(kind, ci, p, Path(kind) / cam / f"{f:06d}{ext}") for f, p in fr.items()]
+            jobs += [(kind, ci, (p, f), Path(kind) / cam / f"{f:06d}{ext}") for f, p in fr.items()]
     n_frames = len({j[3].name for j in jobs if j[0] == "images"})
     plates = [(ci, p) for ci, p in ((ci, plate_path(seq_dir, cam)) for ci, cam in enumerate(names)) if p.is_file()]
-    jobs += [("images", ci, p, Path("backgrounds") / f"{names[ci]}.png") for ci, p in plates]
+    jobs += [("images", ci, (p, None), Path("backgrounds") / f"{names[ci]}.png") for ci, p in plates]
+    crops = None
+    if have["normals"] and fmts["normals"]["format"] == "icon":
+        crops = cue_files.read_crops(seq_dir / "normals" / shipped_cues.CROPS_FILE)
     have["backgrounds"] = bool(plates)
-    log.info("undistort %s/%s: %d cameras (%s distorted) x %d frames at %dx%d, masks %s, normals %s, gt masks %s",
-             scene_dir.name, seq, len(names), ", ".join(bad) or "none", n_frames, W, H,
-             "yes" if have["masks"] else "no", "yes" if have["normals"] else "no", "yes" if have["gt/masks"] else "no")
+    log.info("undistort %s/%s: %d cameras (%s distorted) x %d frames at %dx%d, masks %s, normals %s, flows %s, "
+             "gt masks %s", scene_dir.name, seq, len(names), ", ".join(bad) or "none", n_frames, W, H,
+             *(fmts[k]["format"] if have[k] else "no" for k in ("masks", "normals", "flows")),
+             "yes" if have["gt/masks"] else "no")
     distorted = {names.index(c) for c in bad if c in names}
 
     def one(job, tmp: Path, maps) -> None:
         """One file of camera ``cam_i``; ``maps``: that camera's alone (index 0), None for a pinhole camera."""
-        kind, cam_i, src, rel = job
+        kind, cam_i, (src, frame), rel = job
         dst = tmp / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
+        cam = names[cam_i]
         if kind == "normals":
-            n = files.read_exr(src)
-            if n.ndim != 3 or n.shape[:2] != (H, W) or n.shape[-1] < 3:
-                raise files.ArtifactError(f"{src}: normal map must be ({H}, {W}, 3), got {n.shape}")
-            files.write_exr(dst, undistort_normals(n, maps, 0) if cam_i in distorted else n[..., :3])
+            n = shipped_cues.read_normals(seq_dir / "normals", cam, frame, fmts["normals"]["format"], (H, W), crops)
+            files.write_exr(dst, undistort_normals(n, maps, 0) if cam_i in distorted else n)
+            return
+        if kind == "flows":
+            fl, ok = shipped_cues.read_flow(seq_dir / "flows", cam, frame, fmts["flows"]["format"], (H, W))
+            if cam_i in distorted:
+                fl, ok = undistort_flow(fl, ok, maps, 0, cams.K[cam_i], cams.dist[cam_i])
+            files.write_exr(dst, np.concatenate([np.where(ok[..., None], fl, 0), ok[..., None]], -1).astype(np.float32),
+                            ("X", "Y", "valid"))
+            return
+        if kind == "masks" and fmts["masks"]["format"] == "schp":  # label indices: the person's file, plain layout
+            m, _ = cue_files.read_schp_indices(seq_dir / "masks", cam, frame, fmts["masks"]["person"])
+            if m.shape != (H, W):
+                raise files.ArtifactError(f"{src}: mask is {m.shape[1]}x{m.shape[0]}, the images are {W}x{H}")
+            _write_raw(dst, undistort_labels(m, maps, 0) if cam_i in distorted else m)
             return
         if kind in ("masks", "gt/masks"):
             m = files.read_mask(src)
@@ -161,7 +188,10 @@ def run_undistort(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.Path
                "distorted": bad, "image_size": [H, W], "frames": n_frames,
                "working_camera": "pinhole, the source K, zero distortion, the same image size",
                "valid_fraction": valid_fraction,
-               "undistorted": ["images"] + [k for k in ("masks", "normals", "gt/masks", "backgrounds") if have[k]],
+               "undistorted": ["images"] + [k for k in ("masks", "normals", "flows", "gt/masks", "backgrounds")
+                                            if have[k]],
+               "formats": {k: ("exr" if k != "masks" else fmts[k]["format"]) for k in ("masks", "normals", "flows")
+                           if have[k]},
                "files": len(jobs), "wall_s": round(time.perf_counter() - t0, 3), "code_version": __version__}
         files.write_json(tmp / UNDISTORT_RECORD, rec)
     log.info("undistort %s/%s: %d files -> %s in %.1f s", scene_dir.name, seq, len(jobs), out_dir, rec["wall_s"])

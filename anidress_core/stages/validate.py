@@ -60,13 +60,14 @@ import numpy as np
 from .. import __version__, garment
 from ..garment import KINDS
 from ..garment_mesh import mesh_defects
-from ..io import files
+from ..io import cue_files, files, shipped_cues
 from ..io.easymocap import read_extri, read_intri, read_names
 from ..io.files import SceneError
 from ..io.images import check_exr_magic, image_size_from_header
 from ..io.mesh import read_mesh
 from ..io.motion import read_easymocap_smpl_dir, smpl_selection
 from ..camera import scale_calibration
+from ..io.scene_info import cue_formats
 from ..io.scene import DIST_EPS, IMAGE_EXTS, camera_scale, garment_texture_path, load_body, read_scene
 
 __all__ = [
@@ -488,45 +489,47 @@ def _check_images(sdir: Path, used: list[str], size: tuple | None, images: str, 
 
 
 def _check_optional(sdir: Path, sub: str, used: list[str], train: list[str], frames: list[int], size: tuple,
-                    checks: list[str]) -> bool:
-    """Shipped ``masks/`` (PNG labels) or ``normals/`` (EXR): same frames, headers, ends decoded."""
+                    checks: list[str], fmts: dict) -> bool:
+    """Shipped ``masks/``, ``normals/`` or ``flows/`` in scene.yaml's ``cues`` format: same frames (flows: all but
+    the first), PNG headers / EXR magic, the first and last files decoded."""
     root = sdir / sub
     if not root.is_dir():
         return False
+    fmt = fmts[sub]["format"]
     cams = [c for c in used if c in train or (root / c).is_dir()]
-    ext = ".png" if sub == "masks" else ".exr"
     folders = {c: root / c for c in cams}
     for c, d in folders.items():
         if not d.is_dir():
             _fail(d, f"{sub} folder of training camera '{c}' not found (shipped {sub} must cover every training camera)")
-    want = set(frames)
+    want = set(frames[1:] if sub == "flows" else frames)
+    ext = shipped_cues.CUE_SUFFIX[(sub, fmt)]
+    crops = None
+    if sub == "normals" and fmt == "icon":
+        crops = _wrap(cue_files.read_crops, root / shipped_cues.CROPS_FILE)
     for c, d in folders.items():
-        have = _frames_of(d, (ext,))
+        have = shipped_cues.cue_frames(d, sub, fmt)
         if set(have) != want:
             missing, extra = want - set(have), set(have) - want
-            _fail(d, f"{len(have)} {sub} for {len(want)} image frames of camera '{c}'"
+            _fail(d, f"{len(have)} {sub} ({fmt}) for {len(want)} " + ("image frames after the first" if sub == "flows"
+                                                                      else "image frames") + f" of camera '{c}'"
                      + (f" (missing {_fmt_frames(missing, ext)})" if missing else "")
-                     + (f" (extra {_fmt_frames(extra, ext)})" if extra else ""))
-        for fr in frames:
-            if ext == ".png":
+                     + (f" (extra {_fmt_frames(extra, ext)})" if extra else "")
+                     + (f"; scene.yaml cues/{sub}/format is {fmt!r}" if not have else ""))
+        for fr in sorted(want):
+            if ext == ".png" and fmt != "icon":
                 hw = _wrap(image_size_from_header, have[fr])
                 if hw != size:
-                    _fail(have[fr], f"mask is {hw[1]}x{hw[0]} (WxH), the images are {size[1]}x{size[0]}")
-            else:
+                    _fail(have[fr], f"{sub[:-1]} is {hw[1]}x{hw[0]} (WxH), the images are {size[1]}x{size[0]}")
+            elif ext == ".exr":
                 _wrap(check_exr_magic, have[fr])
-        for fr in sorted({frames[0], frames[-1]}):
-            p = have[fr]
-            if ext == ".png":
-                m = _wrap(files.read_mask, p)
-                if m.shape != size:
-                    _fail(p, f"mask is {m.shape[1]}x{m.shape[0]} (WxH), the images are {size[1]}x{size[0]}")
+        for fr in sorted({min(want), max(want)}):
+            if sub == "masks":
+                _wrap(shipped_cues.read_mask_labels, root, c, fr, fmts["masks"], size)
+            elif sub == "normals":
+                _wrap(shipped_cues.read_normals, root, c, fr, fmt, size, crops)
             else:
-                n = _wrap(files.read_exr, p)
-                if n.ndim != 3 or n.shape[:2] != size or n.shape[-1] < 3:
-                    _fail(p, f"normal map must be ({size[0]}, {size[1]}, 3), got {n.shape}")
-                if not np.isfinite(n).all():
-                    _fail(p, "normal map has NaN or inf values")
-    checks.append(f"{sub}: same frames, headers, first/last decoded")
+                _wrap(shipped_cues.read_flow, root, c, fr, fmt, size)
+    checks.append(f"{sub} ({fmt}): same frames, headers, first/last decoded")
     return True
 
 
@@ -622,6 +625,7 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_textu
     warnings: list[str] = []
     notes: list[str] = []
     info = _check_scene_yaml(scene_dir, checks)
+    fmts = _wrap(cue_formats, info, scene_dir)
     body, body_sum = _check_body(scene_dir, info, checks)
     g = _check_garment(scene_dir, info, body, checks, warnings)
     if fit_texture and g is not None:
@@ -649,14 +653,15 @@ def validate_scene(scene_dir: str | os.PathLike, images: str = "ends", fit_textu
                                             f"holds {len(frames)} per camera")
         params = _check_smpl(sdir, frames, checks)
         view = _check_body_in_view(sdir, params, body, raw, used, size, checks)
-        masks = _check_optional(sdir, "masks", used, train, frames, size, checks)
-        normals = _check_optional(sdir, "normals", used, train, frames, size, checks)
+        masks = _check_optional(sdir, "masks", used, train, frames, size, checks, fmts)
+        normals = _check_optional(sdir, "normals", used, train, frames, size, checks, fmts)
+        flows = _check_optional(sdir, "flows", used, train, frames, size, checks, fmts)
         if size_all is not None and size != size_all:
             warnings.append(f"{sdir}: images are {size[1]}x{size[0]}, other sequences {size_all[1]}x{size_all[0]}")
         size_all = size_all or size
         seqs[name] = {"frames": len(frames), "first_frame": frames[0], "last_frame": frames[-1],
                       "cameras": len(used), "images": len(frames) * len(used), "images_decoded": decoded,
-                      "masks": masks, "normals": normals, "distorted_cameras": distorted, **view}
+                      "masks": masks, "normals": normals, "flows": flows, "distorted_cameras": distorted, **view}
         log.info("validate %s/%s: %d cameras x %d frames, masks %s, normals %s", scene_dir.name, name, len(used),
                  len(frames), "yes" if masks else "no", "yes" if normals else "no")
     for w in warnings:

@@ -95,10 +95,11 @@ def test_ground_truth_as_estimate_scores_perfectly(tiny_scene):
 
 
 def test_normals_record_and_skip(tiny_scene, tmp_path):
-    scene_dir, _ = tiny_scene
-    rec = sc.run_normals(scene_dir, "walk", scene_dir / "walk" / "normals", tmp_path / "n.json")
+    scene_dir, tpl = tiny_scene
+    rec = sc.run_normals(scene_dir, "walk", scene_dir / "walk" / "normals", tmp_path / "n.json", template_npz=tpl)
     assert json.loads((tmp_path / "n.json").read_text()) == rec
     assert rec["skipped"] is False and rec["dir"] == str(scene_dir / "walk" / "normals")
+    assert rec["convention_axes"] == "x, y, z" and rec["agreement"] > 0.8
     rec = sc.run_normals(scene_dir, "walk", None, tmp_path / "skip.json", reason="no normals here")
     assert rec["skipped"] is True and rec["normal_weight"] == 0.0 and rec["reason"] == "no normals here"
     assert json.loads((tmp_path / "skip.json").read_text())["skipped"] is True
@@ -195,3 +196,70 @@ def test_masks_that_are_mostly_empty_fail_the_stage(tiny_scene, cues_config, tmp
     st = sc.run_masks(scene_dir, "walk", out, {**cfg, "max_empty_fraction": 1.0}, tpl, cameras=["01", "02"],
                       progress=False)
     assert st["empty_masks"] == 2 * st["frames"]
+
+
+def _set_cues(scene_dir: Path, cues: dict) -> None:
+    import yaml
+
+    info = yaml.safe_load((scene_dir / "scene.yaml").read_text())
+    info["cues"] = cues
+    (scene_dir / "scene.yaml").write_text(yaml.safe_dump(info))
+
+
+def test_shipped_tool_files_are_converted_to_the_pipelines_cues(tiny_scene, tmp_path):
+    """SCHP LIP masks, Sapiens normals in OpenGL axes and RAFT flows, written from the scene's own cues: the
+    converted masks equal the labels, the flows the flows; the normals' axes are found and undone."""
+    from anidress_core.io import cue_files
+
+    scene_dir = _copy_scene(tiny_scene, tmp_path)
+    walk = scene_dir / "walk"
+    train = read_scene(scene_dir)["cameras"]["train"]
+    gl = np.diag([1.0, -1.0, -1.0]).astype(np.float32)
+    truth_n = {}
+    for cam in train:
+        for f in range(4):
+            lab = files.read_mask(walk / "gt" / "masks" / cam / f"{f:06d}.png")
+            cue_files.write_schp_png(walk / "masks" / cam / f"{f:06d}.png", np.choose(lab, [0, 13, 12]).astype(np.uint8))
+            n = files.read_exr(walk / "normals" / cam / f"{f:06d}.exr")[..., :3]
+            truth_n[cam, f] = n
+            cue_files.write_sapiens_normals(walk / "normals" / cam / f"{f:06d}.npy", n @ gl.T)
+            (walk / "normals" / cam / f"{f:06d}.exr").unlink()
+            if f:
+                g = files.read_exr(walk / "gt" / "flows" / cam / f"{f:06d}.exr")
+                cue_files.write_flo(walk / "flows" / cam / f"{f:06d}.flo", g[..., :2])
+    _set_cues(scene_dir, {"masks": {"format": "schp", "label_set": "lip"}, "normals": {"format": "sapiens"},
+                          "flows": {"format": "raft"}})
+    m = sc.run_convert_masks(scene_dir, "walk", tmp_path / "masks", progress=False)
+    assert m["cameras"] == len(train) and 0 < m["garment_fraction"] < 1
+    for cam in train:
+        assert np.array_equal(files.read_mask(tmp_path / "masks" / cam / "000002.png"),
+                              files.read_mask(walk / "gt" / "masks" / cam / "000002.png"))
+    fl = sc.run_flows(scene_dir, "walk", tmp_path / "masks", tmp_path / "flows", {"method": "files"}, progress=False)
+    assert fl["format"] == "raft" and fl["pairs"] == 3 * len(train)
+    got = files.read_exr(tmp_path / "flows" / train[0] / "000003.exr")
+    g = files.read_exr(walk / "gt" / "flows" / train[0] / "000003.exr")
+    assert np.allclose(got[..., :2], g[..., :2]) and got[..., 2].all()
+    assert not (tmp_path / "flows" / train[0] / "000000.exr").exists()
+    rec = sc.run_normals(scene_dir, "walk", walk / "normals", tmp_path / "n.json", template_npz=tiny_scene[1],
+                         out_dir=tmp_path / "normals")
+    assert rec["convention_axes"] == "x, -y, -z" and rec["format"] == "sapiens" and rec["consistency"] >= 0.9
+    assert rec["dir"] == str(tmp_path / "normals")
+    assert np.allclose(files.read_exr(tmp_path / "normals" / train[1] / "000001.exr"), truth_n[train[1], 1], atol=2e-3)
+    # read in place (a synthetic scene's own maps) only in the pipeline's format and axes
+    with pytest.raises(ValueError, match="must be the pipeline's"):
+        sc.run_normals(scene_dir, "walk", walk / "normals", tmp_path / "n2.json", template_npz=tiny_scene[1])
+    # normals of nothing in particular: no convention agrees
+    rng = np.random.default_rng(0)
+    for cam in train:
+        for f in range(4):
+            cue_files.write_sapiens_normals(walk / "normals" / cam / f"{f:06d}.npy",
+                                            rng.standard_normal((64, 64, 3)).astype(np.float32))
+    with pytest.raises(ValueError, match="no axis convention"):
+        sc.run_normals(scene_dir, "walk", walk / "normals", tmp_path / "n3.json", template_npz=tiny_scene[1],
+                       out_dir=tmp_path / "normals3")
+    assert not (tmp_path / "normals3").exists() or not any((tmp_path / "normals3").iterdir())
+    # a missing flow is named with its folder
+    (walk / "flows" / train[1] / "000002.flo").unlink()
+    with pytest.raises(FileNotFoundError, match=rf"{train[1]}: no raft flow for frames \[2\]"):
+        sc.run_convert_flows(scene_dir, "walk", tmp_path / "flows2", progress=False)
+    assert not (tmp_path / "flows2").exists()

@@ -1,7 +1,9 @@
 # 2D cues for garment fitting (DESIGN.md §6, §7), per sequence of a scene:
-#   masks   -> results/{scene}/{seq}/masks/<cam>/<frame>.png   (unless the sequence ships masks)
-#   flows   -> results/{scene}/{seq}/flows/<cam>/<frame>.exr
-#   normals -> results/{scene}/{seq}/normals.json   (shipped normals used as they are, or the skip and why)
+#   masks   -> results/{scene}/{seq}/masks/<cam>/<frame>.png   (unless the sequence ships label masks; a human
+#              parser's shipped masks are converted)
+#   flows   -> results/{scene}/{seq}/flows/<cam>/<frame>.exr   (estimated; cues/flows/method files: shipped ones)
+#   normals -> results/{scene}/{seq}/normals.json   (shipped normals checked, or the skip and why) and
+#              results/{scene}/{seq}/normals/      (a captured sequence's normals in the pipeline's format and axes)
 # The input functions masks_dir / flows_dir / normals_dir are what the fit rule uses.
 
 
@@ -9,7 +11,7 @@ rule masks:
     input:
         scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
-        files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "images", "backgrounds")),
+        files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "images", "backgrounds", "masks", "masks_parsing")),
         template=_cue_template,
         undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
@@ -21,6 +23,8 @@ rule masks:
     params:
         masks=config["cues"]["masks"],
         cameras=config["cues"]["cameras"],
+        convert=lambda wc: shipped_masks_converted(wc.scene, wc.seq),
+        garment=lambda wc: has_garment(wc.scene),
     threads: 2
     priority: 2  # inputs of the garment fit (the demo's longest chain, see rule simulate)
     resources:
@@ -38,7 +42,7 @@ rule flows:
     input:
         scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
-        files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "images", "masks")),
+        files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "images", "masks", "flows")),
         masks=lambda wc: rule_input(masks_dir(wc.scene, wc.seq)),
         template=_cue_template,
         undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
@@ -69,21 +73,24 @@ rule normals:
     input:
         scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
-        files=scene_inputs_fn(("scene", "cameras", "normals")),
+        files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "normals")),
+        template=_cue_template,
         undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
-        "results/{scene}/{seq}/normals.json",
+        record="results/{scene}/{seq}/normals.json",
+        maps=directory("results/{scene}/{seq}/normals"),
     log:
         "logs/{scene}/{seq}/normals.log",
     params:
-        normals=lambda wc: normals_dir(wc.scene, wc.seq),
+        normals=lambda wc: shipped_normals_dir(wc.scene, wc.seq),
+        convert=lambda wc: normals_dir(wc.scene, wc.seq) == f"results/{wc.scene}/{wc.seq}/normals",
         reason=lambda wc: _normals_skip_reason(wc.scene, wc.seq),
         cameras=config["cues"]["cameras"],
-    threads: 1
+    threads: 2
     priority: 2  # inputs of the garment fit (the demo's longest chain, see rule simulate)
     resources:
-        mem_mb=1000,
-        runtime=5,
+        mem_mb=2000,
+        runtime=10,
     wildcard_constraints:
         seq="|".join(_ALL_SEQUENCES) or "^$",
     conda:

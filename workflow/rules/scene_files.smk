@@ -3,7 +3,8 @@
 # else. (A folder input is compared by its own mtime, which an edit inside it does not change.)
 #
 #   scene_files -> results/{scene}/inputs/{part}.json   one per part of the scene: scene, body, garment, and
-#                  <seq>/cameras, <seq>/smpl, <seq>/images, <seq>/masks, <seq>/normals, <seq>/backgrounds,
+#                  <seq>/cameras, <seq>/smpl, <seq>/images, <seq>/masks, <seq>/masks_parsing, <seq>/normals,
+#                  <seq>/flows, <seq>/backgrounds,
 #                  <seq>/gt_masks; its inputs are the part's files one by one, it writes their list with
 #                  size and mtime (a manifest: any change of a file changes it).
 # validate_scene takes every manifest; a stage rule the manifests of the parts it reads (scene_inputs()),

@@ -13,7 +13,8 @@ rule undistort:
     input:
         scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
-        files=scene_inputs_fn(("scene", "cameras", "images", "masks", "normals", "backgrounds", "gt_masks")),
+        files=scene_inputs_fn(("scene", "cameras", "images", "masks", "masks_parsing", "normals", "flows", "backgrounds",
+                               "gt_masks")),
     output:
         directory("results/{scene}/{seq}/undistorted"),
     log:

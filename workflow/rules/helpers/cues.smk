@@ -19,20 +19,41 @@ def _shipped(scene, seq, what):
     return os.path.isdir(os.path.join("data", scene, seq, what))
 
 
+def cue_format(scene, kind):
+    """scene.yaml's cues/<kind>/format of a captured scene (the pipeline's own format for a synthetic scene, or a
+    scene.yaml that does not parse: rule validate_scene says why)."""
+    from anidress_core.io.scene_info import SHIPPED_CUE_FORMATS, cue_formats  # torch-free
+
+    if config["scenes"][scene]["synthetic"]:
+        return SHIPPED_CUE_FORMATS[kind][0]
+    try:
+        return cue_formats(_scene_yaml(scene))[kind]["format"]
+    except Exception:
+        return SHIPPED_CUE_FORMATS[kind][0]
+
+
+def shipped_masks_converted(scene, seq):
+    """A sequence ships masks in a human parser's format (scene.yaml cues/masks/format schp): rule masks
+    converts them to labels instead of estimating."""
+    return _shipped(scene, seq, "masks") and cue_format(scene, "masks") != "labels"
+
+
 def masks_dir(scene, seq):
-    """The masks the fitting uses: shipped data/<scene>/<seq>/masks if present, else the estimated ones."""
-    if _shipped(scene, seq, "masks"):
+    """The masks the fitting uses: shipped label masks data/<scene>/<seq>/masks (or their undistorted copy) as
+    they are, else rule masks' (a human parser's masks converted, or estimated ones)."""
+    if _shipped(scene, seq, "masks") and not shipped_masks_converted(scene, seq):
         return sequence_data_dir(scene, seq, "masks")  # undistort.smk: data/ or its undistorted copy
     return f"results/{scene}/{seq}/masks"
 
 
 def flows_dir(scene, seq):
-    """Forward optical flow t-1 -> t of a sequence (rule flows)."""
+    """Forward optical flow t-1 -> t of a sequence (rule flows: estimated, or shipped ones converted)."""
     return f"results/{scene}/{seq}/flows"
 
 
-def normals_dir(scene, seq):
-    """Shipped normal maps of a sequence, or None (no normals, or cues/normals: off): normal weight 0.
+def shipped_normals_dir(scene, seq):
+    """The shipped normal maps rule normals reads (data/<scene>/<seq>/normals or the undistorted copy), or None
+    (no normals, or cues/normals: off): normal weight 0.
 
     Pass it to a rule as a param, not an input, since for a synthetic scene the folder lies
     inside the directory output data/<scene> of rule synth, Snakemake's ChildIOException;
@@ -41,6 +62,16 @@ def normals_dir(scene, seq):
     if config["cues"]["normals"] == "off" or not _shipped(scene, seq, "normals"):
         return None
     return sequence_data_dir(scene, seq, "normals")  # undistort.smk: data/ or its undistorted copy
+
+
+def normals_dir(scene, seq):
+    """The normal maps the fit reads, or None (normal weight 0): a synthetic scene's own (pipeline format and
+    axes) as they are; a captured sequence's as rule normals wrote them (results/<scene>/<seq>/normals: any
+    shipped format, axis convention checked against the body and applied)."""
+    shipped = shipped_normals_dir(scene, seq)
+    if shipped is None or config["scenes"][scene]["synthetic"]:
+        return shipped
+    return f"results/{scene}/{seq}/normals"
 
 
 def normals_record(scene, seq):

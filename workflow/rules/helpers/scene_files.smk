@@ -10,7 +10,8 @@ import yaml
 
 SCENE_PARTS = ("scene", "body", "garment")
 """scene.yaml; the body model file (scene.yaml body_model/file); the garment template's folder and texture."""
-SEQUENCE_PARTS = {"cameras": None, "smpl": "smpl", "images": "images", "masks": "masks", "normals": "normals",
+SEQUENCE_PARTS = {"cameras": None, "smpl": "smpl", "images": "images", "masks": "masks",
+                  "masks_parsing": "masks-parsing", "normals": "normals", "flows": "flows",
                   "backgrounds": "backgrounds", "gt_masks": os.path.join("gt", "masks")}
 """Parts of a sequence <seq>/: intri.yml + extri.yml, and the files under each folder."""
 ALL_PARTS = SCENE_PARTS + tuple(SEQUENCE_PARTS)
