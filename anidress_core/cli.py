@@ -307,7 +307,7 @@ def _cmd_export_capture(args: argparse.Namespace) -> None:
 
     rec = run_export_capture(args.src, args.out, distort=args.distort, pose_noise_cm=args.pose_noise_cm,
                              masks=args.masks, image_size=args.image_size, seed=args.seed, normals=args.normals,
-                             truth=args.truth, threads=args.threads)
+                             truth=args.truth, threads=args.threads, flows=args.flows, cue_files=args.cue_files)
     for seq, r in rec["sequences"].items():
         b = r["body_noise"]
         print(f"{rec['scene_dir']}/{seq}: {len(r['cameras'])} cameras x {r['frames']} frames at "
@@ -647,6 +647,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="seed of every random choice (default: %(default)s)")
     s.add_argument("--normals", action=argparse.BooleanOptionalAction, default=True,
                    help="keep the scene's predicted normals, warped (default: on)")
+    s.add_argument("--flows", action=argparse.BooleanOptionalAction, default=False,
+                   help="ship forward flows as an optical-flow network gives them (the true ones, blurred and noisy), "
+                        "for cues/flows/method: files (default: off)")
+    s.add_argument("--cue-files", default="pipeline", choices=["pipeline", "easymocap_sapiens_raft", "lip_png_kitti"],
+                   help="formats of the shipped masks / normals / flows: the pipeline's (labels, EXR, EXR), or "
+                        "EasyMocap's mask-schp (silhouettes + SCHP CIHP parsing) / Sapiens .npy / RAFT .flo, or SCHP "
+                        "LIP / 8-bit normal PNG / KITTI flow PNG (default: %(default)s)")
     s.add_argument("--truth", help="where the held-back truth goes (default: OUT.truth beside OUT)")
     s.add_argument("--threads", type=int, default=2, help="files written at a time")
     s.set_defaults(func=_cmd_export_capture)

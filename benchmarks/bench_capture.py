@@ -19,7 +19,13 @@ Variants (``--variants``, in order; each a separate Snakemake run in ``WORK/<var
 * ``parser_pose_noise``: parser + 2 cm body noise (the noise with good masks);
 * ``capture_parser``: capture with parser-like masks shipped (a user who runs a human parser);
 * ``*_refined``: ``pose_noise``, ``parser_pose_noise``, ``capture_parser`` with rule refine_body on (the
-  noisy body poses refined against the masks before motions, fit and field).
+  noisy body poses refined against the masks before motions, fit and field);
+* the cue files of the tools users run (issue 47), each against its twin in the pipeline's formats:
+  ``parser_files`` (parser + network-like flows shipped, cues/flows/method: files; labels, EXR normals, EXR
+  flows), ``parser_easymocap`` (the same cues as EasyMocap's mask-schp silhouettes + SCHP CIHP parsing,
+  Sapiens .npy normals in OpenGL axes, RAFT .flo), ``parser_lip_png`` (SCHP LIP palette PNGs, 8-bit (n+1)/2
+  normal PNGs, KITTI 16-bit flow PNGs); ``distort_files`` / ``distort_easymocap``: the same with lens
+  distortion and 4:3 images (the flow vectors remapped by rule undistort).
 
 Scores (held-back truth, the pipeline's own scorers): the fit of walk by
 :func:`anidress_core.stages.fit.run_fit_eval` (vertex RMSE and its ratio to the run's rig floor), the
@@ -64,11 +70,26 @@ VARIANTS = {
                                   "refine_body": True},
     "capture_parser_refined": {"distort": True, "pose_noise_cm": 2.0, "masks": "parser", "image_size": None,
                                "refine_body": True},
+    "parser_files": {"distort": False, "pose_noise_cm": 0.0, "masks": "parser", "image_size": "256x256",
+                     "flows": True, "cue_files": "pipeline"},
+    "parser_easymocap": {"distort": False, "pose_noise_cm": 0.0, "masks": "parser", "image_size": "256x256",
+                         "flows": True, "cue_files": "easymocap_sapiens_raft"},
+    "parser_lip_png": {"distort": False, "pose_noise_cm": 0.0, "masks": "parser", "image_size": "256x256",
+                       "flows": True, "cue_files": "lip_png_kitti"},
+    "distort_files": {"distort": True, "pose_noise_cm": 0.0, "masks": "parser", "image_size": None,
+                      "flows": True, "cue_files": "pipeline"},
+    "distort_easymocap": {"distort": True, "pose_noise_cm": 0.0, "masks": "parser", "image_size": None,
+                          "flows": True, "cue_files": "easymocap_sapiens_raft"},
 }
+TWINS = {"parser_easymocap": "parser_files", "parser_lip_png": "parser_files", "distort_easymocap": "distort_files"}
+"""Each tool-format variant and its twin in the pipeline's formats (the same cues)."""
+TWIN_TOLERANCE = {"novel_pose_psnr_db": 0.1, "fit_ratio_to_floor": 0.05}
+"""Issue 47: a tool-format variant lies within these of its twin (8-bit normals and 16-bit flows quantise)."""
 """Export options of each variant; None: the synthetic scene itself (``image_anchor``: a copy of the
 synthetic run with fit/anchor_reference: images, i.e. the garment texture unused: its cost alone).
 ``refine_body``: the run has rule refine_body on (the body poses refined against the masks)."""
-COLUMNS = ["variant", "distort", "image_size", "pose_noise_cm", "refine_body", "masks", "plates", "texture",
+COLUMNS = ["variant", "distort", "image_size", "pose_noise_cm", "refine_body", "masks", "cue_files", "flows",
+           "plates", "texture",
            "body_joint_error_cm", "body_joint_angle_deg", "body_jitter_cm", "refined_joint_error_cm",
            "refined_joint_angle_deg", "refined_jitter_cm", "mask_images", "mask_iou_person",
            "mask_iou_garment", "fit_frames", "fit_vertex_rmse_mm", "rig_floor_mm", "fit_ratio_to_floor",
@@ -76,7 +97,7 @@ COLUMNS = ["variant", "distort", "image_size", "pose_noise_cm", "refine_body", "
            "status"]
 
 
-def _config(args, scene: str, entry: dict, exported: bool, refine: bool = False) -> dict:
+def _config(args, scene: str, entry: dict, exported: bool, refine: bool = False, flow_files: bool = False) -> dict:
     cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     cfg["run_scenes"] = [scene]
     cfg["scenes"] = {scene: entry}
@@ -90,6 +111,8 @@ def _config(args, scene: str, entry: dict, exported: bool, refine: bool = False)
     if exported:
         cfg.setdefault("cues", {}).setdefault("masks", {})["background"] = "temporal_median"
     cfg["refine_body"] = dict(cfg.get("refine_body") or {}, enabled=bool(refine))
+    if flow_files:
+        cfg["cues"]["flows"]["method"] = "files"
     return cfg
 
 
@@ -215,6 +238,7 @@ def run_variant(args, name: str, work_root: Path) -> dict:
 
     opts = VARIANTS[name]
     refine = bool((opts or {}).get("refine_body"))
+    flow_files = bool((opts or {}).get("flows"))
     opts = None if opts is None else {k: v for k, v in opts.items() if k != "refine_body"}
     work = work_root / name
     work.mkdir(parents=True, exist_ok=True)
@@ -247,10 +271,12 @@ def run_variant(args, name: str, work_root: Path) -> dict:
         row.update(distort=opts["distort"], image_size=rec["options"]["image_size"],
                    pose_noise_cm=opts["pose_noise_cm"],
                    masks="temporal median (no plates)" if opts["masks"] == "none" else "parser-like, shipped",
+                   cue_files=opts.get("cue_files", "pipeline"),
+                   flows="network-like, shipped" if flow_files else "estimated (DIS)",
                    plates=False, texture=False, body_joint_error_cm=round(b["joint_error_cm"], 3),
                    body_joint_angle_deg=round(b["joint_angle_deg"], 3), body_jitter_cm=round(b["jitter_cm"], 3))
     exported = opts is not None
-    (work / "config.yaml").write_text(yaml.safe_dump(_config(args, scene_name, entry, exported, refine),
+    (work / "config.yaml").write_text(yaml.safe_dump(_config(args, scene_name, entry, exported, refine, flow_files),
                                                      sort_keys=False))
     targets = [f"results/{scene_name}/walk/garment_poses.npz", f"results/{scene_name}/rig.npz",
                f"results/{scene_name}/walk/full/renders/novel_pose/dance"]
@@ -325,11 +351,11 @@ def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None
         "`given -> refined` (the same measure of results/<scene>/walk/body against the held-back truth)",
         "",
         "| variant | distortion | image | body joint error (cm) / angle (deg) / jitter (cm) | refine_body "
-        "| masks | plates | texture "
+        "| masks | cue files | flows | plates | texture "
         "| walk mask IoU subject / garment | fit RMSE (mm) "
         "| rig floor (mm) | fit / floor | novel-pose PSNR (dB) | IoU | images | jobs | jobs wall (s) | jobs CPU (s) "
         "| status |",
-        "|" + " --- |" * 8 + " ---: |" * 10 + " --- |",
+        "|" + " --- |" * 10 + " ---: |" * 10 + " --- |",
     ]
     for r in rows:
         ref = {k: (f" -> {r[f'refined_{k}']}" if r.get(f"refined_{k}") not in (None, "") else "")
@@ -339,7 +365,8 @@ def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None
                                f"{r.get('body_jitter_cm', '')}{ref['jitter_cm']}",
                  mask_iou=f"{r.get('mask_iou_person', '')} / {r.get('mask_iou_garment', '')}")
         lines.append("| " + " | ".join(str(r.get(k, "")) for k in (
-            "variant", "distort", "image_size", "body_noise", "refine_body", "masks", "plates", "texture", "mask_iou",
+            "variant", "distort", "image_size", "body_noise", "refine_body", "masks", "cue_files", "flows", "plates",
+            "texture", "mask_iou",
             "fit_vertex_rmse_mm", "rig_floor_mm", "fit_ratio_to_floor", "novel_pose_psnr_db", "novel_pose_iou",
             "novel_pose_images", "jobs", "jobs_wall_s", "jobs_cpu_s", "status")) + " |")
     ok = {r["variant"]: r for r in rows if r["status"] == "ok"}
@@ -376,10 +403,57 @@ def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None
                          f"{ok['capture']['fit_ratio_to_floor'] - ok['synthetic']['fit_ratio_to_floor']:+.3f}, "
                          f"{ok['capture']['novel_pose_psnr_db'] - ok['synthetic']['novel_pose_psnr_db']:+.2f} dB "
                          "(the rest: interactions and run-to-run spread, not measured here)")
+    twins = [(a, b) for a, b in TWINS.items() if a in ok and b in ok]
+    if twins:
+        lines += ["", "Cue files in the tools' formats against the same cues in the pipeline's formats (`a - b`; "
+                  f"issue 47 asks for |PSNR| <= {TWIN_TOLERANCE['novel_pose_psnr_db']} dB and |fit / floor| <= "
+                  f"{TWIN_TOLERANCE['fit_ratio_to_floor']}):", ""]
+        for a, b in twins:
+            d = {k: ok[a][k] - ok[b][k] for k in TWIN_TOLERANCE}
+            within = all(abs(d[k]) <= tol for k, tol in TWIN_TOLERANCE.items())
+            lines.append(f"- `{a}` ({ok[a].get('cue_files')}) - `{b}`: PSNR {d['novel_pose_psnr_db']:+.2f} dB, fit / floor "
+                         f"{d['fit_ratio_to_floor']:+.3f}, IoU {ok[a]['novel_pose_iou'] - ok[b]['novel_pose_iou']:+.4f}, "
+                         f"mask IoU {ok[a]['mask_iou_person'] - ok[b]['mask_iou_person']:+.4f}: "
+                         + ("within" if within else "OUTSIDE") + " the tolerance")
     missing = [v for v in VARIANTS if v not in {r["variant"] for r in rows}]
     if missing:
         lines += ["", f"Not run in this benchmark run: {', '.join(missing)}."]
     out_md.write_text("\n".join(lines) + "\n")
+
+
+def earlier_rows(name: str) -> dict[str, dict]:
+    """The rows of the committed benchmarks/<name>.csv as run_variant returns them, each with the commit, date and
+    command of its run as benchmarks/<name>.md states them (its header: one commit, the commands)."""
+    import re
+
+    md = (REPO / "benchmarks" / f"{name}.md").read_text()
+    git = re.search(r"code git ([^\s,]+)", md)
+    written = re.search(r"- written (\S+);", md)
+    cmds = re.findall(r"`\.venv/bin/python -m benchmarks\.bench_capture ([^`]+)`", md)
+    out = {}
+    with open(REPO / "benchmarks" / f"{name}.csv", newline="") as fh:
+        for r in csv.DictReader(fh):
+            row = {}
+            for k, v in r.items():
+                if v in ("True", "False"):
+                    row[k] = v == "True"
+                elif v == "":
+                    row[k] = None
+                else:
+                    try:
+                        row[k] = int(v) if re.fullmatch(r"-?\d+", v) else float(v)
+                    except ValueError:
+                        row[k] = v
+            if row.get("flows") is None:
+                row["flows"] = "estimated (DIS)"
+            if row.get("cue_files") is None:
+                row["cue_files"] = "pipeline"
+            v = row["variant"]
+            row["git"] = git.group(1) if git else "?"
+            row["date"] = written.group(1) if written else "?"
+            row["command"] = next((c for c in cmds if v in re.split(r"[ ,]", c)), "?")
+            out[v] = row
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -393,6 +467,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cores", type=int, default=2)
     p.add_argument("--seed", type=int, default=0, help="export-capture seed")
     p.add_argument("--name", default="capture", help="output stem: benchmarks/<name>.md, .csv (default: %(default)s)")
+    p.add_argument("--earlier-rows", action="store_true",
+                   help="without WORK/rows.json, start from the rows of the committed benchmarks/<name>.csv (each "
+                        "keeps the commit and command of its run, from <name>.md)")
     p.add_argument("--report-only", action="store_true",
                    help="only rewrite <name>.md / .csv from WORK/rows.json (the rows of earlier invocations)")
     args = p.parse_args(argv)
@@ -410,6 +487,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     prev = work / "rows.json"
     done = {r["variant"]: r for r in json.loads(prev.read_text())} if prev.is_file() else {}
+    if args.earlier_rows and not done:
+        done = earlier_rows(args.name)
     if args.report_only:
         if not done:
             p.error(f"{prev}: no rows to report")

@@ -18,6 +18,17 @@ option so that its effect can be measured alone:
   plates), or labels 0/1/2 as a human parser gives them (:func:`parser_labels`: a ragged
   silhouette, a grown or shrunk subject, a garment / body border shifted by a few pixels);
 
+* ``flows`` (``--flows``): forward flows as an optical-flow network gives them (:func:`network_flow`: the
+  true flows, warped with their vectors remapped through the lens, blurred and with smooth noise), for
+  ``cues/flows/method: files``;
+* ``cue_files`` (``--cue-files``, :data:`CUE_FILE_MODES`): the shipped masks, normals and flows in the
+  pipeline's formats (``pipeline``: labels, EXR, EXR) or as the tools users run write them:
+  ``easymocap_sapiens_raft`` (EasyMocap's ``mask-schp`` layout: a 0 / 255 silhouette per person
+  ``masks/<cam>/<frame>_0.png`` and SCHP's CIHP part labels ``masks-parsing/<cam>/<frame>.png``; Sapiens
+  ``.npy`` normals; RAFT ``.flo``) or ``lip_png_kitti`` (SCHP LIP palette PNGs, 8-bit (n+1)/2 normal PNGs,
+  KITTI 16-bit flow PNGs); the tools' normals in OpenGL axes (x right, y up, z towards the camera),
+  scene.yaml ``cues`` naming the formats;
+
 and always: no background plates, no garment texture (nor the body texture), no ``gt/``. The
 "predicted" normals are kept (warped like the images; ``normals=False`` drops them): a user runs a
 normal predictor.
@@ -32,7 +43,8 @@ Written::
     OUT/<seq>/images/<cam>/<frame:06d>.png          warped
     OUT/<seq>/smpl/<frame:06d>.json                 noisy, EasyMocap >= 0.2 layout
     OUT/<seq>/masks/<cam>/<frame:06d>.png           (masks=parser) warped, parser-like labels
-    OUT/<seq>/normals/<cam>/<frame:06d>.exr         (normals) warped
+    OUT/<seq>/normals/<cam>/<frame:06d>.exr         (normals) warped (.npy / .png: cue_files)
+    OUT/<seq>/flows/<cam>/<frame:06d>.exr           (flows) frames 1.. (.flo / .png: cue_files)
 
 and, held back beside it for scoring only (``truth``, default ``OUT.truth``)::
 
@@ -43,7 +55,7 @@ and, held back beside it for scoring only (``truth``, default ``OUT.truth``)::
     TRUTH/<seq>/gt/masks/<cam>/<frame:06d>.png   the true labels warped to OUT's images
     TRUTH/<seq>/gt/meshes.npz     the true meshes (world coordinates: no warp needed)
 
-The true normals and flows are not carried over (flows are not invariant to the warp).
+The true normals and flows are not carried over.
 
 Image warp (conventions of :mod:`anidress_core.camera`: pixel centres at integers). The source
 camera is a pinhole ``K``; the exported one is ``K'`` (``K`` with the principal point moved by the
@@ -74,6 +86,7 @@ from .. import __version__
 from ..body.model import BodyModel
 from ..camera import Cameras, undistort_normalized
 from ..geometry import axis_angle_to_matrix, matrix_to_axis_angle
+from ..io import cue_files as cue_io
 from ..io import easymocap, files
 from ..io.images import image_size_from_header
 from ..io.motion import read_easymocap_smpl_dir
@@ -82,7 +95,8 @@ from ..io.scene_info import scene_config_entry
 
 __all__ = ["DEFAULT_DIST", "DIST_SPREAD", "MASK_MODES", "WarpMaps", "parse_image_size", "default_image_size",
            "camera_distortions", "exported_cameras", "warp_maps", "warp_image", "warp_labels", "warp_normals",
-           "fold_root_pose", "noisy_body", "BodyNoise", "pose_errors", "parser_labels", "run_export_capture"]
+           "fold_root_pose", "noisy_body", "BodyNoise", "pose_errors", "parser_labels", "warp_flow", "network_flow",
+           "CUE_FILE_MODES", "run_export_capture"]
 
 log = logging.getLogger("anidress.export")
 
@@ -95,6 +109,10 @@ at three sigma, up to r = 1.2, far beyond the image corners)."""
 DIST_SPREAD = 0.15
 """Relative spread of each camera's coefficients about :data:`DEFAULT_DIST` (normal, seeded): the
 cameras of a rig are not identical."""
+CUE_FILE_MODES = ("pipeline", "easymocap_sapiens_raft", "lip_png_kitti")
+"""Formats of the shipped cues: the pipeline's own, or two sets of the tools' (module docstring)."""
+OPENGL_AXES = np.diag([1.0, -1.0, -1.0]).astype(np.float32)
+"""OpenCV camera axes to OpenGL's (x right, y up, z towards the viewer), the axes the tools' normals use here."""
 MASK_MODES = ("none", "parser")
 """``none``: no masks (the pipeline estimates them); ``parser``: labels with a human parser's errors."""
 NOISE_SLOW_S = 0.15
@@ -223,6 +241,48 @@ def warp_normals(normals: np.ndarray, maps: WarpMaps, cam: int, eps: float = 1e-
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     ok = np.isfinite(norm) & (norm > eps)
     return np.where(ok, n / np.where(ok, norm, 1.0), 0.0).astype(np.float32)
+
+
+def warp_flow(flow: np.ndarray, valid: np.ndarray, maps: WarpMaps, cam: int, src: Cameras,
+              dst: Cameras) -> tuple[np.ndarray, np.ndarray]:
+    """A forward flow (H, W, 2) of camera ``cam`` with validity (H, W) as the exported camera sees it, the
+    vectors remapped (:func:`anidress_core.undistort.remap_flow`: source pixel s goes to ``K' distort(K^-1 s)``).
+    Returns (flow (H', W', 2) float32, valid (H', W') bool)."""
+    from ..camera import distort_normalized
+    from ..undistort import remap_flow
+
+    K = src.K[cam].to(torch.float64)
+    K2 = dst.K[cam].to(torch.float64)
+    d = dst.dist[cam].to(torch.float64)
+    H, W = flow.shape[:2]
+    mx, my = maps.map_x[cam], maps.map_y[cam]
+    inside = (mx >= -0.5) & (mx <= W - 0.5) & (my >= -0.5) & (my <= H - 0.5)
+
+    def to_target(s: np.ndarray) -> np.ndarray:
+        s = torch.from_numpy(s)
+        y = (s[:, 1] - K[1, 2]) / K[1, 1]
+        x = (s[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        xd = distort_normalized(torch.stack([x, y], -1), d)
+        return torch.stack([K2[0, 0] * xd[:, 0] + K2[0, 1] * xd[:, 1] + K2[0, 2], K2[1, 1] * xd[:, 1] + K2[1, 2]],
+                           -1).numpy()
+
+    return remap_flow(flow, valid, mx, my, inside, to_target)
+
+
+def network_flow(flow: np.ndarray, valid: np.ndarray, rng: np.random.Generator, scale: float = 1.0,
+                 blur_px: float = 1.5, noise_px: float = 0.3) -> np.ndarray:
+    """A true flow (H, W, 2) degraded as an optical-flow network's: blurred across motion boundaries (Gaussian,
+    ``blur_px`` sigma, over the valid pixels) plus smooth noise (sigma 6 px in space, ``noise_px`` per component);
+    lengths in pixels of 256-px images times ``scale``. Returns (H, W, 2) float32, 0 where not ``valid``."""
+    import cv2
+
+    w = valid.astype(np.float32)
+    f = np.where(valid[..., None], flow, 0).astype(np.float32)
+    num = cv2.GaussianBlur(f * w[..., None], (0, 0), blur_px * scale)
+    den = cv2.GaussianBlur(w, (0, 0), blur_px * scale)
+    out = num / np.maximum(den, 1e-6)[..., None]
+    out += noise_px * np.stack([_smooth_noise(rng, valid.shape, 6 * scale) for _ in range(2)], -1)
+    return np.where(valid[..., None], out, 0).astype(np.float32)
 
 
 # =========================================================================== body poses
@@ -423,7 +483,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 # =========================================================================== the stage
-def _check_source(src: Path, masks: str) -> dict:
+def _check_source(src: Path, masks: str, flows: bool = False) -> dict:
     info = read_scene(src)
     yml = src / "scene.yaml"
     if info.get("synthetic") is not True:
@@ -437,7 +497,8 @@ def _check_source(src: Path, masks: str) -> dict:
         raise ValueError(f"{yml}: 'cameras/train' is missing or empty")
     for s in seqs:
         sdir = src / s["name"]
-        for need in ("intri.yml", "extri.yml", "smpl", "gt/meshes.npz") + (("gt/masks",) if masks == "parser" else ()):
+        for need in (("intri.yml", "extri.yml", "smpl", "gt/meshes.npz") + (("gt/masks",) if masks == "parser" else ())
+                     + (("gt/flows",) if flows else ())):
             if not (sdir / need).exists():
                 raise FileNotFoundError(f"{sdir / need}: not found (sequence '{s['name']}' of {yml})")
     return info
@@ -446,17 +507,19 @@ def _check_source(src: Path, masks: str) -> dict:
 def run_export_capture(src: str | os.PathLike, out: str | os.PathLike, distort: bool = True,
                        pose_noise_cm: float = 2.0, masks: str = "none", image_size: str | Sequence[int] | None = None,
                        seed: int = 0, normals: bool = True, truth: str | os.PathLike | None = None,
-                       threads: int = 2) -> dict:
+                       threads: int = 2, flows: bool = False, cue_files: str = "pipeline") -> dict:
     """Write the synthetic scene ``src`` as a capture into ``out`` and its truth into ``truth``
     (default ``<out>.truth``); see the module doc. image_size: ``"WxH"`` (default
-    :func:`default_image_size`); masks: :data:`MASK_MODES`; seed: every random choice (distortion
-    spread, body noise, mask errors). Returns the export record (also ``truth/export.json``).
+    :func:`default_image_size`); masks: :data:`MASK_MODES`; flows: ship network-like flows; cue_files:
+    :data:`CUE_FILE_MODES`; seed: every random choice (distortion spread, body noise, mask and flow errors). Returns the export record (also ``truth/export.json``).
     """
     t0 = time.perf_counter()
     src, out = Path(src), Path(out)
     truth = Path(truth) if truth is not None else out.parent / f"{out.name}.truth"
     if masks not in MASK_MODES:
         raise ValueError(f"masks must be one of {list(MASK_MODES)}, got {masks!r}")
+    if cue_files not in CUE_FILE_MODES:
+        raise ValueError(f"cue_files must be one of {list(CUE_FILE_MODES)}, got {cue_files!r}")
     if not (isinstance(pose_noise_cm, (int, float)) and np.isfinite(pose_noise_cm) and pose_noise_cm >= 0):
         raise ValueError(f"pose_noise_cm must be a number >= 0, got {pose_noise_cm!r}")
     size_arg = parse_image_size(image_size)
@@ -466,7 +529,7 @@ def run_export_capture(src: str | os.PathLike, out: str | os.PathLike, distort: 
     if out.resolve() == src.resolve() or truth.resolve() == out.resolve():
         raise ValueError(f"{out}: the output must differ from the source scene and from the truth folder")
     # 1. read and check everything before writing
-    info = _check_source(src, masks)
+    info = _check_source(src, masks, flows)
     body = load_body(src, info)
     seq_names = [s["name"] for s in info["sequences"]]
     used = list(info["cameras"]["train"]) + list(info["cameras"].get("test") or [])
@@ -507,7 +570,8 @@ def run_export_capture(src: str | os.PathLike, out: str | os.PathLike, distort: 
     record = {"format": "anidress-export-capture", "source": str(src.resolve()), "scene_dir": str(out),
               "truth_dir": str(truth), "options": {"distort": bool(distort), "pose_noise_cm": float(pose_noise_cm),
                                                    "masks": masks, "image_size": None, "seed": int(seed),
-                                                   "normals": bool(normals)},
+                                                   "normals": bool(normals), "flows": bool(flows),
+                                                   "cue_files": cue_files},
               "dropped": ["backgrounds/", "gt/", "garment/texture.png", "body_texture.png"], "sequences": {},
               "code_version": __version__}
     try:
@@ -519,7 +583,7 @@ def run_export_capture(src: str | os.PathLike, out: str | os.PathLike, distort: 
         with ThreadPoolExecutor(max_workers=max(1, int(threads))) as pool:
             for k, p in enumerate(plan):
                 record["sequences"][p["seq"]] = _export_sequence(src, tmp, tmp_t, p, info, used, masks, normals,
-                                                                 seed * 1000 + k, pool)
+                                                                 seed * 1000 + k, pool, flows, cue_files)
         H2, W2 = plan[0]["size"]
         record["options"]["image_size"] = f"{W2}x{H2}"
         scene = {"name": out.name, "synthetic": False, "kind": info.get("kind", "tight"), "fps": float(info["fps"]),
@@ -532,6 +596,12 @@ def run_export_capture(src: str | os.PathLike, out: str | os.PathLike, distort: 
             scene.update(garment_template=info["garment_template"], garment_kind=info.get("garment_kind"))
         if normals and info.get("predicted_normals"):
             scene["predicted_normals"] = "normals"
+        if cue_files == "easymocap_sapiens_raft":
+            scene["cues"] = {"masks": {"format": "schp", "label_set": "cihp", "person": 0},
+                             "normals": {"format": "sapiens"}, "flows": {"format": "raft"}}
+        elif cue_files == "lip_png_kitti":
+            scene["cues"] = {"masks": {"format": "schp", "label_set": "lip"}, "normals": {"format": "png"},
+                             "flows": {"format": "kitti"}}
         scene["source"] = {"format": "anidress-export-capture", "path": str(src.resolve())}
         record["config_entry"] = scene_config_entry(scene)
         record["wall_s"] = round(time.perf_counter() - t0, 3)
@@ -549,8 +619,27 @@ def run_export_capture(src: str | os.PathLike, out: str | os.PathLike, distort: 
     return record
 
 
+def _parser_indices(labels: np.ndarray, label_set: str, garment_kind: str | None) -> np.ndarray:
+    """Labels 0/1/2 as a human parser's label indices of ``label_set``: the garment its Skirt or Dress, the body
+    Upper-clothes above the garment's top row and Left-leg below it."""
+    from ..io.cue_files import SCHP_LABEL_SETS
+
+    names = [n.lower() for n in SCHP_LABEL_SETS[label_set]]
+    out = np.zeros(labels.shape, np.uint8)
+    rows = np.nonzero((labels == 2).any(1))[0]
+    top = rows[0] if rows.size else labels.shape[0]
+    body = labels == 1
+    upper = np.zeros_like(body)
+    upper[:top] = True
+    out[body & upper] = names.index("upper-clothes")
+    out[body & ~upper] = names.index("left-leg")
+    out[labels == 2] = names.index("dress" if garment_kind == "dress" else "skirt")
+    return out
+
+
 def _export_sequence(src: Path, dst: Path, truth: Path, p: dict, info: dict, used: list[str], masks: str,
-                     normals: bool, seed: int, pool: ThreadPoolExecutor) -> dict:
+                     normals: bool, seed: int, pool: ThreadPoolExecutor, flows: bool = False,
+                     cue_files: str = "pipeline") -> dict:
     """Write one sequence into ``dst`` (the capture) and ``truth``; returns its record."""
     seq, cams, cams2, T = p["seq"], p["cams"], p["cams2"], p["T"]
     sdir, odir, tdir = src / seq, dst / seq, truth / seq
@@ -583,11 +672,35 @@ def _export_sequence(src: Path, dst: Path, truth: Path, p: dict, info: dict, use
             if masks == "parser":
                 rng = np.random.default_rng([int(seed), 303, c, t])
                 pl = parser_labels(lab, rng, scale)
-                files.write_mask(odir / "masks" / cam / f"{name}.png", pl)
+                if cue_files == "pipeline":
+                    files.write_mask(odir / "masks" / cam / f"{name}.png", pl)
+                elif cue_files == "easymocap_sapiens_raft":  # EasyMocap's mask-schp: silhouettes + CIHP parsing
+                    files.write_png(odir / "masks" / cam / f"{name}_0.png", np.where(pl > 0, 255, 0).astype(np.uint8))
+                    cue_io.write_schp_png(odir / "masks-parsing" / cam / f"{name}.png",
+                                          _parser_indices(pl, "cihp", info.get("garment_kind")))
+                else:
+                    cue_io.write_schp_png(odir / "masks" / cam / f"{name}.png",
+                                          _parser_indices(pl, "lip", info.get("garment_kind")))
                 res = (_iou(pl > 0, lab > 0), _iou(pl == 2, lab == 2) if (lab == 2).any() else None)
         if has_normals:
-            n = files.read_exr(sdir / "normals" / cam / f"{name}.exr")
-            files.write_exr(odir / "normals" / cam / f"{name}.exr", warp_normals(n, maps, c), None, True)
+            n = warp_normals(files.read_exr(sdir / "normals" / cam / f"{name}.exr"), maps, c)
+            if cue_files == "pipeline":
+                files.write_exr(odir / "normals" / cam / f"{name}.exr", n, None, True)
+            elif cue_files == "easymocap_sapiens_raft":
+                cue_io.write_sapiens_normals(odir / "normals" / cam / f"{name}.npy", n @ OPENGL_AXES.T)
+            else:
+                cue_io.write_normal_image(odir / "normals" / cam / f"{name}.png", n @ OPENGL_AXES.T, bits=8)
+        if flows and t > 0:
+            g = files.read_exr(sdir / "gt" / "flows" / cam / f"{name}.exr")
+            fl, ok = warp_flow(g[..., :2], g[..., 2] > 0.5, maps, c, cams, cams2)
+            fl = network_flow(fl, ok, np.random.default_rng([int(seed), 505, c, t]), scale)
+            if cue_files == "pipeline":
+                files.write_exr(odir / "flows" / cam / f"{name}.exr",
+                                np.concatenate([fl, ok[..., None]], -1).astype(np.float32), ("X", "Y", "valid"))
+            elif cue_files == "easymocap_sapiens_raft":  # RAFT writes no validity: the pixels without a flow hold 0
+                cue_io.write_flo(odir / "flows" / cam / f"{name}.flo", fl)
+            else:
+                cue_io.write_kitti_flow(odir / "flows" / cam / f"{name}.png", fl, ok)
         return res
 
     jobs = [pool.submit(one, c, cam, t) for t in range(T) for c, cam in enumerate(cams.names)]

@@ -2,15 +2,21 @@
 
 `anidress export-capture` writes a tiny synthetic skirt scene as a user's capture: distorted
 cameras whose intri.yml has no H_/W_, 4:3 images (re-encoded here as JPEG, one camera's frames without
-zero padding), noisy EasyMocap >= 0.2 body files, no gt/, no background plates, no garment texture, no
-masks. With the config entry it prints:
+zero padding), noisy EasyMocap >= 0.2 body files, no gt/, no background plates, no garment texture, and
+the cue files of the tools users run (issue 47): for walk, masks in EasyMocap's mask-schp layout (a
+silhouette per person and SCHP's CIHP part labels in masks-parsing/; training cameras only), Sapiens .npy
+normals (OpenGL axes) and RAFT .flo flows; jump ships the normals and flows but no masks. With the config entry it prints (and
+cues/flows/method: files):
 
 1. the default cues/masks/background 'plate' stops at validate_scene with one message naming the
-   missing backgrounds/ folder and the setting (before any long stage);
+   missing backgrounds/ folder of jump and the setting (before any long stage);
 2. with cues/masks/background: temporal_median, `snakemake` (default target: every rule through
-   evaluate_field and the report) runs with no failure; metrics.csv scores the images with a mask
-   of the pipeline (mask_source 'pipeline') and leaves the test camera, which rule masks did not
-   cover (cues/cameras: train), unscored (NaN, 'none'); the report says there is no ground truth;
+   evaluate_field and the report) runs with no failure: walk's masks converted from SCHP's CIHP labels,
+   jump's estimated, the normals' axes found to be OpenGL's and converted, the flows remapped through
+   the lens; metrics.csv scores the images with a mask
+   of the pipeline (mask_source 'pipeline') and leaves the test camera, which neither the shipped masks
+   nor rule masks cover (cues/cameras: train), unscored (NaN, 'none'); the report says there is no
+   ground truth;
 3. a second run has nothing to do;
 4. an empty mask of the pipeline leaves its image unscored (run_evaluate on the run's renders).
 
@@ -23,6 +29,7 @@ import csv
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -74,7 +81,11 @@ def capture(tmp_path_factory):
                           yaml.safe_load(default_schema_path().read_text()))
     src = run_synth(cfg["scenes"]["s"], "s", root / "src" / "s", threads=1, progress=False)
     wd = root / "wd"
-    rec = run_export_capture(src, wd / "data" / "cap", masks="none", seed=1, threads=1)
+    rec = run_export_capture(src, wd / "data" / "cap", masks="parser", flows=True, cue_files="easymocap_sapiens_raft",
+                             seed=1, threads=1)
+    shutil.rmtree(wd / "data" / "cap" / "jump" / "masks")  # estimated by rule masks
+    for d in ("masks", "masks-parsing"):  # shipped masks cover the training cameras
+        shutil.rmtree(wd / "data" / "cap" / "walk" / d / "03")
     # as cameras deliver them: JPEG (quality 95), the frames of camera 02 named without zero padding
     for p in sorted((wd / "data" / "cap").glob("*/images/*/*.png")):
         name = f"{int(p.stem)}.JPG" if p.parent.name == "02" else f"{p.stem}.jpg"
@@ -108,7 +119,7 @@ def test_missing_plates_are_named_by_validate_scene(plates_run):
     res, log, checked, template = plates_run
     assert res.returncode != 0
     assert "cues/masks/background is 'plate'" in log and "temporal_median" in log, log + _tail(res)
-    assert str(Path("walk") / "backgrounds") in log, log
+    assert str(Path("jump") / "backgrounds") in log and str(Path("walk") / "backgrounds") not in log, log
     assert not checked and not template  # stopped before any long stage
 
 
@@ -116,7 +127,8 @@ def test_missing_plates_are_named_by_validate_scene(plates_run):
 def ran(capture, plates_run):
     """The capture's workdir after `snakemake` (default target) with temporal-median plates."""
     wd, entry = capture
-    _write_cfg(wd, entry, cues={"masks": {"background": "temporal_median"}}, refine_body={"enabled": True})
+    _write_cfg(wd, entry, cues={"masks": {"background": "temporal_median"}, "flows": {"method": "files"}},
+               refine_body={"enabled": True})
     res = _snakemake(wd)
     assert res.returncode == 0, _tail(res)
     return wd
@@ -126,7 +138,11 @@ def test_capture_runs_end_to_end_without_ground_truth(ran):
     wd = ran
     data = wd / "data" / "cap"
     assert "H_" not in (data / "walk" / "intri.yml").read_text()
-    assert not list(data.rglob("gt")) and not list(data.rglob("backgrounds")) and not list(data.rglob("masks"))
+    assert not list(data.rglob("gt")) and not list(data.rglob("backgrounds"))
+    assert (data / "walk" / "masks" / "01" / "000000_0.png").is_file() and not (data / "jump" / "masks").exists()
+    assert (data / "walk" / "masks-parsing" / "01" / "000000.png").is_file()
+    assert (data / "walk" / "normals" / "01" / "000000.npy").is_file()
+    assert (data / "walk" / "flows" / "01" / "000001.flo").is_file()
     assert (data / "walk" / "images" / "02" / "1.JPG").is_file() and not list(data.rglob("images/*/*.png"))
     out = wd / "results" / "cap"
     for v in ("full", "body_only"):
@@ -147,6 +163,23 @@ def test_capture_runs_end_to_end_without_ground_truth(ran):
         nv = next(m for m in summ["metrics"] if m["kind"] == "novel_view")
         assert nv["scored"] == 0 and math.isnan(nv["psnr_db"])  # no figure without a mask
     assert not (out / "walk" / "fit_metrics.csv").exists()  # the fit is not scored: no true meshes
+    # the cue files: SCHP labels converted (the garment is CIHP's skirt), normals in OpenGL axes found and converted,
+    # flows remapped by rule undistort and converted
+    from anidress_core.io import files
+
+    labels = files.read_mask(out / "walk" / "masks" / "01" / "000001.png")
+    assert set(labels.ravel().tolist()) <= {0, 1, 2} and (labels == 2).any() and (labels == 1).any()
+    assert sorted(p.name for p in (out / "walk" / "masks").iterdir() if p.is_dir()) == ["01", "02", "04"]
+    rec = json.loads((out / "walk" / "normals.json").read_text())
+    assert rec["convention_axes"] == "x, -y, -z" and rec["agreement"] > 0.5
+    assert rec["dir"] == "results/cap/walk/normals" and (out / "walk" / "normals" / "01" / "000000.exr").is_file()
+    flow = files.read_exr(out / "walk" / "flows" / "01" / "000001.exr")
+    assert flow.shape[-1] == 3 and flow[..., 2].any() and not (out / "walk" / "flows" / "01" / "000000.exr").exists()
+    from anidress_core.io.garment_poses import read_garment_poses
+
+    meta = read_garment_poses(out / "walk" / "garment_poses.npz").header["meta"]
+    assert meta["normals_dir"] == "results/cap/walk/normals" and meta["masks_dir"] == "results/cap/walk/masks"
+    assert meta["flows_dir"] == "results/cap/walk/flows"
     html = (wd / "results" / "report.html").read_text()
     assert 'data-ground-truth="none"' in html and "No ground truth" in html
     assert "fit metrics (walk)" in html and "captured image, pipeline&#39;s mask" in html
