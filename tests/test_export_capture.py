@@ -293,3 +293,26 @@ def test_cli_export_capture(tiny, tmp_path, capsys):
     assert "body joint error 1.5" in text and "distortion off" in text and f"{out}: OK" in text
     assert "scenes:" in text and "anchor_reference: images" in text
     assert main(["export-capture", str(data), str(out)]) == 2  # exists: refused, named
+
+
+def test_exported_flow_undistorts_back_to_the_source_flow():
+    """warp_flow (source pinhole -> exported distorted camera) then rule undistort's undistort_flow (back to a
+    pinhole working camera with the source's K): the source flow again, away from the border."""
+    from anidress_core.camera import Cameras
+    from anidress_core.stages.export_capture import warp_flow
+    from anidress_core.undistort import undistort_flow, undistort_maps
+
+    H2, W2 = 48, 64
+    K = torch.tensor([[[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]], dtype=torch.float64)
+    src = Cameras(["01"], K, torch.zeros(1, 5, dtype=torch.float64), torch.eye(3, dtype=torch.float64)[None],
+                  torch.zeros(1, 3, dtype=torch.float64), H2, W2)
+    dist = torch.tensor([[-0.25, 0.08, 0.0005, -0.001, 0.0]], dtype=torch.float64)
+    dst = Cameras(["01"], K.clone(), dist, src.R.clone(), src.T.clone(), H2, W2)
+    v, u = np.mgrid[0:H2, 0:W2].astype(np.float32)
+    flow = np.stack([0.8 + 0.02 * (u - 32), -0.5 + 0.03 * (v - 24)], -1).astype(np.float32)
+    exp, ok = warp_flow(flow, np.ones((H2, W2), bool), warp_maps(src, dst), 0, src, dst)
+    assert ok.mean() > 0.8 and np.abs(exp - flow)[ok].max() > 0.05  # the lens bends the vectors
+    back, ok2 = undistort_flow(exp, ok, undistort_maps(dst.K, dst.dist, H2, W2), 0, dst.K[0], dst.dist[0])
+    inner = ok2.copy()
+    inner[:6], inner[-6:], inner[:, :6], inner[:, -6:] = False, False, False, False
+    assert inner.mean() > 0.5 and np.abs(back - flow)[inner].max() < 0.02

@@ -257,7 +257,41 @@ def test_scene_yaml_frames_disagree_with_the_images(scene):
 
 def test_shipped_normals_miss_a_frame(scene):
     (scene / "walk" / "normals" / "01" / "000002.exr").unlink()
-    _fails(scene, scene / "walk" / "normals" / "01", "2 normals for 3 image frames", "missing 000002.exr")
+    _fails(scene, scene / "walk" / "normals" / "01", "2 normals (exr) for 3 image frames", "missing 000002.exr")
+
+
+def test_shipped_tool_cue_files_are_checked_in_their_format(scene):
+    """scene.yaml cues names the formats: SCHP masks, Sapiens normals and RAFT flows pass; a flow of another
+    size, a missing flow and files of another format than declared are named."""
+    from anidress_core.io import cue_files
+
+    info = yaml.safe_load((scene / "scene.yaml").read_text())
+    info["cues"] = {"masks": {"format": "schp", "label_set": "lip"}, "normals": {"format": "sapiens"},
+                    "flows": {"format": "raft"}}
+    (scene / "scene.yaml").write_text(yaml.safe_dump(info))
+    walk = scene / "walk"
+    for cam in info["cameras"]["train"] + info["cameras"]["test"]:
+        for f in range(3):
+            lab = files.read_mask(walk / "gt" / "masks" / cam / f"{f:06d}.png")
+            cue_files.write_schp_png(walk / "masks" / cam / f"{f:06d}.png", np.choose(lab, [0, 13, 12]).astype(np.uint8))
+            n = walk / "normals" / cam / f"{f:06d}.exr"
+            cue_files.write_sapiens_normals(n.with_suffix(".npy"), files.read_exr(n)[..., :3])
+            n.unlink()
+            if f:
+                cue_files.write_flo(walk / "flows" / cam / f"{f:06d}.flo",
+                                    files.read_exr(walk / "gt" / "flows" / cam / f"{f:06d}.exr")[..., :2])
+    summ = validate_scene(scene)
+    assert summ["sequences"]["walk"]["flows"] and summ["sequences"]["walk"]["masks"]
+    assert any(c.startswith("flows (raft)") for c in summ["checks"])
+    cam = info["cameras"]["train"][0]
+    bad = walk / "flows" / cam / "000002.flo"
+    cue_files.write_flo(bad, np.zeros((40, 40, 2), np.float32))
+    _fails(scene, bad, "flow is 40x40", "the images are 32x32")
+    bad.unlink()
+    _fails(scene, walk / "flows" / cam, "for 2 image frames after the first", "missing 000002.flo")
+    info["cues"]["flows"]["format"] = "kitti"
+    (scene / "scene.yaml").write_text(yaml.safe_dump(info))
+    _fails(scene, walk / "flows" / cam, "0 flows (kitti)", "cues/flows/format is 'kitti'")
 
 
 # --------------------------------------------------------------------------- body parameters

@@ -13,7 +13,7 @@ Why these thresholds (studies/cues/normal_convention.md: the synthetic predicted
 the demo skirt and three suite scenes, against the body posed as the scene says, the
 skinned garment template hiding the body where it covers it): the right convention
 agrees at a mean cosine of 0.92 to 0.97, the next best (y flipped) at 0.69 to 0.78, an x
-flip at about 0.48 and OpenGL's axes (y, z flipped) at about -0.48. A mean of 0.5 leaves
+flip at 0.48 to 0.57 and OpenGL's axes (y, z flipped) at -0.57 to -0.48. A mean of 0.5 leaves
 room for a body estimate a few centimetres off and a smoothing predictor. The y flip is
 the close one (an upright body's normals are mostly horizontal); on the tiny scenes of
 the tests, with 2 cm of body-pose noise, it trails by only 0.06, but it loses in every

@@ -9,19 +9,18 @@ their own machine; scene.yaml's ``cues`` section names their formats
       normals: {format: sapiens}
       flows:   {format: raft}
 
-==========  ===========================================================  =================================
-kind        formats (file of camera ``cam``, frame ``f``)                 read as
-==========  ===========================================================  =================================
-masks       labels: ``<cam>/<f>.png`` 0 / 1 / 2 (the default);            (H, W) uint8 labels 0 background,
-            schp: SCHP palette PNG ``<cam>/<f>.png`` or EasyMocap's       1 body, 2 garment
-            ``mask-schp`` per-person silhouettes ``<cam>/<f>_<i>.png``
-            with the CIHP labels in ``masks-parsing/<cam>/<f>.png``
-normals     exr: ``<cam>/<f>.exr`` unit normals (the default);            (H, W, 3) float32 camera-space
-            sapiens: ``<cam>/<f>.npy``; png: ``<cam>/<f>.png`` (n+1)/2;    unit normals in the *file's* axes,
-            icon: ``<cam>/<f>.png`` crops placed by ``crops.json``          0 where there is none
-flows       exr: ``<cam>/<f>.exr`` X, Y, valid (the default);             (H, W, 2) float32 pixels and
-            raft: ``<cam>/<f>.flo``; kitti: ``<cam>/<f>.png`` 16-bit       (H, W) bool valid
-==========  ===========================================================  =================================
+Formats (the file of camera ``cam`` and frame ``f``), each read as the pipeline's form:
+
+* masks, read as (H, W) uint8 labels 0 background, 1 body, 2 garment: ``labels`` (the default):
+  ``<cam>/<f>.png`` 0 / 1 / 2; ``schp``: SCHP palette PNGs ``<cam>/<f>.png``, or EasyMocap's
+  ``mask-schp`` layout, one 0 / 255 silhouette per person ``<cam>/<f>_<i>.png`` with the CIHP
+  labels in ``masks-parsing/<cam>/<f>.png``;
+* normals, read as (H, W, 3) float32 camera-space unit normals in the *file's* axes, 0 where
+  there is none: ``exr`` (the default) ``<cam>/<f>.exr``; ``sapiens`` ``<cam>/<f>.npy``; ``png``
+  ``<cam>/<f>.png`` or ``.exr`` holding (n+1)/2; ``icon`` ``<cam>/<f>.png`` crops placed in the
+  image by ``crops.json``;
+* flows, read as (H, W, 2) float32 pixels and (H, W) bool validity: ``exr`` (the default)
+  ``<cam>/<f>.exr`` X, Y, valid; ``raft`` ``<cam>/<f>.flo``; ``kitti`` ``<cam>/<f>.png`` 16-bit.
 
 ``<f>``: the frame number, any zero padding. A flow file of frame ``f`` holds the forward flow
 from frame ``f - 1`` to ``f`` on frame ``f - 1``'s pixel grid (the pipeline's convention,
@@ -39,13 +38,19 @@ import numpy as np
 from . import cue_files, files
 from .images import frame_files
 
-__all__ = ["CUE_SUFFIX", "source_format", "cue_frames", "garment_labels", "read_mask_labels", "read_normals",
+__all__ = ["CUE_SUFFIX", "suffixes", "source_format", "cue_frames", "garment_labels", "read_mask_labels", "read_normals",
            "read_flow", "CROPS_FILE"]
 
 CUE_SUFFIX = {("masks", "labels"): ".png", ("masks", "schp"): ".png", ("normals", "exr"): ".exr",
               ("normals", "sapiens"): ".npy", ("normals", "png"): ".png", ("normals", "icon"): ".png",
               ("flows", "exr"): ".exr", ("flows", "raft"): ".flo", ("flows", "kitti"): ".png"}
-"""File extension of each (kind, format)."""
+"""File extension of each (kind, format) (:func:`suffixes`: every one it is read from)."""
+
+
+def suffixes(kind: str, fmt: str) -> tuple[str, ...]:
+    """The file extensions of a (kind, format), in the order they are looked for: (n+1)/2 normal maps as PNG or
+    EXR, every other format one."""
+    return (".png", ".exr") if (kind, fmt) == ("normals", "png") else (CUE_SUFFIX[(kind, fmt)],)
 CROPS_FILE = "crops.json"
 """ICON / ECON normal crops: ``normals/crops.json`` places each crop in its image
 (:func:`anidress_core.io.cue_files.read_crops`)."""
@@ -78,7 +83,7 @@ def cue_frames(cam_dir: str | Path, kind: str, fmt: str) -> dict[int, Path]:
     cam_dir = Path(cam_dir)
     if kind == "masks" and fmt == "schp":
         return _mask_frames(cam_dir)
-    return frame_files(cam_dir, (CUE_SUFFIX[(kind, fmt)],))
+    return frame_files(cam_dir, suffixes(kind, fmt))
 
 
 def garment_labels(cfg: dict) -> tuple[int, ...]:
@@ -122,8 +127,8 @@ def read_normals(root: str | Path, cam: str, frame: int, fmt: str, shape: tuple[
     crops (icon): :func:`anidress_core.io.cue_files.read_crops` of ``root/crops.json`` (read once by the caller).
     """
     root = Path(root)
-    suffix = CUE_SUFFIX[("normals", fmt)]
-    path = frame_files(root / cam, (suffix,)).get(int(frame), root / cam / f"{int(frame):06d}{suffix}")
+    exts = suffixes("normals", fmt)
+    path = frame_files(root / cam, exts).get(int(frame), root / cam / f"{int(frame):06d}{exts[0]}")
     if fmt == "exr":
         n = files.read_exr(path)
         if n.ndim != 3 or n.shape[-1] < 3:

@@ -516,11 +516,12 @@ def _check_optional(sdir: Path, sub: str, used: list[str], train: list[str], fra
                      + (f" (extra {_fmt_frames(extra, ext)})" if extra else "")
                      + (f"; scene.yaml cues/{sub}/format is {fmt!r}" if not have else ""))
         for fr in sorted(want):
-            if ext == ".png" and fmt != "icon":
+            suffix = have[fr].suffix.lower()
+            if suffix == ".png" and fmt != "icon":
                 hw = _wrap(image_size_from_header, have[fr])
                 if hw != size:
                     _fail(have[fr], f"{sub[:-1]} is {hw[1]}x{hw[0]} (WxH), the images are {size[1]}x{size[0]}")
-            elif ext == ".exr":
+            elif suffix == ".exr":
                 _wrap(check_exr_magic, have[fr])
         for fr in sorted({min(want), max(want)}):
             if sub == "masks":
