@@ -367,13 +367,6 @@ def growth(rows: list[dict]) -> dict:
     return out
 
 
-def summary(csv_path: Path) -> str:
-    """One line for benchmarks/scaling.md: the CUDA speed-ups at the paper point, from cuda.csv."""
-    rows = [r for r in csv.DictReader(open(csv_path)) if r["point"] == "paper"]
-    parts = [f"{r['stage']} {float(r['speedup']):.2g}x" for r in rows if np.isfinite(float(r["speedup"]))]
-    return ", ".join(parts)
-
-
 def report(raw: dict, out: Path) -> None:
     rows = table(raw)
     out.mkdir(parents=True, exist_ok=True)

@@ -54,7 +54,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from benchmarks.benchutil import cpu_model, git_rev  # noqa: E402
+from benchmarks.benchutil import cpu_model, cuda_summary, git_rev  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CODE_PATHS = ("anidress_core", "benchmarks/bench_scaling.py")
@@ -719,11 +719,9 @@ def write(out: Path, runner: Runner, fits: dict, paper: list[dict], args, wall_s
     cuda = torch.cuda.is_available()
     cuda_csv = ROOT / "benchmarks" / "cuda.csv"
     if cuda_csv.is_file():
-        from benchmarks.bench_cuda import summary
-
         cuda_line = ("every figure here is a CPU run (device cpu). The GPU paths are timed apart, against the CPU of "
                      "the GPU machine, in [cuda.md](cuda.md) (`python -m benchmarks.bench_cuda`); CUDA speed-up per "
-                     f"unit at the paper point there: {summary(cuda_csv)}.")
+                     f"unit at the paper point there: {cuda_summary(cuda_csv)}.")
     elif cuda:
         cuda_line = ("a CUDA device is visible, but every figure here is a CPU run (device cpu); no CUDA time is "
                      "measured by this benchmark.")

@@ -1,8 +1,12 @@
 """Helpers shared by the benchmark scripts, which run as modules from the repository root:
-``.venv/bin/python -m benchmarks.<name> ...``."""
+``.venv/bin/python -m benchmarks.<name> ...``. This module imports no benchmark script; what two scripts
+both need lives here, so that no script imports another that imports it back."""
 from __future__ import annotations
 
+import csv
+import math
 import platform
+from pathlib import Path
 
 
 def cpu_model() -> str:
@@ -32,3 +36,11 @@ def git_rev(paths=("anidress_core",)) -> str:
         return "?"
     return (rev.strip() or "?") + (" + working tree" if dirty.strip() else "")
 
+
+
+def cuda_summary(csv_path: Path) -> str:
+    """One line for benchmarks/scaling.md (bench_scaling): the CUDA speed-ups at the paper point, from the
+    cuda.csv that bench_cuda writes."""
+    with open(csv_path, newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["point"] == "paper"]
+    return ", ".join(f"{r['stage']} {float(r['speedup']):.2g}x" for r in rows if math.isfinite(float(r["speedup"])))
