@@ -464,8 +464,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
                                          "cameras have lens distortion)")
     s.add_argument("--motions", help="the simulated body motions results/<scene>/motions (rule motions): the "
-                                     "proposals' database, needed when fit/proposal_every > 0")
-    s.add_argument("--body", help="the sequence's body poses refined by `anidress refine-body` (OUT of it), read instead of its smpl/")
+                                     "database of the nearest baseline (--ablation nearest)")
+    s.add_argument("--body", help="the sequence's body poses refined by `anidress refine-body` (OUT of it), read "
+                                  "instead of its smpl/")
     s.add_argument("--sim-ensemble", help="`anidress simulate --ensemble` of seq-<seq>: L_prior's reference, needed "
                                           "with fit/prior_reference sim_ensemble (the default)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -495,7 +496,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--out", required=True, help="output field.pt (field.pt.ckpt beside it while training)")
     s.add_argument("--undistorted", help="the sequence undistorted by `anidress undistort` (needed when its "
                                          "cameras have lens distortion)")
-    s.add_argument("--body", help="the sequence's body poses refined by `anidress refine-body` (OUT of it), read instead of its smpl/")
+    s.add_argument("--body", help="the sequence's body poses refined by `anidress refine-body` (OUT of it), read "
+                                  "instead of its smpl/")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_train)
 
@@ -516,8 +518,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", help="cpu | cuda")
     s.add_argument("--threads", type=int, default=0)
     s.add_argument("-o", "--out", required=True, help="output folder (rgb/, alpha/, depth/, render.json)")
-    s.add_argument("--undistorted", help="--seq's (or the training sequence's) folder by `anidress undistort` (needed when its "
-                                         "cameras have lens distortion)")
+    s.add_argument("--undistorted", help="--seq's (or the training sequence's) folder by `anidress undistort` "
+                                         "(needed when its cameras have lens distortion)")
     s.add_argument("--body", help="--seq's body poses refined by `anidress refine-body`, read instead of its smpl/")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=_cmd_render)

@@ -18,7 +18,7 @@ cues, render windows), :mod:`.terms` (one module per loss term: value, Gauss-New
 autograd reference), :mod:`.objective` (the loss and its Gauss-Newton system), :mod:`.lm`
 (Levenberg-Marquardt), :mod:`.jacobians` (bone increments), :mod:`.sequence` (frames and
 sequences: the forward chain), :mod:`.window` (windows of chained frames refined jointly, L_flow
-coupling their poses), :mod:`.proposals` (candidate poses from the simulation database, scored by the
+coupling their poses), :mod:`.nearest` (the ``nearest`` baseline: simulated poses scored by the
 loss), :mod:`.images` (image sampling).
 """
 from __future__ import annotations
@@ -27,11 +27,10 @@ from .config import FitConfig, LossWeights, VertexSettings
 from .images import blurred, chromaticity, image_features, sample, sample_blurred
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import LMResult, levenberg_marquardt
-from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, total_loss, with_prior_information
+from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, total_loss
 from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, contour_length, crop_frame,
-                      crop_window, downsample, make_problem, occluder_depth, uncrop_fragments)
-from .sequence import (FrameFit, backward_pass, cue_notes, fit_frame, fit_problem, fit_sequence, flow_align,
-                       smooth_transforms)
+                      crop_window, cue_notes, downsample, make_problem, occluder_depth, uncrop_fragments)
+from .sequence import FrameFit, fit_frame, fit_problem, fit_sequence, flow_align, smooth_transforms
 from .terms import TERM_NAMES, TERMS
 from .terms.anchor import AnchorRef, texture_anchor, texture_blur_texels, update_anchor
 from .terms.collision import Contacts, body_contacts
@@ -41,8 +40,8 @@ from .variants import PAPER_WEIGHTS, VARIANTS, apply_variant
 __all__ = [
     "FitConfig", "LossWeights", "VertexSettings", "VARIANTS", "PAPER_WEIGHTS", "apply_variant",
     "RigParts", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem", "Evaluation", "evaluate",
-    "gauss_newton_system", "loss_terms", "total_loss", "with_prior_information", "TERMS", "TERM_NAMES", "LMResult",
-    "levenberg_marquardt", "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "backward_pass", "cue_notes",
+    "gauss_newton_system", "loss_terms", "total_loss", "TERMS", "TERM_NAMES", "LMResult",
+    "levenberg_marquardt", "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "cue_notes",
     "flow_align", "smooth_transforms", "flow_targets",
     "AnchorRef", "update_anchor", "texture_anchor", "texture_blur_texels", "Contacts", "body_contacts",
     "chromaticity", "image_features", "blurred", "sample", "sample_blurred", "contour_length", "occluder_depth",

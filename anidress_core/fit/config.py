@@ -14,11 +14,7 @@ import math
 from dataclasses import dataclass
 from typing import Mapping
 
-__all__ = ["LossWeights", "VertexSettings", "FitConfig", "STAGE_KEYS", "PRIOR_INFORMATION_TERMS"]
-
-#: ``fit/prior_information``: its values and the image terms whose Gauss-Newton information lowers
-#: L_prior's weight for each (:func:`anidress_core.fit.objective.with_prior_information`).
-PRIOR_INFORMATION_TERMS = {"uniform": (), "anchor": ("anchor",), "anchor_flow": ("anchor", "flow")}
+__all__ = ["LossWeights", "VertexSettings", "FitConfig", "STAGE_KEYS"]
 
 #: Keys of config section ``fit`` that the stage reads, not the fit itself.
 STAGE_KEYS = ("views", "cues", "first_frame_init", "ablations", "device", "threads", "eval", "frames")
@@ -67,8 +63,8 @@ class FitConfig:
     ``pipeline`` (the section as written), ``paper``, or a variant of either."""
     method: str
     """'rig' (bone transforms, Levenberg-Marquardt), 'vertex' (ablation a, Adam on vertices) or
-    'nearest' (a baseline, no optimisation: per frame the simulated pose of the proposals'
-    database with the lowest loss, :func:`anidress_core.fit.sequence.fit_sequence`)."""
+    'nearest' (a baseline, no optimisation: per frame the simulated pose of the simulation
+    database with the lowest loss, :mod:`anidress_core.fit.nearest`)."""
     weights: LossWeights
     """Weight of each loss term, as used (dimensionless multipliers of the unweighted terms)."""
     max_iters: int
@@ -107,30 +103,6 @@ class FitConfig:
     those of the unfiltered fit."""
     vertex: VertexSettings
     """Ablation (a): Adam settings."""
-    proposal_every: int
-    """Proposals from the simulation database (:mod:`anidress_core.fit.proposals`) at frame 0 and
-    every this many frames after it (keyframes; frames); 0 = off. At a keyframe the chained fit
-    competes with the proposals: the lowest loss (without L_prior) is kept. Off by default: measured
-    neutral on the demo skirt (14.64 -> 14.61 mm at 10) and worse on a 128x128 skirt (18.79 -> 18.99 mm),
-    module docstring of :mod:`anidress_core.fit.proposals`; with the simulation prior, every 5 frames, worse
-    on 7 of 10 tuning scenes (median 2.95 -> 2.98x the rig floor; studies/fit/README.md section 8)."""
-    proposal_nearest: int
-    """Proposals per keyframe from other simulated motions: the nearest frames by body pose and
-    root velocity (count)."""
-    proposal_offsets: int
-    """Proposals per keyframe from the simulation of the observed motion: its frames t + o,
-    |o| <= this (frames); -1 = none."""
-    proposal_refine: int
-    """Lowest-scored proposals refined by Levenberg-Marquardt per keyframe (count)."""
-    proposal_velocity_weight: float
-    """Weight (s^2) of the squared root-velocity difference (m/s) against the squared pose-feature
-    distance (rotation matrices of the joints relative to the root) in the nearest-frame search."""
-    backward: bool
-    """After the forward pass: :func:`anidress_core.fit.backward_pass` (each frame refitted from the
-    next frame's kept pose, the lower loss kept). Off by default: about twice the fit time for no
-    measured gain (demo skirt with proposals every 10 frames: 14.61 -> 14.59 mm; 128x128 skirt:
-    18.79 -> 18.95 mm alone); with the simulation prior worse (tuning suite median 2.95 -> 3.68x the rig
-    floor, 18-22x on two skirt jumps; studies/fit/README.md section 8)."""
     window: int
     """Frames refined jointly after the chain (:mod:`anidress_core.fit.window`: L_flow couples the window's
     poses instead of carrying targets from the previous result); 0 or 1 = off. Chosen on the tuning suite
@@ -141,10 +113,8 @@ class FitConfig:
     window_iters: int
     """Most loss evaluations of one window's joint Levenberg-Marquardt (each evaluates all its frames)."""
     start: str
-    """Start of frame t > 0: ``previous`` (frame t-1's result) or ``sim_delta`` (frame t-1's result
-    moved by the simulation's own change of every bone from t-1 to t, G_sim[t] G_sim[t-1]^-1
-    G_fit[t-1], from the rig's simulated sequence of the observed motion: the cloth's motion as
-    the simulator predicts it, which the images then correct)."""
+    """Start of frame t > 0: ``previous``, frame t-1's result (the only value kept; that result moved as the
+    simulation moves was worse and left the package, studies/fit/README.md section 9)."""
 
     prior_reference: str
     """L_prior's reference: ``start`` (frame 0 only: its start pose), ``sim`` (every frame: the rig's
@@ -152,17 +122,10 @@ class FitConfig:
     ``sim_ensemble`` (every frame: the mean of the simulations of the observed motion at several bending
     stiffnesses, rule simulate_ensemble, carried into the rig; closer to the truth than any one member on
     10 of 10 tuning scenes, studies/fit/README.md section 16). ``sim`` and ``sim_ensemble`` also give
-    frame 0's start (``first_frame_init`` auto / sim) and ``sim_delta``'s motion."""
+    frame 0's start (``first_frame_init`` auto / sim)."""
     prior_tangential: bool
     """L_prior counts only the offset along the surface (its tangent plane at each vertex, from
     ``prior_tangent_planes``); the images alone place the surface along its normals."""
-    prior_information: str
-    """L_prior's weight per bone scaled by its share of the Gauss-Newton information along the same
-    directions (:func:`anidress_core.fit.terms.prior.information_scale`, at each frame's start):
-    ``uniform`` (one weight for every vertex), ``anchor`` (less prior where L_anchor places the
-    material) or ``anchor_flow`` (where L_anchor or L_flow does). Uniform by default: ``anchor`` was
-    worse on 9 of 10 tuning scenes (median 2.95 -> 3.14x the rig floor), ``anchor_flow`` on 3 of 3 plain
-    ones (studies/fit/README.md section 11)."""
     prior_tangent_planes: str = "reference"
     """Whose vertex normals give the tangent planes of the tangential L_prior: ``start`` (the frame's
     start mesh, the previous result moved by the flow alignment: near the surface the images place) or
@@ -176,16 +139,6 @@ class FitConfig:
     distance from their mean, sigma_0 this value times its median over the sequence; None = one weight
     for every vertex (studies/fit/README.md section 17). The config's default is 1.0; this field's
     default is what fits made before the setting existed used."""
-    prior_member_temperature: float | None = None
-    """With ``prior_reference`` sim_ensemble: L_prior's reference (and frame 0's start) the members' mean
-    weighted per frame by how well each explains the images, and the spread about it
-    (:func:`anidress_core.fit.terms.prior.member_weights`: softmax of the members' L_silhouette + L_normal
-    over this times their standard deviation; 0 = the best member alone); None = the plain mean. None by
-    default: held-out, it is better with L_anchor's references from the garment texture (8 views 2.47 ->
-    2.38x the rig floor) and worse with references from the images, as on a capture without a texture
-    (2.59 -> 2.79x; studies/fit/README.md section 21)."""
-    prior_member_window: int = 5
-    """Frames either side of t whose member scores are summed for frame t's weights."""
 
     def __post_init__(self):
         from .variants import VARIANTS
@@ -194,8 +147,8 @@ class FitConfig:
             raise ValueError(f"FitConfig.loss must be one of {sorted(VARIANTS)}, got {self.loss!r}")
         if self.method not in ("rig", "vertex", "nearest"):
             raise ValueError(f"FitConfig.method must be 'rig', 'vertex' or 'nearest', got {self.method!r}")
-        if self.start not in ("previous", "sim_delta"):
-            raise ValueError(f"FitConfig.start must be 'previous' or 'sim_delta', got {self.start!r}")
+        if self.start != "previous":
+            raise ValueError(f"FitConfig.start must be 'previous', got {self.start!r}")
         if self.prior_reference not in ("start", "sim", "sim_ensemble"):
             raise ValueError(f"FitConfig.prior_reference must be 'start', 'sim' or 'sim_ensemble', got "
                              f"{self.prior_reference!r}")
@@ -209,18 +162,6 @@ class FitConfig:
         if self.prior_spread_floor is not None and not (self.prior_reference == "sim_ensemble"
                                                         and self.prior_follows_simulation):
             object.__setattr__(self, "prior_spread_floor", None)  # unused: recorded as None, as it ran
-        if self.prior_member_temperature is not None and not (math.isfinite(self.prior_member_temperature)
-                                                              and self.prior_member_temperature >= 0):
-            raise ValueError(f"FitConfig.prior_member_temperature must be None or finite and >= 0, got "
-                             f"{self.prior_member_temperature}")
-        if int(self.prior_member_window) != self.prior_member_window or self.prior_member_window < 0:
-            raise ValueError(f"FitConfig.prior_member_window must be an integer >= 0, got {self.prior_member_window}")
-        if self.prior_member_temperature is not None and not (self.prior_reference == "sim_ensemble"
-                                                              and self.prior_follows_simulation):
-            object.__setattr__(self, "prior_member_temperature", None)  # unused: recorded as None, as it ran
-        if self.prior_information not in PRIOR_INFORMATION_TERMS:
-            raise ValueError(f"FitConfig.prior_information must be one of {list(PRIOR_INFORMATION_TERMS)}, got "
-                             f"{self.prior_information!r}")
         if self.anchor_reference not in ("images", "texture"):
             raise ValueError(f"FitConfig.anchor_reference must be 'images' or 'texture', got {self.anchor_reference!r}")
         for k, v in dataclasses.asdict(self.weights).items():
@@ -234,15 +175,10 @@ class FitConfig:
                              f"{self.collision_clearance}, {self.collision_radius}")
         if int(self.smooth_passes) != self.smooth_passes or self.smooth_passes < 0:
             raise ValueError(f"FitConfig.smooth_passes must be an integer >= 0, got {self.smooth_passes}")
-        for k in ("proposal_every", "proposal_nearest", "proposal_refine", "window", "window_iters"):
+        for k in ("window", "window_iters"):
             v = getattr(self, k)
             if int(v) != v or v < 0:
                 raise ValueError(f"FitConfig.{k} must be an integer >= 0, got {v}")
-        if int(self.proposal_offsets) != self.proposal_offsets or self.proposal_offsets < -1:
-            raise ValueError(f"FitConfig.proposal_offsets must be an integer >= -1, got {self.proposal_offsets}")
-        if not (self.proposal_velocity_weight >= 0 and math.isfinite(self.proposal_velocity_weight)):
-            raise ValueError(f"FitConfig.proposal_velocity_weight must be finite and >= 0, got "
-                             f"{self.proposal_velocity_weight}")
         if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex.max_iters < 1 or self.window_iters < 1:
             raise ValueError("FitConfig: iteration limits must be >= 1")
 
@@ -252,13 +188,6 @@ class FitConfig:
         prior weight, method rig; the vertex method keeps L_prior on frame 0 towards its start, nearest is not
         optimised)."""
         return self.prior_reference in ("sim", "sim_ensemble") and self.weights.prior > 0 and self.method == "rig"
-
-    @property
-    def needs_simulation(self) -> bool:
-        """Whether the fit reads the simulation of the observed motion (the rig's ``seq-<sequence>``, or the
-        ensemble's mean with ``prior_reference`` sim_ensemble): for the ``sim_delta`` start or for
-        :attr:`prior_follows_simulation`."""
-        return self.start == "sim_delta" or self.prior_follows_simulation
 
     @classmethod
     def from_config(cls, section: Mapping | None = None, loss: str | None = None) -> "FitConfig":
@@ -278,18 +207,14 @@ class FitConfig:
         kw["vertex"] = VertexSettings(float(kw["vertex"]["lr"]), int(kw["vertex"]["max_iters"]),
                                       int(kw["vertex"]["patience"]))
         for k in ("max_iters", "max_iters_first", "flow_margin_px", "flow_align_iters", "crop_margin", "smooth_passes",
-                  "proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine", "window", "window_iters",
-                  "prior_member_window"):
+                  "window", "window_iters"):
             kw[k] = int(kw[k])
         for k in ("rel_tol", "step_tol", "damping", "visibility_depth_tol", "image_blur", "anchor_scale",
-                  "collision_clearance", "collision_radius", "proposal_velocity_weight"):
+                  "collision_clearance", "collision_radius"):
             kw[k] = float(kw[k])
-        kw["backward"] = bool(kw["backward"])
         kw["prior_tangential"] = bool(kw["prior_tangential"])
         if kw["prior_spread_floor"] is not None:
             kw["prior_spread_floor"] = float(kw["prior_spread_floor"])
-        if kw["prior_member_temperature"] is not None:
-            kw["prior_member_temperature"] = float(kw["prior_member_temperature"])
         kw["loss"] = "pipeline"
         return apply_variant(cls(**kw), loss or p["loss"])
 

@@ -21,12 +21,12 @@ import torch
 from torch import Tensor
 
 from .. import raster
-from .config import PRIOR_INFORMATION_TERMS, FitConfig, LossWeights
+from .config import FitConfig, LossWeights
 from .jacobians import projection_jacobian, skin_jacobian
 from .problem import FlowTargets, FrameCues, Problem, RigParts, Views, make_problem
 from .terms import TERMS, Rendered, anchor, collision, flow, normal, prior, silhouette, stretch
 
-__all__ = ["Evaluation", "evaluate", "gauss_newton_system", "total_loss", "loss_terms", "with_prior_information"]
+__all__ = ["Evaluation", "evaluate", "gauss_newton_system", "total_loss", "loss_terms"]
 
 
 class Evaluation(NamedTuple):
@@ -101,25 +101,6 @@ def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=
         H += (Jx.t() @ (Hx @ Jx)).double()
         g += (Jx.t() @ gx.reshape(-1).to(jdtype)).double()
     return H, g
-
-
-def with_prior_information(pb: Problem, verts: Tensor) -> Problem:
-    """``pb`` with L_prior's per-vertex factor of ``cfg.prior_information`` evaluated at ``verts`` (V, 3)
-    (:func:`anidress_core.fit.terms.prior.information_scale`; held fixed for the frame, so the loss the
-    optimiser compares stays one function). Unchanged when L_prior is off or the setting is 'uniform'."""
-    names = PRIOR_INFORMATION_TERMS[pb.cfg.prior_information]
-    if pb.prior is None or not names:
-        return pb
-    ev = evaluate(pb, verts)
-    _, Puv = projection_jacobian(ev.verts, pb.views)
-    lay = pb.rig.layout
-    blocks = torch.zeros(lay.perm.numel() // 9, 3, 3, dtype=torch.float64, device=verts.device)
-    gx = torch.zeros(verts.shape[0], 3, dtype=torch.float64, device=verts.device)
-    if "anchor" in names:
-        anchor.gauss_newton(pb, ev.data["anchor"], Puv, blocks, gx)
-    if "flow" in names:
-        flow.gauss_newton(pb, ev.uv, Puv, blocks, gx)
-    return pb._replace(prior_scale=prior.information_scale(pb, blocks[lay.diag]))
 
 
 def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow_targets: FlowTargets | None,

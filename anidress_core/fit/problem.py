@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from .terms.stretch import Edges
 
 __all__ = ["RigParts", "HessianLayout", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem",
-           "contour_length", "occluder_depth", "sanitize_normals", "occluder_or_inf", "check_cues", "Crop",
+           "contour_length", "occluder_depth", "sanitize_normals", "occluder_or_inf", "check_cues", "cue_notes", "Crop",
            "crop_window", "crop_frame", "uncrop_fragments", "downsample", "image_finite"]
 
 
@@ -209,6 +209,52 @@ def check_cues(views: Views, cues: FrameCues) -> None:
         raise ValueError(f"fit: normals must be ({C}, {H}, {W}, 3), got {tuple(cues.normals.shape)}")
 
 
+def cue_notes(cues: FrameCues, flow: FlowTargets | None) -> tuple[FrameCues, FlowTargets | None, dict]:
+    """Sanitise one frame's cues and say what was done (the ``notes`` of :class:`FrameFit`).
+
+    1. A view whose mask has no garment pixel (none known to be garment) is dropped: its mask
+       becomes NaN (unknown) so that no pixel term reads it. An empty view says only "no
+       garment here", which for a garment inside the cameras is a failed mask; kept, the
+       silhouette term would push the garment out of that view.
+    2. NaN pixels of a float mask are unknown (counted); non-finite normals and image pixels are
+       left out by the terms (counted).
+    3. Flow targets with a non-finite target are dropped (counted); none left: None.
+    Returns the cues (mask float with NaN where dropped, if any view was), the flow targets and the notes.
+    """
+    notes: dict = {}
+    m = cues.mask
+    if m.is_floating_point():
+        unknown = ~torch.isfinite(m)
+        if bool(unknown.any()):
+            notes["mask_unknown_px"] = int(unknown.sum())
+        garment = torch.where(unknown, torch.zeros_like(m), m) > 0.5
+    else:
+        garment = m.bool()
+    empty = ~garment.flatten(1).any(1)  # (C,)
+    if bool(empty.any()):
+        notes["views_dropped"] = empty.nonzero().flatten().tolist()
+        mf = m.double() if m.is_floating_point() else m.bool().double()
+        cues = cues._replace(mask=torch.where(empty[:, None, None], torch.full_like(mf, float("nan")), mf))
+        if bool(empty.all()):
+            notes["no_mask"] = True
+    if cues.normals is not None:
+        bad = ~torch.isfinite(cues.normals).all(-1) & garment
+        if bool(bad.any()):
+            notes["normals_nonfinite_px"] = int(bad.sum())
+    if cues.image is not None:
+        bad = ~torch.isfinite(cues.image).all(-1)
+        if bool(bad.any()):
+            notes["image_nonfinite_px"] = int(bad.sum())
+    if flow is not None:
+        ok = torch.isfinite(flow.target).all(-1)
+        if not bool(ok.all()):
+            notes["flow_targets_nonfinite"] = int((~ok).sum())
+            flow = FlowTargets(flow.cam[ok], flow.vert[ok], flow.target[ok])
+        if flow.cam.numel() == 0:
+            flow = None
+    return cues, flow, notes
+
+
 class Problem(NamedTuple):
     """Everything fixed during one frame's optimisation (:func:`make_problem`)."""
 
@@ -224,8 +270,9 @@ class Problem(NamedTuple):
     flow: FlowTargets | None  # L_flow's targets, or None (off)
     prior: Tensor | None = None  # (V, 3) L_prior's reference mesh (frame 0's start, or the simulated pose), or None
     w_prior: float = 0.0  # its weight per vertex: weights.prior / V
-    prior_proj: Tensor | None = None  # (V, 3, 3) I - n n^T at the reference's vertex normals (tangential L_prior), or None
-    prior_scale: Tensor | None = None  # (V,) L_prior's factor per vertex (fit/prior_information), or None (1)
+    # (V, 3, 3) I - n n^T at the reference's vertex normals (tangential L_prior), or None
+    prior_proj: Tensor | None = None
+    prior_scale: Tensor | None = None  # (V,) L_prior's factor per vertex (fit/prior_spread_floor), or None (1)
     anchor_feat: Tensor | None = None  # (C, 9, H, W) image_features of the chromaticity, or None (L_anchor off)
     anchor_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
     anchor: "AnchorRef | None" = None
@@ -247,7 +294,7 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets
     tangent planes of the area-weighted vertex normals of ``tangent_mesh`` (V, 3), default the reference
     itself); anchor: L_anchor's references; contacts:
     L_collision's planes; prior_scale: (V,) L_prior's factor per vertex
-    (:func:`anidress_core.fit.terms.prior.information_scale`; default 1)."""
+    (:func:`anidress_core.fit.terms.prior.spread_scale`; default 1)."""
     check_cues(views, cues)
     w = cfg.weights
     soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()

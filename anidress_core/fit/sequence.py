@@ -19,29 +19,26 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import torch
 from torch import Tensor
 
 from .. import raster
-from ..geometry import invert_transform, lbs, nearest_rotation
+from ..geometry import lbs, nearest_rotation
 from .config import FitConfig
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import levenberg_marquardt
-from .objective import evaluate, gauss_newton_system, loss_terms, with_prior_information
+from .nearest import Candidates, score_poses
+from .objective import evaluate, gauss_newton_system, loss_terms
 from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, check_cues, crop_frame, crop_window,
-                      make_problem, occluder_or_inf, uncrop_fragments)
+                      cue_notes, make_problem, occluder_or_inf, uncrop_fragments)
 from .terms.anchor import AnchorRef, update_anchor
 from .terms.collision import body_contacts
 from .terms.flow import flow_targets
 from .window import pair_flow, refine_window
 
-if TYPE_CHECKING:
-    from .proposals import Proposals
-
-__all__ = ["FrameFit", "cue_notes", "flow_align", "fit_problem", "fit_frame", "smooth_transforms", "backward_pass",
-           "fit_sequence"]
+__all__ = ["FrameFit", "flow_align", "fit_problem", "fit_frame", "smooth_transforms", "fit_sequence"]
 
 
 @dataclass
@@ -66,7 +63,8 @@ class FrameFit:
     fragments: raster.Fragments | None = None
     """Occluded fragments of the result (for the next frame's flow targets)."""
     notes: dict = field(default_factory=dict)
-    """What the fit did about defective cues in this frame (empty: nothing), see :func:`cue_notes`:
+    """What the fit did about defective cues in this frame (empty: nothing), see
+    :func:`anidress_core.fit.problem.cue_notes`:
     ``views_dropped`` (list of view indices whose mask had no garment pixel: left out of every
     pixel term), ``no_mask`` (True: no view left, the start pose kept, not converged),
     ``mask_unknown_px``, ``normals_nonfinite_px``, ``image_nonfinite_px`` (pixels left out),
@@ -172,52 +170,6 @@ def vertex_adam(pb: Problem, cues: FrameCues, start_verts: Tensor, transforms: T
     return FrameFit(transforms.double().clone(), best_x, dict(ev.terms), ev.loss, it, converged, curve, ev.fragments)
 
 
-def cue_notes(cues: FrameCues, flow: FlowTargets | None) -> tuple[FrameCues, FlowTargets | None, dict]:
-    """Sanitise one frame's cues and say what was done (the ``notes`` of :class:`FrameFit`).
-
-    1. A view whose mask has no garment pixel (none known to be garment) is dropped: its mask
-       becomes NaN (unknown) so that no pixel term reads it. An empty view says only "no
-       garment here", which for a garment inside the cameras is a failed mask; kept, the
-       silhouette term would push the garment out of that view.
-    2. NaN pixels of a float mask are unknown (counted); non-finite normals and image pixels are
-       left out by the terms (counted).
-    3. Flow targets with a non-finite target are dropped (counted); none left: None.
-    Returns the cues (mask float with NaN where dropped, if any view was), the flow targets and the notes.
-    """
-    notes: dict = {}
-    m = cues.mask
-    if m.is_floating_point():
-        unknown = ~torch.isfinite(m)
-        if bool(unknown.any()):
-            notes["mask_unknown_px"] = int(unknown.sum())
-        garment = torch.where(unknown, torch.zeros_like(m), m) > 0.5
-    else:
-        garment = m.bool()
-    empty = ~garment.flatten(1).any(1)  # (C,)
-    if bool(empty.any()):
-        notes["views_dropped"] = empty.nonzero().flatten().tolist()
-        mf = m.double() if m.is_floating_point() else m.bool().double()
-        cues = cues._replace(mask=torch.where(empty[:, None, None], torch.full_like(mf, float("nan")), mf))
-        if bool(empty.all()):
-            notes["no_mask"] = True
-    if cues.normals is not None:
-        bad = ~torch.isfinite(cues.normals).all(-1) & garment
-        if bool(bad.any()):
-            notes["normals_nonfinite_px"] = int(bad.sum())
-    if cues.image is not None:
-        bad = ~torch.isfinite(cues.image).all(-1)
-        if bool(bad.any()):
-            notes["image_nonfinite_px"] = int(bad.sum())
-    if flow is not None:
-        ok = torch.isfinite(flow.target).all(-1)
-        if not bool(ok.all()):
-            notes["flow_targets_nonfinite"] = int((~ok).sum())
-            flow = FlowTargets(flow.cam[ok], flow.vert[ok], flow.target[ok])
-        if flow.cam.numel() == 0:
-            flow = None
-    return cues, flow, notes
-
-
 def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: FitConfig | None = None,
               flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None,
               anchor: AnchorRef | None = None, prior_verts: Tensor | None = None, keep_problem: bool = False,
@@ -233,12 +185,11 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     prior_verts: (V, 3) L_prior's reference at this frame (``cfg.prior_reference`` 'sim'); default: at
     the first frame the start (LBS of ``init``), none after it.
     prior_scale: (V,) L_prior's factor per vertex at this frame (e.g.
-    :func:`anidress_core.fit.terms.prior.spread_scale`), times that of ``cfg.prior_information``; default 1
-    (method rig, with a reference).
+    :func:`anidress_core.fit.terms.prior.spread_scale`); default 1 (method rig, with a reference).
     keep_problem: the result keeps its problem and render windows (``problem``, ``crop``; method rig).
     Never returns non-finite poses: steps with a non-finite loss are rejected, and defective
-    cues are handled as :func:`cue_notes` says (views with an empty mask dropped; no view left:
-    the start pose -- ``init`` moved by the flow alignment -- is kept, ``converged`` False;
+    cues are handled as :func:`anidress_core.fit.problem.cue_notes` says (views with an empty mask
+    dropped; no view left: the start pose -- ``init`` moved by the flow alignment -- is kept, ``converged`` False;
     NaN pixels and targets left out), recorded in the result's ``notes``. cfg: default
     :meth:`FitConfig.from_config` of an empty section (the pipeline's).
     """
@@ -280,13 +231,11 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         pb = make_problem(rig, views, cues, flow, cfg, prior, tangent_mesh=planes)
     else:
         pb = make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts, tangent_mesh=planes)
-        if cfg.method == "rig" and not notes.get("no_mask"):
-            pb = with_prior_information(pb, x_start)
         if cfg.method == "rig" and prior_scale is not None and pb.prior is not None:
             s = torch.as_tensor(prior_scale, device=rig.rest.device).double()
             if s.shape != (rig.rest.shape[0],) or not bool(torch.isfinite(s).all()) or bool((s < 0).any()):
                 raise ValueError(f"fit_frame: prior_scale must be ({rig.rest.shape[0]},), finite and >= 0")
-            pb = pb._replace(prior_scale=s if pb.prior_scale is None else pb.prior_scale * s)
+            pb = pb._replace(prior_scale=s)
     if notes.get("no_mask") or cfg.method == "nearest":  # the start evaluated, not optimised
         ev = evaluate(pb, x_start)
         res = FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, 0, not notes.get("no_mask"), [ev.loss],
@@ -328,50 +277,11 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
     return G
 
 
-def backward_pass(rig: RigParts, views: Views, fits: list[FrameFit], cues_of: Callable[[int], FrameCues],
-                  cfg: FitConfig, anchor: AnchorRef | None = None, log=None) -> list[FrameFit]:
-    """Propagate the fit backwards: for t = T-2 .. 0, frame t is fitted again from the pose kept at
-    t + 1, and of the two poses of frame t (the forward fit's and this one) the one with the lower
-    loss is kept (issue 23: one frame's error is not carried to the end of the sequence).
-
-    Both poses are scored on one problem of frame t (:func:`anidress_core.fit.proposals.score_poses`)
-    without L_flow (its targets run forwards, from t - 1; the backward fit has none) and without
-    L_prior. The sweep starts at the last frame and restarts from every frame whose forward pose
-    wins, so a well-fitted later stretch (a keyframe, or where the forward chain found the answer)
-    carries back to the frames before it. fits: the forward pass's results (unchanged); returns the
-    kept results, the backward ones with ``notes['backward']`` = {'loss': ..., 'forward_loss': ...}
-    and the backward time added to ``terms['wall_s']``. anchor: L_anchor's references as the
-    forward pass ended with them.
-    """
-    from .proposals import score_poses
-
-    out = list(fits)
-    cfg_b = cfg.replace(weights={"flow": 0.0, "prior": 0.0})
-    for t in range(len(fits) - 2, -1, -1):
-        t0 = time.perf_counter()
-        cues = cues_of(t)
-        fwd = fits[t]
-        back = fit_frame(rig, views, cues, out[t + 1].transforms, cfg_b, None, first=False, anchor=anchor)
-        s = score_poses(rig, views, cues, torch.stack([fwd.transforms, back.transforms]), cfg_b, None, anchor)
-        dt = time.perf_counter() - t0
-        if bool(s[1] < s[0]):
-            back.notes = {**fwd.notes, **back.notes, "backward": {"loss": float(s[1]), "forward_loss": float(s[0])}}
-            back.terms["wall_s"] = fwd.terms.get("wall_s", 0.0) + dt
-            back.terms["flow_targets"] = 0
-            out[t] = back
-        else:
-            out[t] = dataclasses.replace(fwd, terms={**fwd.terms, "wall_s": fwd.terms.get("wall_s", 0.0) + dt})
-    if log is not None:
-        log.info("fit: backward pass kept %d of %d frames", sum("backward" in r.notes for r in out), len(out))
-    return out
-
-
 def _refine_window(fits: list[FrameFit], pairs: list, views: Views, cfg: FitConfig, log) -> list[FrameFit]:
     """The window's chained results refined jointly (:func:`anidress_core.fit.window.refine_window`; its record,
     with the window's length ``frames``, in the last frame's ``notes['window']``), their problems dropped.
-    Unchanged when fewer than two frames, or when a frame was not optimised (no mask, or a proposal kept) and
-    so has no problem. The refinement's time is shared out over the frames' ``wall_s``; ``iterations`` stay
-    the chain's."""
+    Unchanged when fewer than two frames, or when a frame was not optimised (no mask) and so has no problem.
+    The refinement's time is shared out over the frames' ``wall_s``; ``iterations`` stay the chain's."""
     if len(fits) >= 2 and all(f.problem is not None and not f.notes.get("no_mask") for f in fits):
         t0 = time.perf_counter()
         refined, rec = refine_window([f.problem for f in fits], views, pairs, fits, [f.crop for f in fits],
@@ -390,7 +300,7 @@ def _refine_window(fits: list[FrameFit], pairs: list, views: Views, cfg: FitConf
 def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
                  cfg: FitConfig | None = None, progress: bool = True, log=None,
-                 anchor_init: AnchorRef | None = None, proposals_of: Callable[[int], "Proposals"] | None = None,
+                 anchor_init: AnchorRef | None = None, candidates_of: Callable[[int], Candidates] | None = None,
                  sim_transforms: Tensor | None = None, starts: Tensor | None = None,
                  prior_scales: Tensor | None = None) -> list[FrameFit]:
     """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
@@ -401,41 +311,35 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
     wall time of each in ``terms['wall_s']``). L_anchor's references are taken from each frame's
     result (:func:`update_anchor`) and used from the next frame on; ``anchor_init`` (e.g.
     :func:`texture_anchor`) gives references from frame 0 on (vertices it covers keep them).
-    Each frame's ``notes`` (what was done about defective cues, :func:`cue_notes`) are logged as a warning.
+    Each frame's ``notes`` (what was done about defective cues, :func:`anidress_core.fit.problem.cue_notes`)
+    are logged as a warning.
 
-    Keyframes (``cfg.proposal_every`` > 0: frame 0 and every ``proposal_every`` frames):
-    ``proposals_of(t)`` -> :class:`anidress_core.fit.proposals.Proposals` (candidate poses of frame t,
-    e.g. :func:`anidress_core.fit.proposals.frame_proposals`) compete with the chained fit
-    (:func:`anidress_core.fit.proposals.best_of`; ``notes['proposal']``: the label kept and the
-    losses). ``cfg.window`` > 1 (method rig): after every ``window`` chained frames (and at the last frame)
+    ``cfg.window`` > 1 (method rig): after every ``window`` chained frames (and at the last frame)
     those frames are refined jointly, L_flow coupling their poses (:mod:`anidress_core.fit.window`); the
-    next frame is chained from the refined last one. ``cfg.backward``: then :func:`backward_pass`. The
-    temporal filter comes last.
+    next frame is chained from the refined last one. The temporal filter comes last.
 
-    ``cfg.start == 'sim_delta'``: frame t > 0 starts from frame t-1's result moved by the simulated
-    change of every bone, ``sim_transforms[t] @ sim_transforms[t-1]^-1 @ G[t-1]`` (sim_transforms:
-    (>= T, B, 4, 4), the rig's transforms of the simulation of the observed motion).
-    ``cfg.prior_reference == 'sim'`` (method rig): L_prior at every frame t towards the skinned
-    ``sim_transforms[t]``, its weight per vertex times ``prior_scales[t]`` ((>= T, V), e.g. the ensemble's
-    :func:`anidress_core.fit.terms.prior.spread_scale`; default 1).
+    L_prior following the simulation (:attr:`FitConfig.prior_follows_simulation`): at every frame t towards
+    the skinned ``sim_transforms[t]`` (sim_transforms: (>= T, B, 4, 4), the rig's transforms of the simulation
+    of the observed motion, or of the ensemble's mean), its weight per vertex times ``prior_scales[t]``
+    ((>= T, V), e.g. the ensemble's :func:`anidress_core.fit.terms.prior.spread_scale`; default 1).
+    Method 'nearest' (a baseline, not optimised): frame t's pose is the candidate of ``candidates_of(t)``
+    (:func:`anidress_core.fit.nearest.frame_candidates`) with the lowest loss
+    (:func:`anidress_core.fit.nearest.score_poses`; ``notes['nearest']``: its label).
     ``starts`` (>= T, B, 4, 4): every frame t starts from ``starts[t]`` instead (the flow alignment and
     the rest as usual; ``init`` is then ``starts[0]``): an oracle for benchmarks, e.g. the ground
     truth's rig floor, to find the loss's own minimum near it.
     """
-    from .proposals import best_of, data_loss, score_poses
     from tqdm import tqdm
 
     cfg = FitConfig.from_config({}) if cfg is None else cfg
     if starts is not None and starts.shape[0] < num_frames:
         raise ValueError(f"fit_sequence: starts must hold all {num_frames} frames, got {tuple(starts.shape)}")
-    if cfg.needs_simulation:
+    if cfg.prior_follows_simulation:
         if sim_transforms is None or sim_transforms.shape[0] < num_frames:
-            raise ValueError(f"fit_sequence: start 'sim_delta' and prior_reference 'sim' need the simulated "
+            raise ValueError(f"fit_sequence: prior_reference {cfg.prior_reference!r} needs the simulated "
                              f"transforms of all {num_frames} frames, got "
                              f"{None if sim_transforms is None else tuple(sim_transforms.shape)}")
         S = torch.as_tensor(sim_transforms, device=rig.rest.device).double()
-        if cfg.start == "sim_delta":
-            delta = S[1:num_frames] @ invert_transform(S[:num_frames - 1])  # (T - 1, B, 4, 4): t-1 -> t
     if prior_scales is not None and prior_scales.shape[0] < num_frames:
         raise ValueError(f"fit_sequence: prior_scales must hold all {num_frames} frames, got "
                          f"{tuple(prior_scales.shape)}")
@@ -458,45 +362,31 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                     log.warning("fit: frame %d has no flow; L_flow is off for it", t)
             else:
                 prev = out[-1]
-                targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask, cfg.visibility_depth_tol,
-                                       cfg.flow_margin_px)
+                targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask,
+                                       cfg.visibility_depth_tol, cfg.flow_margin_px)
         if starts is not None:
             G = torch.as_tensor(starts[t], device=rig.rest.device).double()
-        elif t > 0 and cfg.start == "sim_delta":
-            G = delta[t - 1] @ G
         picked = None
         if cfg.method == "nearest":  # the baseline: the database pose with the lowest loss, not optimised
-            if proposals_of is None:
-                raise ValueError("fit_sequence: method 'nearest' needs proposals_of (the simulation database)")
-            props = proposals_of(t)
-            scores = score_poses(rig, views, cues, props.transforms, cfg, targets, anchor)
+            if candidates_of is None:
+                raise ValueError("fit_sequence: method 'nearest' needs candidates_of (the simulation database)")
+            cands = candidates_of(t)
+            scores = score_poses(rig, views, cues, cands.transforms, cfg, targets, anchor)
             i = int(torch.argmin(torch.nan_to_num(scores, nan=float("inf"))))
-            G, picked = props.transforms[i].double(), {"kept": props.labels[i], "candidates": len(props.labels)}
+            G, picked = cands.transforms[i].double(), {"kept": cands.labels[i], "candidates": len(cands.labels)}
         if use_window:
             pairs.append(None if t % cfg.window == 0 else pair_flow(targets, out[-1].verts, views))
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor,
                         prior_verts=lbs(rig.rest, rig.weights, S[t]) if cfg.prior_follows_simulation else None,
                         keep_problem=use_window,
-                        prior_scale=None if prior_scales is None or not cfg.prior_follows_simulation else prior_scales[t])
+                        prior_scale=None if prior_scales is None or not cfg.prior_follows_simulation
+                        else prior_scales[t])
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
         if res.notes and log is not None:
             log.warning("fit: frame %d: %s", t, res.notes)
         if picked is not None:  # the baseline's pick: a record, not a defect
             res.notes = {**res.notes, "nearest": picked}
-        if (cfg.proposal_every > 0 and t % cfg.proposal_every == 0 and proposals_of is not None
-                and cfg.method == "rig" and not res.notes.get("no_mask")):
-            props = proposals_of(t)
-            if props.transforms.shape[0]:
-                best, rec = best_of(rig, views, cues, props, cfg, targets, anchor, first=(t == 0),
-                                    refine=cfg.proposal_refine, start=res)
-                best.notes = {**res.notes, "proposal": {"kept": rec["kept"], "loss": data_loss(best, cfg),
-                                                        "chained_loss": data_loss(res, cfg),
-                                                        "candidates": len(rec["labels"])}}
-                if log is not None:
-                    log.info("fit: frame %d: %d proposals, kept %s (loss %.6g, chained %.6g)", t, len(rec["labels"]),
-                             rec["kept"], best.notes["proposal"]["loss"], best.notes["proposal"]["chained_loss"])
-                res = best
         if cfg.weights.anchor > 0 and cues.image is not None:
             anchor = update_anchor(anchor, res.verts, views, res.fragments, cues.image, cues.mask, cfg)
         res.terms["wall_s"] = time.perf_counter() - t0
@@ -509,8 +399,6 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
         G = out[-1].transforms
         x_prev = res.verts if cfg.method == "vertex" else None
         prev_mask = cues.mask
-    if cfg.backward and cfg.method == "rig" and len(out) >= 2:
-        out = backward_pass(rig, views, out, cues_of, cfg, anchor=anchor, log=log)
     if cfg.smooth_passes > 0 and cfg.method == "rig" and len(out) >= 3:
         Gs = smooth_transforms(torch.stack([r.transforms for r in out]), cfg.smooth_passes)
         for r, g in zip(out, Gs):

@@ -2,19 +2,21 @@
 rules ``fit`` and ``fit_ablation``, the CLI).
 
 * ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
-* ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, or no
-  temporal filter, no window refinement); ``pipeline_single_sim``: L_prior following one simulation
-  (the rig's) instead of the stiffness ensemble's mean; ``pipeline_previous``: the defaults before it; ``pipeline_proposals``, ``pipeline_backward``, ``pipeline_sim_delta``: the pipeline with a part that is
-  off by default turned on, as are ``pipeline_prior_anchor_info``, ``pipeline_prior_info`` (L_prior weighted
-  per bone by the image terms' information) and ``pipeline_image_weights`` (the ensemble's members weighted
-  per frame by the images); ``pipeline_image_anchor``: without the garment texture.
+* ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, no temporal
+  filter, no window refinement, no simulation prior); ``pipeline_uniform_prior``: without L_prior's weight
+  per vertex from the ensemble's spread; ``pipeline_image_anchor``: L_anchor's references from the images,
+  not the garment texture (the pipeline's own references are the texture's).
 * ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
-  lowest pipeline loss.
-* ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress, supplementary), none
-  of our terms, no temporal filter and no window refinement; the solver settings are the section's.
+  lowest pipeline loss (:mod:`anidress_core.fit.nearest`).
+* ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress,
+  supplementary), none of our terms, no temporal filter and no window refinement; the solver settings are the
+  section's.
 * ``paper_vertex``, ``paper_no_normal_flow``, ``paper_no_flow``: the paper's ablations (Fig. 9)
   (a) direct vertex fitting without the rig (Adam on the vertex positions), (b) no normal and
   no flow losses, (c) no flow loss, on the paper's loss.
+
+The variants that switched on the experiments left off by default, or replayed earlier defaults, left with
+that code (their findings: studies/fit/README.md; runnable at git d6e895a).
 """
 from __future__ import annotations
 
@@ -50,52 +52,25 @@ VARIANTS: dict[str, Variant] = {
                                  lambda c: c.replace(weights={"prior": 0.0})),
     "pipeline_no_smooth": Variant("the pipeline's loss without the temporal filter of the bone transforms",
                                   lambda c: c.replace(smooth_passes=0)),
-    "pipeline_proposals": Variant("the pipeline with proposals from the simulation database every 5 frames "
-                                  "(fit/proposal_every 5)", lambda c: c.replace(proposal_every=5)),
-    "pipeline_backward": Variant("the pipeline with the backward pass after the forward one (fit/backward)",
-                                 lambda c: c.replace(backward=True)),
     "pipeline_no_window": Variant("the pipeline without the joint refinement of windows of frames (fit/window 0): the "
                                   "chain alone, L_flow's targets carried from the previous result",
                                   lambda c: c.replace(window=0)),
-    "pipeline_sim_delta": Variant("the pipeline with each frame started from the previous fit moved by the "
-                                  "simulation's change of every bone (fit/start sim_delta)",
-                                  lambda c: c.replace(start="sim_delta")),
-    "pipeline_no_sim_prior": Variant("the pipeline with L_prior on frame 0 only, towards its start, whole offset, weight 10 "
-                                     "(fit/prior_reference start; the pipeline before L_prior followed the simulation)",
+    "pipeline_no_sim_prior": Variant("the pipeline with L_prior on frame 0 only, towards its start, whole offset, "
+                                     "weight 10 (fit/prior_reference start; the pipeline before L_prior followed the "
+                                     "simulation)",
                                      lambda c: c.replace(prior_reference="start", prior_tangential=False,
                                                          weights={"prior": 10.0})),
-    "pipeline_single_sim": Variant("the pipeline with L_prior's reference and frame 0's start from the rig's own "
-                                   "simulation of the observed motion, one bending stiffness (fit/prior_reference sim), "
-                                   "not the stiffness ensemble's mean; that simulation starts after "
-                                   "simulate/cloth/settle_frames, as the demo scenes' truth does (the suites draw "
-                                   "their truth's start)",
-                                   lambda c: c.replace(prior_reference="sim")),
     "pipeline_uniform_prior": Variant("the pipeline with one L_prior weight for every vertex, not weighted by the "
                                       "stiffness ensemble's spread (fit/prior_spread_floor null)",
                                       lambda c: c.replace(prior_spread_floor=None)),
-    "pipeline_image_weights": Variant("the pipeline with L_prior's reference and frame 0's start the ensemble's members "
-                                      "weighted per frame by how well each explains the images, not their plain mean "
-                                      "(fit/prior_member_temperature 1)",
-                                      lambda c: c.replace(prior_member_temperature=1.0)),
-    "pipeline_previous": Variant("the pipeline's defaults before the stiffness ensemble (to 2026-12-05): L_prior "
-                                 "weight 1e4 towards the rig's own simulation of the observed motion (started as the "
-                                 "demo scenes' truth is, not the suites'), its tangent planes at that reference",
-                                 lambda c: c.replace(prior_reference="sim", prior_tangent_planes="reference",
-                                                     weights={"prior": 1e4})),
-    "pipeline_prior_anchor_info": Variant("the pipeline with L_prior's weight per bone scaled by its share of the "
-                                          "information L_prior and L_anchor put on it (fit/prior_information anchor)",
-                                          lambda c: c.replace(prior_information="anchor")),
-    "pipeline_prior_info": Variant("the pipeline with L_prior's weight per bone scaled by its share of the "
-                                   "information L_prior, L_anchor and L_flow put on it (fit/prior_information anchor_flow)",
-                                   lambda c: c.replace(prior_information="anchor_flow")),
     "pipeline_image_anchor": Variant("the pipeline's loss with L_anchor's references from the images, not the garment "
                                      "texture (which a capture does not have)",
                                      lambda c: c.replace(anchor_reference="images")),
     "nearest": Variant("baseline, no fitting: per frame the simulated pose (nearest simulated frames by body pose and "
                        "velocity, the simulation of the observed motion at t +- offsets) with the lowest pipeline loss "
-                       "on the frame's cues", lambda c: c.replace(method="nearest", smooth_passes=0, backward=False, window=0)),
-    "paper": Variant("the paper's loss: 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow, rig, no temporal filter, no window "
-                     "refinement", _paper),
+                       "on the frame's cues", lambda c: c.replace(method="nearest", smooth_passes=0, window=0)),
+    "paper": Variant("the paper's loss: 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow, rig, no temporal filter, "
+                     "no window refinement", _paper),
     "paper_vertex": Variant("paper (a): direct vertex fitting without the rig (Adam on vertex positions), "
                             "the paper's loss", lambda c: _paper(c).replace(method="vertex")),
     "paper_no_normal_flow": Variant("paper (b): no normal and no flow losses (silhouettes only)",

@@ -18,20 +18,19 @@
 * the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
 * ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start.
 
-* with ``proposal_every`` > 0 the body motions of the rig's simulated sequences
-  (``motions_dir``: ``results/<scene>/motions/<name>.npz``, rule motions), the proposals' database;
+* for the ``nearest`` baseline the body motions of the rig's simulated sequences
+  (``motions_dir``: ``results/<scene>/motions/<name>.npz``, rule motions), its database;
 * with ``prior_reference: sim_ensemble`` (the default) ``results/<scene>/sim_ensemble/seq-<seq>.npz``
   (rule simulate_ensemble), the mean of the observed motion simulated at several bending stiffnesses:
   L_prior's reference and frame 0's start, carried into the rig (:func:`ensemble_transforms`), and with
   ``prior_spread_floor`` its members' spread, L_prior's weight per vertex (:func:`ensemble_prior_scales`);
-  with ``prior_member_temperature`` its members weighted per frame by the images instead (:func:`weighted_ensemble`);
 
 and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts,
 the weighted loss and every unweighted term ``loss_<term>`` per frame, with the loss variant
 that ran and every weight as used in the header; the header's ``meta['frame_notes']`` says per
 frame what the fit did about defective cues (views dropped, a frame kept at its start, NaN pixels,
-no flow: :attr:`anidress_core.fit.FrameFit.notes`), which proposal a keyframe kept, which frames
-the backward pass replaced, and on the last frame of each window refined jointly its loss before and after.
+no flow: :attr:`anidress_core.fit.FrameFit.notes`), which simulated pose the ``nearest`` baseline kept,
+and on the last frame of each window refined jointly its loss before and after.
 
 ``fit_eval`` writes ``fit_metrics.csv``: per method and frame, vertex RMSE against the
 ground-truth garment carried onto the template's vertices, the rig's floor on that
@@ -91,14 +90,15 @@ def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.Rig
     start = lbs(rig.rest, rig.weights, G0.to(device))
     blur = FIT.texture_blur_texels(rig.rest, faces, face_uv, tuple(tex.shape[:2]), start, views, image_blur)
     return (FIT.texture_anchor(faces, face_uv, tex, blur, num_vertices=rig.rest.shape[0]),
-            f"{path} ({tex.shape[1]}x{tex.shape[0]}), blurred by {blur:.2f} texels (one image pixel + the images' blur)")
+            f"{path} ({tex.shape[1]}x{tex.shape[0]}), blurred by {blur:.2f} texels (one image pixel + the images' "
+            "blur)")
 
 
-def proposal_database(art, motions_dir: str | os.PathLike, body):
-    """The simulation database of the proposals (:func:`anidress_core.fit.proposals.make_database`):
+def simulation_database(art, motions_dir: str | os.PathLike, body):
+    """The simulation database of the ``nearest`` baseline (:func:`anidress_core.fit.nearest.make_database`):
     every simulated sequence of the rig (``rig.npz`` ``sequences``) with the body it was simulated
     on, ``<motions_dir>/<name>.npz`` (rule motions), posed by the scene's body model."""
-    from ..fit.proposals import make_database
+    from ..fit.nearest import make_database
     from ..io.body_motion import read_motion
 
     seqs = {}
@@ -106,7 +106,7 @@ def proposal_database(art, motions_dir: str | os.PathLike, body):
         path = Path(motions_dir) / f"{name}.npz"
         if not path.is_file():
             raise FileNotFoundError(f"{path}: body motion of the simulated sequence {name} not found (rule motions; "
-                                    "needed by fit/proposal_every > 0)")
+                                    "needed by the nearest baseline)")
         m = read_motion(path)
         G = art.transforms_of(name).double()
         if m.poses.shape[0] != G.shape[0]:
@@ -138,10 +138,8 @@ class CueReader:
     :class:`anidress_core.fit.Views` of ``cams``; num_frames: the last frame read ahead;
     seq_dir: the sequence folder whose images L_anchor reads (None: not read).
     ``cues(t)`` -> :class:`anidress_core.fit.FrameCues`, ``flow(t)`` -> (flow, valid) of
-    t-1 -> t or None; ``close()`` stops the helper thread. The files of frame t + 1 (of t - 1
-    when the frames are read backwards, cues only: the fit's backward pass) are read by that
-    thread while frame t is fitted. Used by :func:`run_fit` and the
-    benchmarks.
+    t-1 -> t or None; ``close()`` stops the helper thread. The files of frame t + 1 are read by that
+    thread while frame t is fitted. Used by :func:`run_fit` and the benchmarks.
     """
 
     def __init__(self, cams, masks_dir, normals_dir, flows_dir, body_verts, body_faces, views, device,
@@ -158,7 +156,6 @@ class CueReader:
         self._pool = ThreadPoolExecutor(max_workers=1)
         self._ahead_cues: dict = {}
         self._ahead_flow: dict = {}
-        self._last: int | None = None
 
     def _prefetch(self, t: int):
         if self.num_frames is not None and 0 <= t < self.num_frames and t not in self._ahead_cues:
@@ -170,20 +167,15 @@ class CueReader:
 
     def _check(self, path: Path, arr: np.ndarray, channels: int | None) -> np.ndarray:
         if arr.shape[:2] != (self.H, self.W) or (channels is not None and (arr.ndim != 3 or arr.shape[2] < channels)):
-            raise files.ArtifactError(f"{path}: expected ({self.H}, {self.W}{'' if channels is None else f', {channels}'})"
-                                      f" for camera image size {self.H}x{self.W}, got {arr.shape}")
+            shape = f"({self.H}, {self.W}{'' if channels is None else f', {channels}'})"
+            raise files.ArtifactError(f"{path}: expected {shape} for camera image size {self.H}x{self.W}, got "
+                                      f"{arr.shape}")
         return arr
 
     def cues(self, t: int) -> FIT.FrameCues:
         job = self._ahead_cues.pop(t, None)
         masks, nrm, img = job.result() if job is not None else self._read_cues(t)
-        back = self._last is not None and t < self._last  # read ahead in the direction of travel
-        self._last = t
-        if back:  # the fit's backward pass reads cues only
-            if t - 1 >= 0 and t - 1 not in self._ahead_cues:
-                self._ahead_cues[t - 1] = self._pool.submit(self._read_cues, t - 1)
-        else:
-            self._prefetch(t + 1)
+        self._prefetch(t + 1)
         dev = self.device
         return FIT.FrameCues(torch.as_tensor(masks, device=dev), None if nrm is None else
                              torch.as_tensor(nrm, device=dev).double(), None,
@@ -252,7 +244,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
     None/'full' (the section's ``loss``) or a loss variant (:data:`anidress_core.fit.VARIANTS`) to
     run instead. motions_dir: the simulated body motions (``results/<scene>/motions``, rule motions),
-    read when ``fit/proposal_every`` > 0 (the proposals' database, :func:`proposal_database`).
+    read by the ``nearest`` baseline (its database, :func:`simulation_database`).
     body_dir: the sequence's body poses refined by rule refine_body, read instead of its smpl/.
     starts: (T, B, 4, 4) a start for every frame (an oracle for benchmarks, e.g. the rig floor:
     :func:`anidress_core.fit.fit_sequence`), recorded in the header's ``starts``.
@@ -293,14 +285,15 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         raise files.ArtifactError(f"{sdir / 'smpl'}: no frames")
     if int(params.get("frames", 0) or 0) > 0:  # a prefix of the sequence (quick runs, benchmarks)
         T = min(T, int(params["frames"]))
-    # 4. the simulation of the observed motion the fit follows (frame 0's start, L_prior, sim_delta), start of frame 0
+    # 4. the simulation of the observed motion the fit follows (frame 0's start, L_prior), start of frame 0
     start = params.get("first_frame_init", "auto")
     sim_name = f"seq-{seq}"
     followed, followed_note = None, None
-    if cfg.prior_reference == "sim_ensemble" and (cfg.needs_simulation or start in ("auto", "sim")):
+    if cfg.prior_reference == "sim_ensemble" and (cfg.prior_follows_simulation or start in ("auto", "sim")):
         followed, followed_note = ensemble_transforms(sim_ensemble_npz, art, T, device)
     elif sim_name in art.sequences:
-        followed, followed_note = art.transforms_of(sim_name).double(), f"rig transforms of the simulated sequence {sim_name}"
+        followed = art.transforms_of(sim_name).double()
+        followed_note = f"rig transforms of the simulated sequence {sim_name}"
     if start in ("auto", "sim") and followed is not None:
         G0 = followed[0]
         start_used = f"{followed_note}, frame 0"
@@ -338,64 +331,42 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():
             raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
-    # 4b. the ensemble's members weighted per frame by the images, if on: L_prior's reference and frame 0's start
-    member_spread, wts, wall_weights, cpu_weights = None, None, 0.0, 0.0
-    if cfg.prior_member_temperature is not None:  # set only where L_prior follows the ensemble (FitConfig)
-        t_w, c_w = time.perf_counter(), time.process_time()
-        followed, member_spread, wts = weighted_ensemble(sim_ensemble_npz, art, rig, views, reader.cues, T, cfg, device)
-        followed_note += (f"; its {wts.shape[0]} members weighted per frame by the images (prior_member_temperature "
-                          f"{cfg.prior_member_temperature:g}, window {cfg.prior_member_window})")
-        if starts is None and start in ("auto", "sim"):
-            G0 = followed[0]
-            start_used = f"{followed_note}, frame 0"
-        wall_weights, cpu_weights = time.perf_counter() - t_w, time.process_time() - c_w  # counted as the fit's
-        log.info("fit: L_prior follows the ensemble's members weighted by the images: largest weight per frame "
-                 "%.2f-%.2f (median %.2f; equal weights %.2f)", float(wts.max(0).values.min()),
-                 float(wts.max(0).values.max()), float(wts.max(0).values.median()), 1.0 / wts.shape[0])
     # 5. L_anchor's references: from the images (first frame each vertex is seen) or the template's texture
     anchor_init, anchor_note = None, None
     if w.anchor > 0 and cfg.anchor_reference == "texture":
         anchor_init, anchor_note = texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.image_blur,
                                                      device)
         log.info("fit: L_anchor references from the garment texture: %s", anchor_note)
-    # 6. proposals from the simulation database (keyframes), if on
-    proposals_of, db_note = None, None
-    if (cfg.proposal_every > 0 and cfg.method == "rig") or cfg.method == "nearest":
-        from ..fit.proposals import body_features, frame_proposals
+    # 6. the nearest baseline's candidates from the simulation database
+    candidates_of, db_note = None, None
+    if cfg.method == "nearest":
+        from ..fit.nearest import body_features, frame_candidates
 
         if motions_dir is None:
-            raise ValueError(f"fit/proposal_every > 0 and the method {cfg.method!r} need the simulated body motions "
-                             "(motions_dir: results/<scene>/motions, rule motions)")
-        db = proposal_database(art, motions_dir, body)
+            raise ValueError("the method 'nearest' needs the simulated body motions (motions_dir: "
+                             "results/<scene>/motions, rule motions)")
+        db = simulation_database(art, motions_dir, body)
         query = body_features(posed.transforms.double().cpu(), float(info["fps"]))
-        own = sim_name if (cfg.proposal_offsets >= 0 and sim_name in art.sequences) else None
+        own = sim_name if sim_name in art.sequences else None
 
-        def proposals_of(t):
-            p = frame_proposals(db, query, t, cfg.proposal_nearest, cfg.proposal_velocity_weight, own=own,
-                                offsets=max(cfg.proposal_offsets, 0))
-            return p._replace(transforms=p.transforms.to(device))
+        def candidates_of(t):
+            c = frame_candidates(db, query, t, own=own)
+            return c._replace(transforms=c.transforms.to(device))
 
         db_note = f"{db.transforms.shape[0]} simulated frames of {list(db.names)}"
-        log.info("fit: proposals %s from %s", "every frame (method nearest)" if cfg.method == "nearest" else
-                 f"every {cfg.proposal_every} frames", db_note)
+        log.info("fit: candidates every frame (method nearest) from %s", db_note)
     sim_transforms = None
-    # frames t > 0 start from the previous fit moved as the simulation moves, or L_prior pulls towards it
-    if cfg.needs_simulation:
+    # L_prior pulls every frame towards the simulation of the observed motion
+    if cfg.prior_follows_simulation:
         if followed is None:
-            raise ValueError(f"{rig_npz}: fit/start 'sim_delta' and fit/prior_reference 'sim' need the rig's simulated "
-                             f"sequence {sim_name!r}; it has {sorted(art.sequences)} (rule motions simulates every captured "
-                             "sequence; or set fit/prior_reference: start, the variant pipeline_no_sim_prior)")
+            raise ValueError(f"{rig_npz}: fit/prior_reference 'sim' needs the rig's simulated sequence {sim_name!r}; "
+                             f"it has {sorted(art.sequences)} (rule motions simulates every captured sequence; or set "
+                             "fit/prior_reference: start, the variant pipeline_no_sim_prior)")
         sim_transforms = followed.to(device)
-        log.info("fit: L_prior%s follows %s", " and the sim_delta start" if cfg.start == "sim_delta" else "",
-                 followed_note)
+        log.info("fit: L_prior follows %s", followed_note)
     prior_scales = None
     if cfg.prior_spread_floor is not None:  # set only where L_prior follows the ensemble (FitConfig)
-        if member_spread is not None:  # the spread about the weighted mean
-            from ..fit.terms.prior import spread_scale
-
-            prior_scales = spread_scale(member_spread, cfg.prior_spread_floor).to(device)
-        else:
-            prior_scales = ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device)
+        prior_scales = ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device)
         followed_note += (f"; L_prior's weight per vertex from the members' spread (prior_spread_floor "
                           f"{cfg.prior_spread_floor:g})")
         log.info("fit: L_prior's weight per vertex from the ensemble's spread, factor %.2f-%.2f (median %.2f)",
@@ -405,12 +376,12 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     c_fit = time.process_time()
     try:
         res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
-                               anchor_init=anchor_init, proposals_of=proposals_of, sim_transforms=sim_transforms,
+                               anchor_init=anchor_init, candidates_of=candidates_of, sim_transforms=sim_transforms,
                                starts=starts, prior_scales=prior_scales)
     finally:
         reader.close()
-    wall_fit = time.perf_counter() - t_fit + wall_weights
-    cpu_fit = time.process_time() - c_fit + cpu_weights
+    wall_fit = time.perf_counter() - t_fit
+    cpu_fit = time.process_time() - c_fit
     L = max(len(r.curve) for r in res)
     curve = np.full((T, L), np.nan)
     for t, r in enumerate(res):
@@ -435,11 +406,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "wall_fit_s": wall_fit, "wall_total_s": time.perf_counter() - t_start, "fps": T / wall_fit,
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
-        "proposal_database": db_note,
+        "simulation_database": db_note,
         "followed_simulation": followed_note if sim_transforms is not None else None,
-        # (M, T) each ensemble member's weight per frame (fit/prior_member_temperature), in the file's order
-        "member_weights": None if wts is None else np.round(wts.cpu().numpy(), 4).tolist(),
-        "wall_member_weights_s": wall_weights,
         "starts": None if starts is None else "given per frame (oracle)",
         "frame_notes": {str(t): r.notes for t, r in enumerate(res) if r.notes},  # what was done about bad cues
         # (anidress_core.fit.FrameFit.notes: views dropped, frames kept at their start, NaN pixels, no flow)
@@ -485,56 +453,20 @@ def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None,
     from ..rig import fit_transforms
 
     if path is None or not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: fit/prior_reference 'sim_ensemble' needs the ensemble's mean simulation of the "
-                                "observed motion (rule simulate_ensemble: results/<scene>/sim_ensemble/seq-<seq>.npz); "
-                                "or set fit/prior_reference: sim")
+        raise FileNotFoundError(f"{path}: fit/prior_reference 'sim_ensemble' needs the ensemble's mean simulation of "
+                                "the observed motion (rule simulate_ensemble: "
+                                "results/<scene>/sim_ensemble/seq-<seq>.npz); or set fit/prior_reference: sim")
     s = read_sim(path, members=False)
     V = art.model.rest.shape[0]
     frames = s.frames.shape[0] if frames is None else frames
     if s.frames.ndim != 3 or s.frames.shape[1:] != (V, 3) or s.frames.shape[0] < frames:
-        raise files.ArtifactError(f"{path}: frames {tuple(s.frames.shape)}, the fit needs ({frames}+, {V}, 3) (the rig's "
-                                  "template, every frame of the sequence)")
+        raise files.ArtifactError(f"{path}: frames {tuple(s.frames.shape)}, the fit needs ({frames}+, {V}, 3) (the "
+                                  "rig's template, every frame of the sequence)")
     X = torch.as_tensor(s.frames[:frames], device=device, dtype=torch.float64)
     if not torch.isfinite(X).all():
         raise files.ArtifactError(f"{path}: non-finite vertices")
     G = fit_transforms(art.model, X).double()
     return G, f"{path}: {ensemble_note(s.meta)}, rig transforms fitted to it"
-
-
-def weighted_ensemble(path: str | os.PathLike, art, rig, views, cues_of, frames: int, cfg, device
-                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The ensemble's members at ``path`` weighted per frame by how well each explains the images
-    (``fit/prior_member_temperature``, studies/fit/README.md section 21): each member's rig pose
-    (:func:`anidress_core.rig.fit_transforms` of its frames) scored on every frame's cues by L_silhouette +
-    L_normal (:func:`anidress_core.fit.proposals.score_poses`, the other terms off), weighted by
-    :func:`anidress_core.fit.terms.prior.member_weights`, averaged by
-    :func:`anidress_core.fit.terms.prior.weighted_members`. Returns the rig transforms of the weighted mean
-    (frames, B, 4, 4) float64, the spread about it (frames, V) and the weights (M, frames). Raises, naming
-    the file, when it holds no members (written before they were stored: rerun rule simulate_ensemble)."""
-    from ..fit.terms.prior import member_weights, weighted_members
-    from ..rig import fit_transforms
-
-    members = ensemble_array(path, "members", "every member's frames", "fit/prior_member_temperature", frames)
-    X = torch.as_tensor(members, device=device, dtype=torch.float64)  # (M, T, V, 3)
-    if not torch.isfinite(X).all():
-        raise files.ArtifactError(f"{path}: non-finite member vertices")
-    scores = member_scores(X, art.model, rig, views, cues_of, cfg)
-    w = member_weights(scores, cfg.prior_member_temperature, cfg.prior_member_window).to(device)
-    mean, spread = weighted_members(X, w)
-    return fit_transforms(art.model, mean).double(), spread, w
-
-
-def member_scores(members: torch.Tensor, model, rig, views, cues_of, cfg) -> torch.Tensor:
-    """(M, T) each member's image loss per frame, lower is better: the rig pose of its frames ``members``
-    (M, T, V, 3) (:func:`anidress_core.rig.fit_transforms` with ``model``) scored on frame t's cues
-    ``cues_of(t)`` by L_silhouette + L_normal at ``cfg``'s weights (:func:`anidress_core.fit.proposals.score_poses`,
-    the other terms off): the scores :func:`anidress_core.fit.terms.prior.member_weights` weighs."""
-    from ..fit.proposals import score_poses
-    from ..rig import fit_transforms
-
-    G = torch.stack([fit_transforms(model, x).double() for x in members])  # (M, T, B, 4, 4)
-    scfg = cfg.replace(weights={"flow": 0.0, "anchor": 0.0, "stretch": 0.0, "collision": 0.0})
-    return torch.stack([score_poses(rig, views, cues_of(t), G[:, t], scfg) for t in range(members.shape[1])], 1)
 
 
 #: the words of every :func:`ensemble_note`, by which a fit's header says it read an ensemble file
@@ -552,29 +484,22 @@ def ensemble_note(meta: dict) -> str:
             + (f", settle frames {n}" if n else "") + ")")
 
 
-def ensemble_array(path: str | os.PathLike, name: str, what: str, setting: str, frames: int) -> np.ndarray:
-    """The first ``frames`` frames of the array ``name`` ('spread' (T, V) or 'members' (M, T, V, 3)) stored
-    with the ensemble's mean at ``path``. Raises, naming the file, when the file lacks it (written before the
-    array was stored: rerun rule simulate_ensemble, or set ``setting`` to null) or holds fewer frames."""
-    from ..io.sim import read_sim
-
-    a = getattr(read_sim(path, members=name == "members"), name)
-    if a is None:
-        raise files.ArtifactError(f"{path}: no '{name}' ({what}; written by rule simulate_ensemble since {setting} "
-                                  f"exists: rerun it), or set {setting}: null")
-    axis = 1 if name == "members" else 0  # the frames' axis
-    if a.shape[axis] < frames:
-        raise files.ArtifactError(f"{path}: {name} {tuple(a.shape)} must hold {frames}+ frames")
-    return a[:, :frames] if axis else a[:frames]
-
-
 def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) -> torch.Tensor:
     """(frames, V) float64 L_prior's factor per frame and vertex from the spread stored with the ensemble's mean
     at ``path`` (:func:`anidress_core.fit.terms.prior.spread_scale` with ``floor``). Raises, naming the file,
-    when it has no spread (written before the spread was stored: rerun rule simulate_ensemble) or a bad one."""
+    when it has no spread (written before the spread was stored: rerun rule simulate_ensemble, or set
+    fit/prior_spread_floor: null), fewer frames or a bad one."""
     from ..fit.terms.prior import spread_scale
+    from ..io.sim import read_sim
 
-    spread = ensemble_array(path, "spread", "the members' spread about their mean", "fit/prior_spread_floor", frames)
+    spread = read_sim(path, members=False).spread
+    if spread is None:
+        raise files.ArtifactError(f"{path}: no 'spread' (the members' spread about their mean; written by rule "
+                                  "simulate_ensemble since fit/prior_spread_floor exists: rerun it), or set "
+                                  "fit/prior_spread_floor: null")
+    if spread.shape[0] < frames:
+        raise files.ArtifactError(f"{path}: spread {tuple(spread.shape)} must hold {frames}+ frames")
+    spread = spread[:frames]
     try:
         return spread_scale(torch.as_tensor(spread, dtype=torch.float64), floor)
     except ValueError as e:  # a non-finite or negative spread: named with its file

@@ -141,7 +141,7 @@ def run_simulate_ensemble(template_npz: str | os.PathLike, motion_npz: str | os.
     every settle length. Every other cloth parameter is ``cloth_cfg``'s. ``frames`` (T, V, 3) is the
     per-vertex mean over the members, ``spread`` (T, V) the members' RMS distance from it (the fit's
     L_prior pulls less where they disagree, ``fit/prior_spread_floor``), ``members`` (M, T, V, 3) every
-    member's frames (``fit/prior_member_temperature`` weighs them); the stability statistics per
+    member's frames (for studies; the fit reads the mean and the spread); the stability statistics per
     frame are the worst member's; the header's ``members`` lists each member's stiffness, settle
     length, NaN count, recoveries and wall time. Raises when a member's frames hold a non-finite value
     (no member is dropped silently).

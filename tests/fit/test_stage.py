@@ -33,7 +33,8 @@ def tiny_skirt(tmp_path_factory):
              "sequences": [{"name": "walk", "motion": "walk", "frames": 4}],
              "garment": {"vertices": 500, "cloth": {"settle_frames": 4}},
              "render": {"texture_size": 64, "noise_std": 0.0, "supersample": 1}}
-    cfg = validate_config({"run_scenes": ["s"], "scenes": {"s": scene}}, yaml.safe_load(default_schema_path().read_text()))
+    cfg = validate_config({"run_scenes": ["s"], "scenes": {"s": scene}},
+                          yaml.safe_load(default_schema_path().read_text()))
     data = run_synth(cfg["scenes"]["s"], "s", root / "data" / "s", threads=1, progress=False)
     info = read_scene(data)
     res = root / "results"
@@ -106,8 +107,8 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     followed = f"{ensemble(res)}: the mean of 2 simulations (bending stiffness [0.0001, 0.001] J, settle frames [4])"
     assert meta["followed_simulation"].startswith(followed) and meta["first_frame_start"].startswith(followed)
     assert "members' spread (prior_spread_floor 1)" in meta["followed_simulation"]  # L_prior's weight per vertex
-    # the rig's own simulation instead (one stiffness): no ensemble read
-    meta = run_fit(*args, seq / "normals", params, res / "walk" / "single.npz", ablation="pipeline_single_sim",
+    # the rig's own simulation instead (one stiffness, fit/prior_reference sim): no ensemble read
+    meta = run_fit(*args, seq / "normals", dict(params, prior_reference="sim"), res / "walk" / "single.npz",
                    progress=False)
     assert meta["followed_simulation"] == "rig transforms of the simulated sequence seq-walk"
     assert meta["first_frame_start"].startswith("rig transforms of the simulated sequence seq-walk")
@@ -241,19 +242,12 @@ def test_stage_records_what_it_did_about_bad_cues(tiny_skirt, tmp_path):
     assert list(windows) == ["3"] and windows["3"]["frames"] == 4  # the default fit/window 5, four frames
     assert windows["3"]["loss"] <= windows["3"]["chain_loss"]
     assert {t: n for t, n in notes.items() if n} == {"1": {"no_flow": True}, "2": {"views_dropped": [1]}}
-    # the members weighted by the same images: finite weights, poses and losses
-    meta = run_fit(data, "walk", res / "rig.npz", res / "template.npz", masks, flows, seq / "normals",
-                   {"views": 3, "max_iters": 2, "max_iters_first": 2, "prior_member_temperature": 1.0},
-                   tmp_path / "gw.npz", progress=False, sim_ensemble_npz=ensemble(res))
-    gp = read_garment_poses(tmp_path / "gw.npz", frames=4, bones=6)
-    assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
-    assert np.isfinite(meta["member_weights"]).all() and np.shape(meta["member_weights"]) == (2, 4)
 
 
-def test_stage_proposals_from_the_simulation_database(tiny_skirt, tmp_path):
-    """fit/proposal_every: the database is the rig's simulated sequences with their body motions
-    (motions_dir, rule motions' files); keyframes record what they kept; without motions_dir a clear
-    error. (The tiny rig's only sequence is the observed one, so only its time offsets are proposed.)"""
+def test_stage_nearest_baseline_from_the_simulation_database(tiny_skirt, tmp_path):
+    """Variant nearest: the database is the rig's simulated sequences with their body motions (motions_dir,
+    rule motions' files); every frame records the candidate it kept, none is optimised; without motions_dir
+    a clear error. (The tiny rig's only sequence is the observed one, so only its time offsets are candidates.)"""
     pytest.importorskip("warp")
     from anidress_core.io.body_motion import write_motion
     from anidress_core.io.garment_poses import read_garment_poses
@@ -263,23 +257,19 @@ def test_stage_proposals_from_the_simulation_database(tiny_skirt, tmp_path):
     data, res = tiny_skirt
     seq = data / "walk"
     write_motion(tmp_path / "seq-walk.npz", load_sequence_motion(data, "walk", read_scene(data)["fps"]))
-    params = {"views": 3, "max_iters": 4, "max_iters_first": 6, "proposal_every": 2, "proposal_refine": 1,
-              "backward": True}
+    params = {"views": 3, "max_iters": 4, "max_iters_first": 6}
     args = (data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
             seq / "normals", params, tmp_path / "gp.npz")
-    meta = run_fit(*args, progress=False, motions_dir=tmp_path, sim_ensemble_npz=ensemble(res))
+    meta = run_fit(*args, ablation="nearest", progress=False, motions_dir=tmp_path, sim_ensemble_npz=ensemble(res))
     gp = read_garment_poses(tmp_path / "gp.npz", frames=4, bones=6)
-    assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all()
-    assert meta["proposal_database"].startswith("4 simulated frames of ['seq-walk']")
+    assert np.isfinite(gp.transforms).all() and np.isfinite(gp.loss).all() and (gp.iterations == 0).all()
+    assert meta["simulation_database"].startswith("4 simulated frames of ['seq-walk']")
     notes = meta["frame_notes"]
-    for t in ("0", "2"):
-        p = notes[t]["proposal"]
-        assert p["candidates"] == (3 if t == "0" else 4)  # offsets -2..2 inside the 4 frames (0..3)
-        assert p["loss"] <= p["chained_loss"]
-    assert "proposal" not in notes.get("1", {}) and "proposal" not in notes.get("3", {})
-    assert meta["config"]["backward"] is True and meta["config"]["proposal_every"] == 2
+    # offsets -2..2 inside the 4 frames (0..3)
+    assert [notes[str(t)]["nearest"]["candidates"] for t in range(4)] == [3, 4, 4, 3], notes
+    assert all(notes[str(t)]["nearest"]["kept"].startswith("seq-walk:") for t in range(4))
     with pytest.raises(ValueError, match="motions_dir"):
-        run_fit(*args, progress=False, sim_ensemble_npz=ensemble(res))
+        run_fit(*args, ablation="nearest", progress=False, sim_ensemble_npz=ensemble(res))
 
 
 def test_the_ensemble_is_the_mean_of_its_members(tiny_skirt, tmp_path):
@@ -308,47 +298,6 @@ def test_the_ensemble_is_the_mean_of_its_members(tiny_skirt, tmp_path):
     with pytest.raises(ValueError, match="ensemble_bend_stiffness"):
         run_simulate_ensemble(res / "template.npz", res / "motions" / "seq-walk.npz", data, cloth, [],
                               tmp_path / "e.npz", progress=False)
-
-
-def test_stage_weighs_the_members_by_the_images(tiny_skirt, tmp_path):
-    """fit/prior_member_temperature: of two members, the ground truth and the truth moved 5 cm sideways, the
-    images weigh the truth more on every frame (the best alone at temperature 0), the header records the
-    weights and the note says so; an ensemble file without its members is an error naming it."""
-    pytest.importorskip("warp")
-    import dataclasses
-
-    from anidress_core.io.files import ArtifactError
-    from anidress_core.io.garment_poses import load_garment_poses
-    from anidress_core.io.rig import read_rig
-    from anidress_core.io.sim import read_sim, write_sim
-    from anidress_core.stages.fit import gt_template_vertices, run_fit
-
-    data, res = tiny_skirt
-    seq = data / "walk"
-    Y = gt_template_vertices(data, "walk", read_rig(res / "rig.npz", dtype=torch.float64).model.rest)[0].numpy()
-    X = np.stack([Y + np.array([0.05, 0.0, 0.0]), Y])  # (2, T, V, 3): member 1 is the truth
-    ens = tmp_path / "ens.npz"
-    write_sim(ens, dataclasses.replace(read_sim(ensemble(res)), frames=X.mean(0), members=X,
-                                       spread=np.sqrt(((X - X.mean(0)) ** 2).sum(-1).mean(0))))
-    args = (data, "walk", res / "rig.npz", res / "template.npz", seq / "gt" / "masks", seq / "gt" / "flows",
-            seq / "normals")
-    params = {"views": 3, "max_iters": 2, "max_iters_first": 2}
-    for temp in (0.0, 1.0):
-        meta = run_fit(*args, {**params, "prior_member_temperature": temp}, tmp_path / f"t{temp:g}.npz",
-                       progress=False, sim_ensemble_npz=ens)
-        w = np.asarray(load_garment_poses(tmp_path / f"t{temp:g}.npz")[1]["meta"]["member_weights"])
-        assert w.shape == (2, 4) and np.allclose(w.sum(0), 1, atol=1e-3)
-        assert (w[1] == 1).all() if temp == 0 else (w[1] > 0.5).all()
-        assert "members weighted per frame by the images" in meta["followed_simulation"]
-        assert "weighted per frame" in meta["first_frame_start"]
-    # the plain mean by default: no weights
-    meta = run_fit(*args, params, tmp_path / "plain.npz", progress=False, sim_ensemble_npz=ens)
-    assert meta["member_weights"] is None and "weighted" not in meta["followed_simulation"]
-    bare = tmp_path / "no_members.npz"
-    write_sim(bare, dataclasses.replace(read_sim(ens), members=None))
-    with pytest.raises(ArtifactError, match=r"no_members\.npz: no 'members'.*simulate_ensemble"):
-        run_fit(*args, {**params, "prior_member_temperature": 1.0}, tmp_path / "x.npz", progress=False,
-                sim_ensemble_npz=bare)
 
 
 def test_the_ensemble_has_every_stiffness_at_every_settle_length(tiny_skirt, tmp_path):

@@ -41,7 +41,8 @@ def test_variant_configs():
     assert base.window > 1 and fit.FitConfig.from_config({}, "pipeline_no_window").window == 0
     assert fit.FitConfig.from_config({}, "nearest").window == 0
     paper = fit.FitConfig.from_config({"weights": {"anchor": 7.0, "normal": 300.0}}, "paper")
-    assert paper.weights == fit.PAPER_WEIGHTS and paper.smooth_passes == 0 and paper.window == 0 and paper.method == "rig"
+    assert paper.weights == fit.PAPER_WEIGHTS and paper.smooth_passes == 0 and paper.window == 0
+    assert paper.method == "rig"
     assert {k: getattr(paper.weights, k) for k in fit.TERM_NAMES} == PAPER
     assert paper.max_iters == base.max_iters  # the solver is the section's
     assert fit.FitConfig.from_config({}, "paper_vertex").method == "vertex"
@@ -51,39 +52,44 @@ def test_variant_configs():
     assert c.flow == 0 and c.normal == 0.1 and c.anchor == 0 and c.collision == 0 and c.prior == 0
     with pytest.raises(ValueError, match="unknown fit loss variant"):
         fit.FitConfig.from_config({}, "nope")
-    # the ensemble's members weighted by the images: a setting of L_prior's ensemble reference only
-    assert base.prior_member_temperature is None and base.prior_member_window == 5
-    assert fit.FitConfig.from_config({}, "pipeline_image_weights").prior_member_temperature == 1.0
-    assert fit.FitConfig.from_config({"prior_member_temperature": 1, "prior_reference": "sim"}).prior_member_temperature \
-        is None  # unused: recorded as None, as it ran
-    for bad in ({"prior_member_temperature": -1.0}, {"prior_member_window": 1.5}):
-        with pytest.raises(ValueError, match="prior_member"):
-            base.replace(**bad)
+    # leave-one-out of the simulation prior and of its spread weighting
+    nsp = fit.FitConfig.from_config({}, "pipeline_no_sim_prior")
+    assert nsp.prior_reference == "start" and not nsp.prior_tangential and nsp.weights.prior == 10.0
+    assert base.prior_spread_floor == 1.0
+    assert fit.FitConfig.from_config({}, "pipeline_uniform_prior").prior_spread_floor is None
+    assert fit.FitConfig.from_config({}, "pipeline_image_anchor").anchor_reference == "images"
+
+
+def test_the_variants_kept():
+    """The pipeline, its leave-one-out ablations, the texture/images anchor pair, the paper's loss and its
+    (a)(b)(c), the nearest baseline (issue 48); the variants of the experiments left off by default left with
+    their code, and their settings left the schema (a config that names one is refused)."""
+    assert list(fit.VARIANTS) == [
+        "pipeline", "pipeline_no_normal", "pipeline_no_flow", "pipeline_no_anchor", "pipeline_no_collision",
+        "pipeline_no_stretch", "pipeline_no_prior", "pipeline_no_smooth", "pipeline_no_window",
+        "pipeline_no_sim_prior", "pipeline_uniform_prior", "pipeline_image_anchor", "nearest", "paper",
+        "paper_vertex", "paper_no_normal_flow", "paper_no_flow"]
+    fit_schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]["fit"]
+    for key in ("proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine",
+                "proposal_velocity_weight", "backward", "prior_member_temperature", "prior_member_window",
+                "prior_information"):
+        assert key not in fit_schema["properties"], key
+        with pytest.raises(ValueError, match="unknown keys"):
+            fit.FitConfig.from_config({key: 0})
+    assert fit_schema["properties"]["start"]["enum"] == ["previous"]
+    with pytest.raises(ValueError, match="start"):
+        fit.FitConfig.from_config({}).replace(start="other")
 
 
 def test_which_settings_read_the_simulation_of_the_observed_motion():
-    """One property says whether the fit needs the rig's ``seq-<sequence>`` (rule fit's error, fit_sequence's check)."""
+    """One property says whether L_prior follows the rig's ``seq-<sequence>`` or the ensemble's mean (rule fit's
+    error, fit_sequence's check)."""
     from anidress_core.fit import FitConfig
 
     base = FitConfig.from_config({})
-    assert base.prior_follows_simulation and base.needs_simulation  # the default: L_prior follows it
-    assert not base.replace(prior_reference="start").needs_simulation
-    assert not base.replace(weights={"prior": 0.0}).needs_simulation
-    assert not base.replace(method="nearest").needs_simulation  # not optimised: no L_prior
+    assert base.prior_follows_simulation  # the default: L_prior follows it
+    assert not base.replace(prior_reference="start").prior_follows_simulation
+    assert not base.replace(weights={"prior": 0.0}).prior_follows_simulation
+    assert not base.replace(method="nearest").prior_follows_simulation  # not optimised: no L_prior
     assert not base.replace(method="vertex").prior_follows_simulation
-    assert base.replace(prior_reference="start", start="sim_delta").needs_simulation
-    assert not FitConfig.from_config({}, loss="pipeline_no_sim_prior").needs_simulation
-
-
-def test_prior_information_values_come_from_one_place():
-    """The schema's enum of fit/prior_information is config.PRIOR_INFORMATION_TERMS's keys; others are refused."""
-    from anidress_core.fit import FitConfig
-    from anidress_core.fit.config import PRIOR_INFORMATION_TERMS
-
-    fit_schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]["fit"]
-    schema = fit_schema["properties"]["prior_information"]
-    assert sorted(schema["enum"]) == sorted(PRIOR_INFORMATION_TERMS) and schema["default"] == "uniform"
-    for v in PRIOR_INFORMATION_TERMS:
-        assert FitConfig.from_config({"prior_information": v}).prior_information == v
-    with pytest.raises(ValueError, match="prior_information"):
-        FitConfig.from_config({}).replace(prior_information="hessian")
+    assert not FitConfig.from_config({}, loss="pipeline_no_sim_prior").prior_follows_simulation

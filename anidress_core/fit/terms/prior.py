@@ -9,9 +9,9 @@ observe a nearly rotationally symmetric garment sliding about the body, and at f
 no flow); ``sim``, every frame, the rig's simulated pose of the observed motion at that frame;
 ``sim_ensemble``, every frame, the mean of the simulations at several bending stiffnesses.
 Weight ``fit/weights/prior`` (0 = off, the paper's loss), times a factor s_v per vertex: with
-``fit/prior_information`` in (0, 1] (:func:`information_scale`), with ``fit/prior_spread_floor`` the
-ensemble's (:func:`spread_scale`, mean 1), their product, 1 without. Residual sqrt(w s_v / V) P (x - x_ref);
-P is symmetric and idempotent, so its Gauss-Newton block on each vertex is w s_v / V P.
+``fit/prior_spread_floor`` the ensemble's (:func:`spread_scale`, mean 1), 1 without. Residual
+sqrt(w s_v / V) P (x - x_ref); P is symmetric and idempotent, so its Gauss-Newton block on each vertex
+is w s_v / V P.
 """
 from __future__ import annotations
 
@@ -70,30 +70,6 @@ def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tens
     return (_scale(pb, off) * off ** 2).sum() / verts.shape[0]
 
 
-def information_scale(pb: "Problem", info: Tensor) -> Tensor:
-    """(V,) float64 the factor s_v of L_prior's weight where the images already place the material.
-
-    info: (V, 3, 3) the weighted Gauss-Newton blocks that image terms with one vertex per residual
-    (L_anchor, L_flow) put on each vertex. Per vertex the information along the directions L_prior
-    counts, i_v = tr(P_v info_v) / rank(P_v) (P_v the tangent projector, or I); per bone b its
-    skinning-weighted mean i_b = sum_v W_vb i_v / sum_v W_vb; the bone's factor is L_prior's share
-    of the information s_b = p / (p + i_b), p = w / V (L_prior's own per vertex and direction), so
-    s_b ~ 1 where the images say nothing about where the material is and ~ p / i_b where they do;
-    s_v = sum_b W_vb s_b. Terms whose residuals couple vertices (L_silhouette, L_normal) are not
-    counted: they place the surface and its orientation, not the material along it.
-    """
-    V = info.shape[0]
-    P = (torch.eye(3, dtype=torch.float64, device=info.device).expand(V, 3, 3) if pb.prior_proj is None
-         else pb.prior_proj.double())
-    rank = P.diagonal(dim1=-2, dim2=-1).sum(-1).round().clamp_min(1)  # 2 (tangent plane) or 3
-    i_v = (P * info.double()).sum((-2, -1)) / rank  # tr(P info) for symmetric P
-    W = pb.rig.weights.double()  # (V, B)
-    i_b = (W * i_v[:, None]).sum(0) / W.sum(0).clamp_min(1e-12)
-    p = float(pb.w_prior)
-    s_b = p / (p + i_b.clamp_min(0))
-    return (W @ s_b).clamp(0, 1)
-
-
 def spread_scale(spread: Tensor, floor: float) -> Tensor:
     """(T, V) float64 L_prior's factor per frame and vertex from an ensemble's spread (ours).
 
@@ -116,49 +92,3 @@ def spread_scale(spread: Tensor, floor: float) -> Tensor:
         return torch.ones_like(s2)
     s = 1.0 / (s2 + s0 ** 2)
     return s / s.mean(1, keepdim=True)
-
-
-def member_weights(scores: Tensor, temperature: float, window: int) -> Tensor:
-    """(M, T) float64 each ensemble member's weight per frame from how well it explains the images (ours).
-
-    scores: (M, T) each member's image loss per frame (e.g. L_silhouette + L_normal of its rig pose,
-    :func:`anidress_core.fit.proposals.score_poses`); lower is better. Summed over the frames within
-    ``window`` of t (the sequence's ends repeated), then w_mt = softmax_m(-(s_mt - min_m s_mt) / (temperature
-    * std_m s_mt)), std the sample standard deviation; temperature 0: the lowest member alone. Each column
-    sums to 1. A frame whose members all score alike (std 0) weighs them equally; non-finite scores raise.
-    The images pick the members that match the outline; their weighted mean was closer to the truth than
-    the plain mean on 7 of 10 tuning scenes (studies/fit/README.md section 21).
-    """
-    if scores.ndim != 2 or scores.shape[0] < 1:
-        raise ValueError(f"member_weights: scores must be (M >= 1, T), got {tuple(scores.shape)}")
-    if not (temperature >= 0 and window >= 0 and int(window) == window):
-        raise ValueError(f"member_weights: temperature must be >= 0 and window an integer >= 0, got "
-                         f"{temperature}, {window}")
-    if not bool(torch.isfinite(scores).all()):
-        raise ValueError("member_weights: scores must be finite")
-    M, T = scores.shape
-    s = scores.double()
-    if window > 0:
-        idx = (torch.arange(T)[:, None] + torch.arange(-window, window + 1)[None]).clamp(0, T - 1)  # (T, 2w+1)
-        s = s[:, idx].sum(-1)
-    if temperature == 0:
-        best = s.argmin(0)  # (T,)
-        return torch.nn.functional.one_hot(best, M).T.double()
-    spread = s.std(0) if M > 1 else torch.zeros(T, dtype=s.dtype)  # (T,), with Bessel's correction
-    z = (s - s.min(0).values) / (temperature * spread).where(spread > 0, torch.ones_like(spread))
-    return torch.softmax(-z.where(spread > 0, torch.zeros_like(z)), 0)
-
-
-def weighted_members(members: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
-    """The members' weighted mean (T, V, 3) and RMS distance from it (T, V) (ours).
-
-    members: (M, T, V, 3) the ensemble's simulations; weights: (M, T), each column summing to 1
-    (:func:`member_weights`; 1/M everywhere gives the plain mean and spread of rule simulate_ensemble).
-    """
-    if members.ndim != 4 or members.shape[-1] != 3 or weights.shape != members.shape[:2]:
-        raise ValueError(f"weighted_members: members must be (M, T, V, 3) and weights (M, T), got "
-                         f"{tuple(members.shape)}, {tuple(weights.shape)}")
-    w = weights.to(members.dtype)
-    mean = (w[..., None, None] * members).sum(0)
-    spread = (w[..., None] * ((members - mean) ** 2).sum(-1)).sum(0).clamp_min(0).sqrt()
-    return mean, spread

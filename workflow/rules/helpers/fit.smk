@@ -61,13 +61,13 @@ def fit_inputs(wildcards):
         inp["undistorted"] = undistorted_input(scene, seq)  # undistort.smk: images, cameras, shipped cues
         inp["flows"] = d["flows"]
         inp["normals"] = normals_record(scene, seq)
-    # the body motions of the rig's simulations: the database of the proposals and of the `nearest` baseline, read
-    # by the stage only when the settings or the variant ask for it (the rig depends on them already, so a change
-    # of them reruns the fit either way)
+    # the body motions of the rig's simulations: the database of the `nearest` baseline, read by the stage only
+    # for that variant (the rig depends on them already, so a change of them reruns the fit either way)
     inp["motions"] = [f"results/{scene}/motions/{m}.npz" for m in sim_motion_names(scene)]
     inp["body"] = body_input(scene, seq)  # refined body poses (helpers/body.smk), or none
     if scene_section(config, "fit", scene).get("prior_reference", "sim_ensemble") == "sim_ensemble":
-        inp["sim_ensemble"] = f"results/{scene}/sim_ensemble/seq-{seq}.npz"  # L_prior's reference (rule simulate_ensemble)
+        # L_prior's reference (rule simulate_ensemble)
+        inp["sim_ensemble"] = f"results/{scene}/sim_ensemble/seq-{seq}.npz"
     return inp
 
 

@@ -1,31 +1,21 @@
-"""Garment pose proposals from the simulation database, scored by the fit's loss (issue 23).
+"""The ``nearest`` baseline: per frame, the simulated garment pose that the loss scores lowest.
 
-The chained fit stops in worse local minima of a loss whose own minimum lies near the truth
-(studies/fit/README.md, sections 1-2); a search over whole poses from elsewhere is what it lacks.
-The pipeline already holds a database of plausible garment poses: the rig's bone transforms of
-every simulated frame (``rig.npz``: the library motions, the simulation of the observed motion),
-each with the body state it was simulated on. For a frame t of the observed sequence:
+A baseline that fits nothing (variant ``nearest``, method 'nearest' of :func:`anidress_core.fit.fit_sequence`):
+it measures how far the simulation database alone gets. The database is the rig's bone transforms of
+every simulated frame (``rig.npz``: the library motions, the simulation of the observed motion), each
+with the body state it was simulated on. For a frame t of the observed sequence:
 
-1. nearest simulated frames (other motions than the observed one) by the body's pose relative to
-   its root and the root's velocity in its own frame (:func:`body_features`, :func:`nearest_frames`),
-   their bone transforms carried rigidly from the simulated body root to the observed one
-   (:func:`carry`);
-2. the simulation of the observed motion at frames t + o, o in -offsets..offsets (its body is the
-   observed one, so the carry only corrects the root motion between t + o and t);
-3. every candidate scored by the loss (:func:`score_poses`, :func:`anidress_core.fit.evaluate` on
-   one problem: the frame's cues, flow targets and references; L_prior left out, it measures the
-   distance to a start, not the images), the ``refine`` lowest refined by Levenberg-Marquardt
-   (:func:`anidress_core.fit.fit_frame`), the lowest loss kept (:func:`best_of`).
+1. the ``NEAREST`` nearest simulated frames (other motions than the observed one) by the body's pose
+   relative to its root and the root's velocity in its own frame (:func:`body_features`,
+   :func:`nearest_frames`), their bone transforms carried rigidly from the simulated body root to the
+   observed one (:func:`carry`);
+2. the simulation of the observed motion at frames t + o, |o| <= ``OFFSETS`` (its body is the observed
+   one, so the carry only corrects the root motion between t + o and t);
+3. every candidate scored by the loss (:func:`score_poses`: the frame's cues, flow targets and references,
+   L_prior left out); the lowest is the frame's pose.
 
-Measured (December 2026, scratch runs of the workflow + :func:`anidress_core.stages.fit.run_fit` /
-``run_fit_eval``; the figures are in the commit that wired this in and in its report): on the demo
-skirt walk (256x256, 8 views, the pipeline's cues, 60 frames) proposals every 10 frames change the
-vertex RMSE from 14.64 to 14.61 mm (1.70x -> 1.69x the rig floor) at 1.55 instead of 1.90 frames/s
-(one thread); on a 128x128 skirt with ground-truth cues 18.79 -> 18.99 mm. The loss does prefer
-the truth (the rig floor's loss is 5-6 % below the chained fit's on every frame checked), but every
-simulated candidate is 22-50 mm from it, farther than the chained fit (16-21 mm), also with
-simulations at 3e-4 and 3e-3 J bending: the database does not reach the basin the chained fit
-misses. Hence ``fit/proposal_every`` is 0 (off) by default.
+The same database once gave the chained fit proposals at keyframes; they did not help and left the
+package (studies/fit/README.md section 8, runnable at git d6e895a).
 
 Shapes: N database frames, K candidates, B bones, J body joints (root = joint 0), T frames.
 Transforms are rest -> world (column vectors), float64. Units: metres, seconds; the velocity
@@ -41,19 +31,27 @@ from torch import Tensor
 
 from ..geometry import invert_transform, lbs
 from .config import FitConfig
-from .objective import evaluate, total_loss
-from .problem import FlowTargets, FrameCues, RigParts, Views, crop_frame, crop_window, make_problem, occluder_or_inf
+from .objective import evaluate
+from .problem import (FlowTargets, FrameCues, RigParts, Views, crop_frame, crop_window, cue_notes, make_problem,
+                      occluder_or_inf)
+from .terms.collision import body_contacts
 
 if TYPE_CHECKING:
-    from .sequence import FrameFit
     from .terms.anchor import AnchorRef
 
-__all__ = ["BodyFeatures", "SimDatabase", "Proposals", "body_features", "make_database", "carry", "nearest_frames",
-           "frame_proposals", "score_poses", "best_of"]
+__all__ = ["NEAREST", "OFFSETS", "VELOCITY_WEIGHT", "BodyFeatures", "SimDatabase", "Candidates", "body_features",
+           "make_database", "carry", "nearest_frames", "frame_candidates", "score_poses"]
+
+#: candidates per frame from other simulated motions: the nearest frames by body pose and root velocity
+NEAREST = 8
+#: candidates per frame from the simulation of the observed motion: its frames t + o, |o| <= this
+OFFSETS = 2
+#: weight (s^2) of the squared root-velocity difference (m/s) against the squared pose-feature distance
+VELOCITY_WEIGHT = 0.05
 
 
 class BodyFeatures(NamedTuple):
-    """What the proposals compare of a body state, per frame."""
+    """What the nearest-frame search compares of a body state, per frame."""
 
     pose: Tensor  # (T, 9 (J - 1)) rotations of joints 1..J-1 relative to the root (flattened 3x3)
     velocity: Tensor  # (T, 3) root velocity in the root's own frame (m/s)
@@ -70,8 +68,8 @@ class SimDatabase(NamedTuple):
     names: tuple  # sequence names (rig.npz ``sequences``: seq-<name>, lib-<motion>, amass-<stem>)
 
 
-class Proposals(NamedTuple):
-    """Candidate garment poses of one frame."""
+class Candidates(NamedTuple):
+    """Candidate garment poses of one frame (:func:`frame_candidates`)."""
 
     transforms: Tensor  # (K, B, 4, 4)
     labels: list  # K strings: where each came from ('lib-walk:12', 'seq-walk:+2', ...)
@@ -135,7 +133,8 @@ def nearest_frames(db: SimDatabase, query: BodyFeatures, t: int, k: int, velocit
     """(k',) indices of the database frames nearest to frame ``t`` of ``query`` (k' = min(k, N
     allowed)), nearest first: squared distance of the pose features plus ``velocity_weight`` (s^2)
     times the squared velocity difference (m/s). Sequences named in ``exclude`` are left out."""
-    d = (db.body.pose - query.pose[t]).pow(2).sum(-1) + velocity_weight * (db.body.velocity - query.velocity[t]).pow(2).sum(-1)
+    d = ((db.body.pose - query.pose[t]).pow(2).sum(-1)
+         + velocity_weight * (db.body.velocity - query.velocity[t]).pow(2).sum(-1))
     if exclude:
         out = torch.tensor([n in set(exclude) for n in db.names], dtype=torch.bool)[db.sequence]
         d = torch.where(out, torch.full_like(d, float("inf")), d)
@@ -144,8 +143,9 @@ def nearest_frames(db: SimDatabase, query: BodyFeatures, t: int, k: int, velocit
     return torch.argsort(d)[:min(int(k), n_ok)]
 
 
-def frame_proposals(db: SimDatabase, query: BodyFeatures, t: int, nearest: int, velocity_weight: float,
-                    own: str | None = None, offsets: int = 0) -> Proposals:
+def frame_candidates(db: SimDatabase, query: BodyFeatures, t: int, nearest: int = NEAREST,
+                     velocity_weight: float = VELOCITY_WEIGHT, own: str | None = None, offsets: int = OFFSETS
+                     ) -> Candidates:
     """Candidates for frame ``t`` of the observed body ``query``: the ``nearest`` database frames of
     other sequences than ``own`` (:func:`nearest_frames`) and, when ``own`` (the simulation of the
     observed motion, e.g. ``seq-walk``) is in the database, its frames t + o for 0 < |o| <= offsets
@@ -160,18 +160,15 @@ def frame_proposals(db: SimDatabase, query: BodyFeatures, t: int, nearest: int, 
                 idx = torch.cat([idx, rows[t + o: t + o + 1]])
                 labels.append(f"{own}:{o:+d}")
     G = carry(db.transforms[idx], db.body.root[idx], query.root[t])
-    return Proposals(G, labels)
+    return Candidates(G, labels)
 
 
 def score_poses(rig: RigParts, views: Views, cues: FrameCues, candidates: Tensor, cfg: FitConfig,
                 flow: FlowTargets | None = None, anchor: "AnchorRef | None" = None) -> Tensor:
     """(K,) the loss of each candidate pose (K, B, 4, 4) on one frame: :func:`anidress_core.fit.evaluate`
-    on one problem (the frame's cues as :func:`anidress_core.fit.sequence.cue_notes` cleans them, flow
+    on one problem (the frame's cues as :func:`anidress_core.fit.problem.cue_notes` cleans them, flow
     targets, L_anchor's references; rendered in one window per view that holds every candidate),
     L_collision's planes taken at each candidate (as a fit started there would), L_prior left out."""
-    from .sequence import cue_notes
-    from .terms.collision import body_contacts
-
     G = torch.as_tensor(candidates, device=rig.rest.device).double()
     if G.ndim != 4 or G.shape[1:] != (rig.weights.shape[1], 4, 4):
         raise ValueError(f"score_poses: candidates must be (K, {rig.weights.shape[1]}, 4, 4), got {tuple(G.shape)}")
@@ -195,33 +192,3 @@ def score_poses(rig: RigParts, views: Views, cues: FrameCues, candidates: Tensor
             p = pb._replace(contacts=c if c.vert.numel() else None)
         out[i] = evaluate(p, x).loss
     return out
-
-
-def data_loss(res: "FrameFit", cfg: FitConfig) -> float:
-    """The loss of a fitted frame without L_prior (comparable across starts)."""
-    return total_loss(cfg.weights, {**res.terms, "prior": 0.0})
-
-
-def best_of(rig: RigParts, views: Views, cues: FrameCues, proposals: Proposals, cfg: FitConfig,
-            flow: FlowTargets | None = None, anchor: "AnchorRef | None" = None, first: bool = False,
-            refine: int = 1, start: "FrameFit | None" = None) -> tuple["FrameFit", dict]:
-    """The best of the proposals for one frame: all scored (:func:`score_poses`), the ``refine``
-    lowest refined by :func:`anidress_core.fit.fit_frame` (``first``: frame 0's iteration limit), the
-    lowest loss without L_prior kept -- also against ``start`` (a fit already made, e.g. the chained
-    one), which is returned when nothing beats it. Returns the fit and a record: labels, scores,
-    the refined labels with their losses, the label kept ('start' for ``start``)."""
-    from .sequence import fit_frame
-
-    scores = score_poses(rig, views, cues, proposals.transforms, cfg, flow, anchor)
-    order = torch.argsort(scores)[:max(int(refine), 0)]
-    best, best_loss, kept = start, (data_loss(start, cfg) if start is not None else float("inf")), "start"
-    refined = {}
-    for i in order.tolist():
-        r = fit_frame(rig, views, cues, proposals.transforms[i], cfg, flow, first=first, anchor=anchor)
-        loss = data_loss(r, cfg)
-        refined[proposals.labels[i]] = loss
-        if loss < best_loss:
-            best, best_loss, kept = r, loss, proposals.labels[i]
-    if best is None:
-        raise ValueError("best_of: no proposal refined (refine = 0) and no start")
-    return best, {"labels": list(proposals.labels), "scores": scores.tolist(), "refined": refined, "kept": kept}
