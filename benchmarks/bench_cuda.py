@@ -51,13 +51,14 @@ from benchmarks.benchutil import cpu_model, git_rev
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("simulate", "simulate_launches", "rig", "fit", "train_field", "render")
 #: simulate_launches: the cloth solver on CUDA with graph capture off (kernel by kernel), the path before it
-UNIT = {"simulate": "simulated frame", "simulate_launches": "simulated frame", "rig": "decomposition", "fit": "frame (t > 0)",
-        "train_field": "optimisation step", "render": "image"}
+UNIT = {"simulate": "simulated frame", "simulate_launches": "simulated frame", "rig": "decomposition",
+        "fit": "frame (t > 0)", "train_field": "optimisation step", "render": "image"}
 #: the paper's scale, units per stage (low, high): 10K simulated frames; 400-800 frames; 600 steps
 #: (config field/train/steps); 8 views x 400-800 frames rendered
 #: the output compared between the devices, per stage
 CHECK = {"simulate": "max stretch", "simulate_launches": "max stretch", "rig": "RMSE mm"}
-PAPER_UNITS = {"simulate": (10000, 10000), "simulate_launches": (10000, 10000), "fit": (400, 800), "render": (3200, 6400)}
+PAPER_UNITS = {"simulate": (10000, 10000), "simulate_launches": (10000, 10000), "fit": (400, 800),
+               "render": (3200, 6400)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -371,15 +372,16 @@ def report(raw: dict, out: Path) -> None:
     rows = table(raw)
     out.mkdir(parents=True, exist_ok=True)
     cols = ["stage", "point", "unit", "units_measured", "cpu_s_per_unit", "cuda_s_per_unit", "speedup",
-            "cpu_first_call_s", "cuda_first_call_s", "cuda_peak_mb_torch", "check", "units_paper", "cuda_total_paper_s_low",
-            "cuda_total_paper_s_high"]
+            "cpu_first_call_s", "cuda_first_call_s", "cuda_peak_mb_torch", "check", "units_paper",
+            "cuda_total_paper_s_low", "cuda_total_paper_s_high"]
     with open(out / "cuda.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols)
         w.writeheader()
         for r in rows:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
     info, s = raw["info"], raw["sizes"]
-    pts = "; ".join(f"{k}: {v[0]} training views at {v[1]}^2, {v[2]:,} garment vertices" for k, v in s["points"].items())
+    pts = "; ".join(f"{k}: {v[0]} training views at {v[1]}^2, {v[2]:,} garment vertices"
+                    for k, v in s["points"].items())
     L = ["# CUDA against the CPU of the same machine", "",
          f"- date: {raw['date']}; git {raw['git']}; command: `{raw['cmd']}`, tables by "
          f"`.venv/bin/python -m benchmarks.bench_cuda --report <raw.json>`",
@@ -405,7 +407,8 @@ def report(raw: dict, out: Path) -> None:
         tot = "-" if not np.isfinite(lo) else (hms(lo) if lo == hi else f"{hms(lo)} - {hms(hi)}")
         paper = r["point"] == "paper"
         L.append(f"| {r['stage']} | {r['point']} | {r['unit']} | {_fmt(r['cpu_s_per_unit'])} | "
-                 f"{_fmt(r['cuda_s_per_unit'])} | {_fmt(r['speedup']) + 'x' if np.isfinite(r['speedup']) else '-'} | {_fmt(r['cpu_first_call_s'])} / "
+                 f"{_fmt(r['cuda_s_per_unit'])} | {_fmt(r['speedup']) + 'x' if np.isfinite(r['speedup']) else '-'} | "
+                 f"{_fmt(r['cpu_first_call_s'])} / "
                  f"{_fmt(r['cuda_first_call_s'])} | {_fmt(r['cuda_peak_mb_torch'])} | {r['check'] or '-'} | "
                  f"{r['units_paper'] if paper else '-'} | {tot if paper else '-'} |")
     grow = growth(rows)
