@@ -1,4 +1,8 @@
-"""Scratch diagnostic: on frames of a scene, the proposals' error vs the truth and their scores; the floor's score."""
+"""Scratch diagnostic: on frames of a scene, the proposals' error vs the truth and their scores; the floor's score.
+
+Runnable only at git d6e895a: it imports anidress_core.fit.proposals and stages.fit.proposal_database,
+which left the package after that commit (issue 48; its findings: studies/fit/README.md section 8).
+"""
 import sys
 from pathlib import Path
 import numpy as np, torch
@@ -36,7 +40,8 @@ seqs = {}
 for name in list(art.sequences) + sys.argv[7].split(","):
     base_name = name.split("@")[0]
     mm = read_motion(res / "motions" / f"{base_name}.npz")
-    G = art.transforms_of(name).double() if "@" not in name else torch.as_tensor(np.load(f"/tmp/fitmeasure/ens/{name}.transforms.npy"))
+    G = (art.transforms_of(name).double() if "@" not in name
+         else torch.as_tensor(np.load(f"/tmp/fitmeasure/ens/{name}.transforms.npy")))
     seqs[name] = (G, body.pose(mm.poses, mm.Rh, mm.Th, mm.shapes).transforms.double(), mm.fps)
 db = P.make_database(seqs)
 q = P.body_features(posed.transforms.double(), float(info["fps"]))

@@ -1,4 +1,7 @@
-"""Probe (issue 23 items 3-5): stage fit with and without proposals and the backward pass.
+"""Runnable only at git d6e895a: it sets the fit settings proposal_* and backward, which left the package
+after that commit (issue 48; its findings: studies/fit/README.md section 8).
+
+Probe (issue 23 items 3-5): stage fit with and without proposals and the backward pass.
 
 Usage: python studies/fit/proposals/measure.py ROOT SCENE SEQ {gt|pipeline} FRAMES base,prop10,prop10_back OUT
 (ROOT holds data/<scene> and results/<scene> of a finished workflow run; writes OUT/<variant>.npz, OUT/metrics.csv)."""

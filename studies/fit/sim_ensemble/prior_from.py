@@ -1,4 +1,7 @@
-"""Probe: the pipeline with L_prior's reference and frame 0's start taken from one member of the stiffness
+"""Runnable only at git d6e895a: it imports anidress_core.fit.proposals.score_poses, which left the package
+after that commit (issue 48; its findings: studies/fit/README.md section 16).
+
+Probe: the pipeline with L_prior's reference and frame 0's start taken from one member of the stiffness
 ensemble (members.py's simulations, ``MEMBERS=<folder>`` of ``<scene>-<seq>-<bend>.npz``) instead of the members'
 mean. ``PICK=true``: the member at the scene's own stiffness (an oracle, from ``SUITE=<overlay>``);
 ``PICK=images``: the member whose rig poses score lowest on the images, L_silhouette + L_normal

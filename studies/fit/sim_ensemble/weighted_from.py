@@ -1,4 +1,8 @@
-"""Probe: L_prior's reference and frame 0's start from the stiffness ensemble's members weighted per frame by
+"""Runnable only at git d6e895a: it imports fit.terms.prior.member_weights, weighted_members and
+stages.fit.member_scores, which left the package after that commit (issue 48; its findings:
+studies/fit/README.md section 21).
+
+Probe: L_prior's reference and frame 0's start from the stiffness ensemble's members weighted per frame by
 how well each explains that frame's images (what ``fit/prior_member_temperature`` does, the variant
 ``pipeline_image_weights``), here with members made by members.py (``MEMBERS=<folder>``, every stiffness of the
 config's ``simulate/ensemble_bend_stiffness`` with each tag of ``TAGS``, default the pipeline's own members
