@@ -197,13 +197,34 @@ def ensemble_npz(scene: str, seq: str) -> str:
     return f"results/{scene}/sim_ensemble/seq-{seq}.npz"
 
 
+#: the settings that left the fit (issue 48; they run at git d6e895a), each with the values at which a fit stored
+#: before did what the fit does now (ANY: no effect once the others hold theirs); a stored fit with another value
+#: is not reused
+ANY = object()
+RETIRED_SETTINGS = {"proposal_every": (0,), "proposal_refine": ANY, "proposal_nearest": (8,), "proposal_offsets": (2,),
+                    "proposal_velocity_weight": (0.05,), "backward": (False,), "prior_information": ("uniform",),
+                    "prior_member_temperature": (None,), "prior_member_window": ANY}
+
+
+def without_retired(settings: dict | None) -> dict | None:
+    """A stored fit's ``params`` or ``config`` without the settings that left the fit (:data:`RETIRED_SETTINGS`),
+    or None when one of them held a value that made that fit unlike any fit made now."""
+    out = dict(settings or {})
+    for k, ok in RETIRED_SETTINGS.items():
+        if k in out and ok is not ANY and out.pop(k) not in ok:
+            return None
+        out.pop(k, None)
+    return out
+
+
 def reusable(path: Path, method: str, params: dict, ensemble: str | None = None,
              inputs: Sequence[str | os.PathLike | None] = ()) -> bool:
     """Whether ``path`` holds a fit of variant ``method`` made with exactly ``params`` and the same
     settings as used (``FitConfig`` of the variant now; the header's ``config``), and, where the variant
     follows the stiffness ensemble, one with the same members as the file ``ensemble`` now and not older
     than it; and not older than any of ``inputs`` (the scene's data folder, rig, cue folders: a scene
-    made again, e.g. with other ground-truth cloth, outdates its stored fits as Snakemake would)."""
+    made again, e.g. with other ground-truth cloth, outdates its stored fits as Snakemake would). Settings that
+    left the fit since are ignored at the values that did what the fit does now (:func:`without_retired`)."""
     if not path.is_file():
         return False
     made = path.stat().st_mtime_ns
@@ -229,9 +250,12 @@ def reusable(path: Path, method: str, params: dict, ensemble: str | None = None,
         if (ensemble is None or not Path(ensemble).is_file() or newer(ensemble)
                 or ensemble_note(read_sim(ensemble, members=False).meta) not in read):
             return False
+    stored_params, stored_config = without_retired(meta.get("params")), without_retired(meta.get("config"))
+    if stored_params is None or stored_config is None:
+        return False
     return (meta.get("loss") == (OPTIMUM_OF if oracle else method) and bool(meta.get("starts")) == oracle
-            and full(meta.get("params")) == full(params)
-            and key(with_new_settings(meta.get("config") or {}, used)) == key(used))
+            and full(stored_params) == full(params)
+            and key(with_new_settings(stored_config, used)) == key(used))
 
 
 def with_new_settings(stored: dict, used: dict, legacy: dict | None = None) -> dict:
@@ -405,9 +429,11 @@ def main() -> None:
                 fitted = [m for m in fits if m not in SIM_REFS]
                 cams = metas[fitted[0]]["cameras"] if fitted else "--"
                 notes.append(f"{scene}/{seq}, {nv} views: template -> ground-truth correspondence distance mean "
-                             f"{1e3 * summ['correspondence_mean_m']:.2f} mm, max {1e3 * summ['correspondence_max_m']:.2f}"
+                             f"{1e3 * summ['correspondence_mean_m']:.2f} mm, max "
+                             f"{1e3 * summ['correspondence_max_m']:.2f}"
                              f" mm; Chamfer sampling bias (the ground truth of frame 0 against itself, two independent "
-                             f"sample sets): {1e3 * chamfer_bias(scene, seq, args.samples):.2f} mm; cues: {dirs['label']}"
+                             f"sample sets): {1e3 * chamfer_bias(scene, seq, args.samples):.2f} mm; "
+                             f"cues: {dirs['label']}"
                              f"; cameras: {cams}")
                 for m in fitted:  # a loss as used that is not the one configured (e.g. no normal maps)
                     want = weights_text(dataclasses.asdict(
@@ -587,8 +613,10 @@ def write(rows, notes, args, command, load0, load1, methods_paragraph: list[str]
         "",
         *suite,
         *(["## Per scene", ""] if suite else []),
-        "| scene/seq | views | method | frames | vertex RMSE mm mean / p95 / worst (frame) | rig floor mm | RMSE / floor "
-        "| Chamfer mm mean / p95 / worst | rig floor Chamfer mm | Chamfer / floor | 2D error px (rig floor) | 2D / floor "
+        "| scene/seq | views | method | frames | vertex RMSE mm mean / p95 / worst (frame) | rig floor mm "
+        "| RMSE / floor "
+        "| Chamfer mm mean / p95 / worst | rig floor Chamfer mm | Chamfer / floor | 2D error px (rig floor) "
+        "| 2D / floor "
         "| normal consistency mean / p5 / worst | jitter mm (GT) | acceleration error mm | drift | fps | CPU s/frame "
         "| iterations/frame |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
@@ -601,8 +629,10 @@ def write(rows, notes, args, command, load0, load1, methods_paragraph: list[str]
             f"({r['worst_frame']}) | {_mm(r['rig_floor_rmse_m'])} | {r['rmse_over_floor']:.2f} | "
             f"{_mm(r['chamfer_m_mean'])} / {_mm(r['chamfer_m_p95'])} / {_mm(r['chamfer_m_worst'])} | "
             f"{_mm(r['rig_floor_chamfer_m'])} | {r['chamfer_over_floor']:.2f} | "
-            f"{_num(r['reprojection_px'])} ({_num(r['rig_floor_reprojection_px'])}) | {_num(r['reprojection_over_floor'])} | "
-            f"{r['normal_consistency_mean']:.4f} / {r['normal_consistency_p5']:.4f} / {r['normal_consistency_worst']:.4f}"
+            f"{_num(r['reprojection_px'])} ({_num(r['rig_floor_reprojection_px'])}) | "
+            f"{_num(r['reprojection_over_floor'])} | "
+            f"{r['normal_consistency_mean']:.4f} / {r['normal_consistency_p5']:.4f} / "
+            f"{r['normal_consistency_worst']:.4f}"
             f" | {_mm(r['jitter_m'])} ({_mm(r['gt_jitter_m'])}) | {_mm(r['accel_error_m'])} | {_num(r['drift'])} | "
             f"{_num(r['fps'])} | "
             f"{_num(r['cpu_s_per_frame'])} | {r['iterations_mean']:.1f} |")

@@ -217,6 +217,32 @@ def test_fit_reuse_needs_the_same_ensemble_members(tmp_path, monkeypatch):
     assert not bf.reusable(fit, "pipeline", {}, None)
 
 
+def test_fit_reuse_ignores_the_settings_that_left_the_fit_at_their_off_values(tmp_path, monkeypatch):
+    """bench_fit --reuse: a fit stored before issue 48 records the settings that left the fit since; at the values
+    that did what the fit does now (proposals and the backward pass off, a uniform prior, the plain ensemble mean)
+    it stands for the variant, with one of them on it does not."""
+    import dataclasses
+
+    import benchmarks.bench_fit as bf
+    from anidress_core.fit import FitConfig
+
+    old = {"proposal_every": 0, "proposal_nearest": 8, "proposal_offsets": 2, "proposal_refine": 2,
+           "proposal_velocity_weight": 0.05, "backward": False, "prior_information": "uniform",
+           "prior_member_temperature": None, "prior_member_window": 5}
+    cfg = {**dataclasses.asdict(FitConfig.from_config({}, "pipeline_no_sim_prior")), **old}
+    stored = {"loss": "pipeline_no_sim_prior", "params": dict(old), "starts": None, "config": cfg}
+    monkeypatch.setattr(bf, "load_garment_poses", lambda path: (None, {"meta": stored}))
+    fit = tmp_path / "garment_poses.npz"
+    fit.write_bytes(b"")
+    assert bf.reusable(fit, "pipeline_no_sim_prior", {})
+    for k, on in (("proposal_every", 5), ("backward", True), ("prior_information", "anchor"),
+                  ("prior_member_temperature", 1.0)):
+        stored.update(params=dict(old, **{k: on}), config=dict(cfg, **{k: on}))
+        assert not bf.reusable(fit, "pipeline_no_sim_prior", {}), k
+        stored.update(params=dict(old), config=dict(cfg, **{k: on}))
+        assert not bf.reusable(fit, "pipeline_no_sim_prior", {}), k
+
+
 def test_fit_reuse_refuses_a_fit_older_than_its_scene(tmp_path, monkeypatch):
     """bench_fit --reuse: a scene made again (other ground-truth cloth, new cues or rig) outdates its stored fits,
     as Snakemake would; the ensemble outdates only the fits that followed it."""
