@@ -47,6 +47,7 @@ from .. import __version__, plots
 from ..io import files
 from ..io.images import frame_file
 from ..io.rig import read_rig
+from ..io.scene_info import cue_formats, read_scene
 from ..io.sim import read_sim
 from ..resources import REFERENCE_TABLES
 
@@ -392,11 +393,16 @@ def collect_report(config: dict, root: str | os.PathLike = ".",
                     skipped.append({"scene": name, "stage": f"normals ({seq})",
                                     "reason": f"{n.get('reason', 'no normals')}: normal loss weight 0"})
                 elif n.get("shipped") or n.get("source"):
+                    axes = (f"; axes {n['convention_axes']}, mean cosine {n['agreement']:.2f} with the posed body"
+                            if n.get("convention_axes") else "")
                     skipped.append({"scene": name, "stage": f"normal estimation ({seq})",
-                                    "reason": f"normals shipped with the data used as they are ({n.get('source', '')})"})
+                                    "reason": f"normals shipped with the data ({n.get('source', '')}{axes})"})
             if (data / seq / "masks").is_dir():
+                fmt = cue_formats(read_scene(data), data)["masks"] if (data / "scene.yaml").is_file() else {}
                 skipped.append({"scene": name, "stage": f"mask estimation ({seq})",
-                                "reason": "masks shipped with the data used as they are"})
+                                "reason": "masks shipped with the data used as they are" if fmt.get("format") != "schp"
+                                else f"a human parser's masks shipped with the data, converted to labels (SCHP "
+                                     f"{fmt['label_set']})"})
             if garment:
                 ent["fit"] = _fit(res, seq)
                 if ent["fit"] is None and not synthetic:

@@ -183,6 +183,7 @@ def test_capture_runs_end_to_end_without_ground_truth(ran):
     html = (wd / "results" / "report.html").read_text()
     assert 'data-ground-truth="none"' in html and "No ground truth" in html
     assert "fit metrics (walk)" in html and "captured image, pipeline&#39;s mask" in html
+    assert "converted to labels (SCHP cihp)" in html and "axes x, -y, -z" in html  # what the cue files became
     # 3. nothing left to do
     res = _snakemake(wd, "-n")
     assert res.returncode == 0 and "Nothing to be done" in res.stdout + res.stderr, _tail(res)
