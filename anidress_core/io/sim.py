@@ -10,8 +10,8 @@ Arrays:
   the body, metres), ``nan_count`` (non-finite coordinates), ``substeps``;
 * ``spread`` (T, V) float32, an ensemble's mean only (``sim_ensemble/seq-<seq>.npz``, rule
   simulate_ensemble): per vertex, the members' RMS distance from their mean, metres;
-* ``members`` (M, T, V, 3) float32, an ensemble's mean only: every member's frames (the fit weighs
-  them by the images with ``fit/prior_member_temperature``);
+* ``members`` (M, T, V, 3) float32, an ensemble's mean only: every member's frames (for studies; the fit
+  reads the mean and the spread);
 
 plus the header (code version, hash of the cloth parameters, ``meta``: motion name,
 cloth parameters, recoveries, wall time).
