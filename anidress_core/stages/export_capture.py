@@ -19,7 +19,8 @@ option so that its effect can be measured alone:
   silhouette, a grown or shrunk subject, a garment / body border shifted by a few pixels);
 
 * ``flows`` (``--flows``): forward flows as an optical-flow network gives them (:func:`network_flow`: the
-  true flows, warped with their vectors remapped through the lens, blurred and with smooth noise), for
+  true flows, warped with their vectors remapped through the lens, blurred, filled where the truth has
+  none (occlusions) and with smooth noise: a flow at every pixel, as RAFT gives), for
   ``cues/flows/method: files``;
 * ``cue_files`` (``--cue-files``, :data:`CUE_FILE_MODES`): the shipped masks, normals and flows in the
   pipeline's formats (``pipeline``: labels, EXR, EXR) or as the tools users run write them:
@@ -270,19 +271,28 @@ def warp_flow(flow: np.ndarray, valid: np.ndarray, maps: WarpMaps, cam: int, src
 
 
 def network_flow(flow: np.ndarray, valid: np.ndarray, rng: np.random.Generator, scale: float = 1.0,
-                 blur_px: float = 1.5, noise_px: float = 0.3) -> np.ndarray:
-    """A true flow (H, W, 2) degraded as an optical-flow network's: blurred across motion boundaries (Gaussian,
-    ``blur_px`` sigma, over the valid pixels) plus smooth noise (sigma 6 px in space, ``noise_px`` per component);
-    lengths in pixels of 256-px images times ``scale``. Returns (H, W, 2) float32, 0 where not ``valid``."""
+                 blur_px: float = 1.5, noise_px: float = 0.3, fill_px: float = 8.0) -> np.ndarray:
+    """A true flow (H, W, 2) with validity (H, W) degraded as an optical-flow network's, dense like RAFT's
+    (which gives a flow at every pixel, occluded ones included): blurred across motion boundaries (Gaussian,
+    ``blur_px`` sigma, normalised over the valid pixels), the pixels without a true flow filled from their
+    neighbourhood (normalised Gaussian of ``fill_px`` sigma; 0 where none is near), plus smooth noise (sigma 6 px
+    in space, ``noise_px`` per component); lengths in pixels of 256-px images times ``scale``.
+    Returns (H, W, 2) float32, every pixel a flow."""
     import cv2
 
     w = valid.astype(np.float32)
     f = np.where(valid[..., None], flow, 0).astype(np.float32)
-    num = cv2.GaussianBlur(f * w[..., None], (0, 0), blur_px * scale)
-    den = cv2.GaussianBlur(w, (0, 0), blur_px * scale)
-    out = num / np.maximum(den, 1e-6)[..., None]
-    out += noise_px * np.stack([_smooth_noise(rng, valid.shape, 6 * scale) for _ in range(2)], -1)
-    return np.where(valid[..., None], out, 0).astype(np.float32)
+
+    def smooth(sigma: float) -> tuple[np.ndarray, np.ndarray]:
+        return cv2.GaussianBlur(f * w[..., None], (0, 0), sigma * scale), cv2.GaussianBlur(w, (0, 0), sigma * scale)
+
+    num, den = smooth(blur_px)
+    num_f, den_f = smooth(fill_px)
+    near = den > 0.05
+    out = np.where(near[..., None], num / np.maximum(den, 1e-6)[..., None],
+                   np.where((den_f > 1e-4)[..., None], num_f / np.maximum(den_f, 1e-6)[..., None], 0.0))
+    out = out + noise_px * np.stack([_smooth_noise(rng, valid.shape, 6 * scale) for _ in range(2)], -1)
+    return out.astype(np.float32)
 
 
 # =========================================================================== body poses
@@ -693,14 +703,14 @@ def _export_sequence(src: Path, dst: Path, truth: Path, p: dict, info: dict, use
         if flows and t > 0:
             g = files.read_exr(sdir / "gt" / "flows" / cam / f"{name}.exr")
             fl, ok = warp_flow(g[..., :2], g[..., 2] > 0.5, maps, c, cams, cams2)
-            fl = network_flow(fl, ok, np.random.default_rng([int(seed), 505, c, t]), scale)
+            fl = network_flow(fl, ok, np.random.default_rng([int(seed), 505, c, t]), scale)  # dense: all valid
             if cue_files == "pipeline":
                 files.write_exr(odir / "flows" / cam / f"{name}.exr",
-                                np.concatenate([fl, ok[..., None]], -1).astype(np.float32), ("X", "Y", "valid"))
-            elif cue_files == "easymocap_sapiens_raft":  # RAFT writes no validity: the pixels without a flow hold 0
+                                np.concatenate([fl, np.ones_like(fl[..., :1])], -1), ("X", "Y", "valid"))
+            elif cue_files == "easymocap_sapiens_raft":
                 cue_io.write_flo(odir / "flows" / cam / f"{name}.flo", fl)
-            else:
-                cue_io.write_kitti_flow(odir / "flows" / cam / f"{name}.png", fl, ok)
+            else:  # as RAFT's writeFlowKITTI: valid 1 everywhere
+                cue_io.write_kitti_flow(odir / "flows" / cam / f"{name}.png", fl)
         return res
 
     jobs = [pool.submit(one, c, cam, t) for t in range(T) for c, cam in enumerate(cams.names)]
