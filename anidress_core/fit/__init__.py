@@ -14,8 +14,9 @@ setting is there, as measured: studies/fit/README.md, its Conclusions first.
 
 Modules: :mod:`.config` (:class:`FitConfig`, the config section ``fit``), :mod:`.variants`
 (the loss variants: ``pipeline``, ``paper``, their ablations), :mod:`.problem` (rig, views,
-cues, render windows), :mod:`.terms` (one module per loss term: value, Gauss-Newton block,
-autograd reference), :mod:`.objective` (the loss and its Gauss-Newton system), :mod:`.lm`
+cues, render windows), :mod:`.terms` (one module per loss term, one protocol: setup, value,
+Gauss-Newton block, autograd reference), :mod:`.objective` (the problem of a frame, the loss and
+its Gauss-Newton system), :mod:`.lm`
 (Levenberg-Marquardt), :mod:`.jacobians` (bone increments), :mod:`.sequence` (frames and
 sequences: the forward chain), :mod:`.window` (windows of chained frames refined jointly, L_flow
 coupling their poses), :mod:`.nearest` (the ``nearest`` baseline: simulated poses scored by the
@@ -27,14 +28,15 @@ from .config import FitConfig, LossWeights, VertexSettings
 from .images import blurred, chromaticity, image_features, sample, sample_blurred
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import LMResult, levenberg_marquardt
-from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, total_loss
+from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, make_problem, total_loss
 from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, contour_length, crop_frame,
-                      crop_window, cue_notes, downsample, make_problem, occluder_depth, uncrop_fragments)
+                      crop_window, cue_notes, downsample, occluder_depth, uncrop_fragments)
 from .sequence import FrameFit, fit_frame, fit_problem, fit_sequence, flow_align, smooth_transforms
 from .terms import TERM_NAMES, TERMS
 from .terms.anchor import AnchorRef, texture_anchor, texture_blur_texels, update_anchor
 from .terms.collision import Contacts, body_contacts
 from .terms.flow import flow_targets
+from .terms.prior import Reference as PriorReference
 from .variants import PAPER_WEIGHTS, VARIANTS, apply_variant
 
 __all__ = [
@@ -43,7 +45,8 @@ __all__ = [
     "gauss_newton_system", "loss_terms", "total_loss", "TERMS", "TERM_NAMES", "LMResult",
     "levenberg_marquardt", "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "cue_notes",
     "flow_align", "smooth_transforms", "flow_targets",
-    "AnchorRef", "update_anchor", "texture_anchor", "texture_blur_texels", "Contacts", "body_contacts",
+    "AnchorRef", "PriorReference", "update_anchor", "texture_anchor", "texture_blur_texels", "Contacts",
+    "body_contacts",
     "chromaticity", "image_features", "blurred", "sample", "sample_blurred", "contour_length", "occluder_depth",
     "downsample", "Crop", "crop_window", "crop_frame", "uncrop_fragments", "JACOBIAN_DTYPE", "apply_increment",
     "skin_jacobian", "projection_jacobian",

@@ -24,20 +24,17 @@ sqrt(weight)).
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Mapping, NamedTuple, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import torch
 from torch import Tensor
 
 from ..geometry import invert_transform, lbs
 from .config import FitConfig
-from .objective import evaluate
-from .problem import (FlowTargets, FrameCues, RigParts, Views, crop_frame, crop_window, cue_notes, make_problem,
-                      occluder_or_inf)
-from .terms.collision import body_contacts
-
-if TYPE_CHECKING:
-    from .terms.anchor import AnchorRef
+from .objective import evaluate, make_problem
+from .problem import FlowTargets, FrameCues, RigParts, Views, crop_frame, crop_window, cue_notes, occluder_or_inf
+from .terms import collision
+from .terms.anchor import AnchorRef
 
 __all__ = ["NEAREST", "OFFSETS", "VELOCITY_WEIGHT", "BodyFeatures", "SimDatabase", "Candidates", "body_features",
            "make_database", "carry", "nearest_frames", "frame_candidates", "score_poses"]
@@ -164,7 +161,7 @@ def frame_candidates(db: SimDatabase, query: BodyFeatures, t: int, nearest: int 
 
 
 def score_poses(rig: RigParts, views: Views, cues: FrameCues, candidates: Tensor, cfg: FitConfig,
-                flow: FlowTargets | None = None, anchor: "AnchorRef | None" = None) -> Tensor:
+                flow: FlowTargets | None = None, anchor: AnchorRef | None = None) -> Tensor:
     """(K,) the loss of each candidate pose (K, B, 4, 4) on one frame: :func:`anidress_core.fit.evaluate`
     on one problem (the frame's cues as :func:`anidress_core.fit.problem.cue_notes` cleans them, flow
     targets, L_anchor's references; rendered in one window per view that holds every candidate),
@@ -181,14 +178,14 @@ def score_poses(rig: RigParts, views: Views, cues: FrameCues, candidates: Tensor
     if cues.occluder is None:
         cues = cues._replace(occluder=occluder_or_inf(cues, views), occluder_mesh=None)
     cfg = cfg.replace(weights={"prior": 0.0})
-    pb = make_problem(rig, views, cues, flow, cfg, None, anchor)
+    pb = make_problem(rig, views, cues, cfg, flow=flow, anchor=anchor)
     out = torch.empty(G.shape[0], dtype=torch.float64)
     for i, x in enumerate(X):
         p = pb
         if cfg.weights.collision > 0:
             if body is None:
                 raise ValueError("score_poses: weights.collision > 0 needs the body mesh (FrameCues.occluder_mesh)")
-            c = body_contacts(x, body[0], body[1], cfg.collision_radius)
-            p = pb._replace(contacts=c if c.vert.numel() else None)
+            c = collision.body_contacts(x, body[0], body[1], cfg.collision_radius)
+            p = pb._replace(states={**pb.states, "collision": collision.setup(pb, cues, c)})
         out[i] = evaluate(p, x).loss
     return out

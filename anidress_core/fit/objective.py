@@ -1,17 +1,18 @@
-"""The fit's loss over all terms: values, the Gauss-Newton system, the autograd reference.
+"""The fit's loss over all terms: the problem, values, the Gauss-Newton system, the autograd reference.
 
-    L = sum_k w_k L_k,   k in silhouette, normal, flow, anchor, prior, collision (:mod:`.terms`)
+    L = sum_k w_k L_k,   k in :data:`anidress_core.fit.terms.TERMS`
 
-:func:`evaluate` rasterises a mesh and evaluates every term (no derivatives), keeping what the
-Jacobians need; :func:`gauss_newton_system` builds H = sum_k w_k J_k^T J_k and
-g = sum_k w_k J_k^T r_k in the bone increments (so that L(d) ~ L + 2 g.d + d.H d) with exact
-Jacobians: every residual depends on at most three vertices (a silhouette crossing on its
-edge's two end points, a face normal on its face's corners, a flow target or colour on one
-vertex), so its derivative w.r.t. those vertices is computed locally (analytically, or by
-autograd on the gathered corners), then chained with the projection Jacobian and
-dx/d(omega, tau) (linear in the skinning weights). Rasterisation (visibility, which pixels and
-edges) is redone at every evaluation and held fixed inside one linearisation (nvdiffrast's
-split). :func:`loss_terms` is the same loss through autograd (the terms' references).
+:func:`make_problem` builds one frame's :class:`Problem` and every term's state; :func:`evaluate`
+rasterises a mesh and evaluates every term (no derivatives), keeping what the Jacobians need;
+:func:`gauss_newton_system` builds H = sum_k w_k J_k^T J_k and g = sum_k w_k J_k^T r_k in the bone
+increments (so that L(d) ~ L + 2 g.d + d.H d) with exact Jacobians: every residual depends on at most
+three vertices (a silhouette crossing on its edge's two end points, a face normal on its face's corners,
+a flow target or colour on one vertex), so its derivative w.r.t. those vertices is computed locally
+(analytically, or by autograd on the gathered corners), then chained with the projection Jacobian and
+dx/d(omega, tau) (linear in the skinning weights). Rasterisation (visibility, which pixels and edges) is
+redone at every evaluation and held fixed inside one linearisation (nvdiffrast's split). :func:`loss_terms`
+is the same loss through autograd (the terms' references). Each loops over the terms' one protocol
+(:mod:`anidress_core.fit.terms`).
 """
 from __future__ import annotations
 
@@ -21,12 +22,16 @@ import torch
 from torch import Tensor
 
 from .. import raster
-from .config import FitConfig, LossWeights
+from .config import LossWeights
 from .jacobians import projection_jacobian, skin_jacobian
-from .problem import FlowTargets, FrameCues, Problem, RigParts, Views, make_problem
-from .terms import TERMS, Rendered, anchor, collision, flow, normal, prior, silhouette, stretch
+from .problem import FrameCues, Linearisation, Problem, Rendered, RigParts, System, Views, check_cues, occluder_or_inf
+from .terms import TERM_NAMES, TERMS
 
-__all__ = ["Evaluation", "evaluate", "gauss_newton_system", "total_loss", "loss_terms"]
+__all__ = ["SUM_GROUPS", "Evaluation", "make_problem", "evaluate", "gauss_newton_system", "total_loss", "loss_terms"]
+
+#: The order of the weighted sum: the terms of each group summed left to right, then the groups (the optimiser's
+#: float order: Levenberg-Marquardt's acceptance compares these floats, and stored losses depend on it).
+SUM_GROUPS = (("silhouette", "normal", "flow"), ("prior", "anchor"), ("collision",), ("stretch",))
 
 
 class Evaluation(NamedTuple):
@@ -37,17 +42,29 @@ class Evaluation(NamedTuple):
     verts: Tensor  # (V, 3)
     fragments: raster.Fragments  # occluded fragments of the render
     uv: Tensor  # (C, V, 2)
-    data: dict  # name -> what the term's Gauss-Newton block needs (None: nothing)
+    data: dict  # name -> what the term's Gauss-Newton block needs (None: nothing, or the term is off)
+
+
+def make_problem(rig: RigParts, views: Views, cues: FrameCues, cfg, **given) -> Problem:
+    """The :class:`Problem` of one frame: cues checked, the masks' coverage and garment pixel count, the body's
+    depth, and every term's state (its ``setup``; off at weight 0 or without its inputs). ``given``: per term
+    name what the caller gives it: ``flow`` (:class:`anidress_core.fit.FlowTargets`), ``anchor``
+    (:class:`anidress_core.fit.AnchorRef`), ``prior`` (:class:`anidress_core.fit.terms.prior.Reference`),
+    ``collision`` (:class:`anidress_core.fit.Contacts`). cfg: :class:`anidress_core.fit.FitConfig`."""
+    unknown = sorted(set(given) - set(TERM_NAMES))
+    if unknown:
+        raise ValueError(f"make_problem: no term {unknown}; the terms are {TERM_NAMES}")
+    check_cues(views, cues)
+    soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
+    soft = torch.where(torch.isfinite(soft), soft.clamp(0, 1), torch.zeros_like(soft))
+    n_px = float(max(float(soft.sum()), 1.0))  # the paper's sums over pixels / targets, one common scale
+    pb = Problem(rig, views, cfg, soft, n_px, occluder_or_inf(cues, views), {})
+    return pb._replace(states={t.NAME: t.setup(pb, cues, given.get(t.NAME)) for t in TERMS})
 
 
 def total_loss(weights: LossWeights, terms: dict):
-    """sum_k w_k L_k of unweighted ``terms`` (floats) with the weights as used."""
-    # this grouping (three partial sums) is the optimiser's: LM acceptance compares these floats
-    loss = weights.silhouette * terms["silhouette"] + weights.normal * terms["normal"] + weights.flow * terms["flow"]
-    loss += weights.prior * terms["prior"] + weights.anchor * terms["anchor"]
-    loss += weights.collision * terms["collision"]
-    loss += weights.stretch * terms["stretch"]
-    return loss
+    """sum_k w_k L_k of unweighted ``terms`` (floats or tensors) with the weights as used, in :data:`SUM_GROUPS`."""
+    return sum(sum(getattr(weights, k) * terms[k] for k in group) for group in SUM_GROUPS)
 
 
 def evaluate(pb: Problem, verts: Tensor) -> Evaluation:
@@ -60,7 +77,8 @@ def evaluate(pb: Problem, verts: Tensor) -> Evaluation:
     r = Rendered(verts, uv, z, frags)
     terms, data = {}, {}
     for term in TERMS:
-        terms[term.NAME], data[term.NAME] = term.value(pb, r)
+        st = pb.states[term.NAME]
+        terms[term.NAME], data[term.NAME] = (0.0, None) if st is None else term.value(pb, st, r)
     return Evaluation(total_loss(pb.cfg.weights, terms), terms, verts, frags, uv, data)
 
 
@@ -70,9 +88,8 @@ def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=
 
     transforms: (B, 4, 4) the pose of ``ev``. ``jdtype``: dtype of the (3V, P) Jacobian products
     (float64 for the exactness tests, :data:`anidress_core.fit.jacobians.JACOBIAN_DTYPE` in the
-    optimiser). Silhouette residuals are chained to the parameters row by row (into H, g
-    directly); the others are accumulated in vertex space (3x3 blocks of vertex pairs sharing
-    a face, H_x, and g_x, in the order normal, flow, anchor, prior, collision), then
+    optimiser). The terms add to H, g directly (silhouette: row by row) or to vertex space (3x3
+    blocks of vertex pairs sharing a face, H_x, and g_x, in the order of :data:`TERMS`), then
     H += Jx^T H_x Jx, g += Jx^T g_x once. skin: (V, 3, P) :func:`skin_jacobian` at ``transforms`` in
     ``jdtype``, when the caller has it.
     """
@@ -82,54 +99,36 @@ def gauss_newton_system(pb: Problem, ev: Evaluation, transforms: Tensor, jdtype=
     Jx = (skin_jacobian(rig, transforms).to(jdtype) if skin is None else skin).reshape(3 * V, -1)  # (3V, P)
     P = Jx.shape[-1]
     _, Puv = projection_jacobian(verts, pb.views)  # (C, V, 2, 3)
-    H = torch.zeros(P, P, dtype=torch.float64, device=verts.device)
-    g = torch.zeros(P, dtype=torch.float64, device=verts.device)
     lay = rig.layout
-    blocks = torch.zeros(lay.crow.numel() and lay.perm.numel() // 9, 3, 3, dtype=torch.float64, device=verts.device)
-    gx = torch.zeros(V, 3, dtype=torch.float64, device=verts.device)
-    # 1. silhouette, straight into H and g
-    silhouette.gauss_newton(pb, ev.data["silhouette"], ev.uv, Puv, Jx, H, g, jdtype)
-    # 2.-6. vertex-space terms (this order: the accumulation order of the blocks)
-    added = [normal.gauss_newton(pb, ev.data["normal"], verts, Puv, blocks, gx),
-             flow.gauss_newton(pb, ev.uv, Puv, blocks, gx),
-             anchor.gauss_newton(pb, ev.data["anchor"], Puv, blocks, gx),
-             prior.gauss_newton(pb, verts, blocks, gx),
-             collision.gauss_newton(pb, verts, blocks, gx),
-             stretch.gauss_newton(pb, verts, blocks, gx)]
-    if any(added):
-        Hx = lay.matrix(blocks.to(jdtype))
+    f64 = dict(dtype=torch.float64, device=verts.device)
+    out = System(torch.zeros(P, P, **f64), torch.zeros(P, **f64),
+                 torch.zeros(lay.crow.numel() and lay.perm.numel() // 9, 3, 3, **f64), torch.zeros(V, 3, **f64))
+    lin = Linearisation(verts, ev.uv, Puv, Jx, jdtype)
+    added = False
+    for term in TERMS:
+        st = pb.states[term.NAME]
+        if st is not None:
+            added |= term.gauss_newton(pb, st, ev.data[term.NAME], lin, out)
+    H, g = out.H, out.g
+    if added:
+        Hx = lay.matrix(out.blocks.to(jdtype))
         H += (Jx.t() @ (Hx @ Jx)).double()
-        g += (Jx.t() @ gx.reshape(-1).to(jdtype)).double()
+        g += (Jx.t() @ out.gx.reshape(-1).to(jdtype)).double()
     return H, g
 
 
-def loss_terms(rig: RigParts, views: Views, cues: FrameCues, verts: Tensor, flow_targets: FlowTargets | None,
-               cfg: FitConfig, fragments: raster.Fragments | None = None, prior_verts: Tensor | None = None,
-               anchor_ref: "anchor.AnchorRef | None" = None,
-               contacts: "collision.Contacts | None" = None, prior_scale: Tensor | None = None,
-               tangent_mesh: Tensor | None = None) -> tuple[Tensor, dict]:
-    """Differentiable (autograd) total loss of a mesh ``verts`` (V, 3) and its unweighted terms.
-
-    The same loss :func:`anidress_core.fit.fit_frame` minimises, built from every term's
-    ``reference`` (:func:`raster.silhouette`, :func:`raster.render_face_normals`,
-    :func:`raster.project_vertices`), for the vertex ablation and to check the Gauss-Newton
-    systems. ``fragments``: visibility to hold fixed (default: rasterise ``verts``); ``tangent_mesh``:
-    :func:`anidress_core.fit.make_problem`'s (L_prior's tangent planes).
-    """
-    pb = make_problem(rig, views, cues, flow_targets, cfg, prior_verts, anchor_ref, contacts, prior_scale,
-                      tangent_mesh)
-    K, E = views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype)
+def loss_terms(pb: Problem, verts: Tensor, fragments: raster.Fragments | None = None) -> tuple[Tensor, dict]:
+    """Differentiable (autograd) total loss of a mesh ``verts`` (V, 3) on the problem ``pb`` and its unweighted
+    terms: every term's ``reference``, the loss :func:`evaluate` measures (the vertex ablation minimises it;
+    the tests check the Gauss-Newton systems with it). ``fragments``: visibility to hold fixed (default:
+    rasterise ``verts``)."""
+    v = pb.views
     if fragments is None:
-        fragments = raster.occlude(raster.rasterize(verts.detach(), rig.faces, K, E, views.height, views.width,
-                                                    with_bary=False),
-                                   pb.occluder)
+        K, E = v.K.to(verts.dtype), v.world_to_cam.to(verts.dtype)
+        fragments = raster.occlude(raster.rasterize(verts.detach(), pb.rig.faces, K, E, v.height, v.width,
+                                                    with_bary=False), pb.occluder)
     terms = {}
     for term in TERMS:
-        val = term.reference(pb, verts, fragments)
-        terms[term.NAME] = val if val is not None else terms["silhouette"].new_zeros(())
-    w = cfg.weights
-    total = w.silhouette * terms["silhouette"] + w.normal * terms["normal"] + w.flow * terms["flow"]
-    total = total + w.prior * terms["prior"] + w.anchor * terms["anchor"]  # (the vertex ablation's grouping)
-    total = total + w.collision * terms["collision"]
-    total = total + w.stretch * terms["stretch"]
-    return total, terms
+        st = pb.states[term.NAME]
+        terms[term.NAME] = verts.new_zeros(()) if st is None else term.reference(pb, st, verts, fragments)
+    return total_loss(pb.cfg.weights, terms), terms

@@ -3,9 +3,9 @@
 Per frame t the B bone transforms G^t (B, 4, 4) of the garment rig (rest (V, 3), weights
 (V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
 ``x = LBS(rest, W, G^t)`` explains the 2D cues of C training views (:class:`FrameCues`).
-:func:`make_problem` gathers what stays fixed while one frame is optimised
-(:class:`Problem`): the masks, normals, flow targets, the body occluder's depth, L_anchor's
-references and L_collision's planes. As in the paper every term is a sum (over views and pixels
+:func:`anidress_core.fit.make_problem` gathers what stays fixed while one frame is optimised
+(:class:`Problem`): the masks, the body occluder's depth, and each loss term's state (its normal maps, flow
+targets, references, planes: :mod:`anidress_core.fit.terms`). As in the paper every term is a sum (over views and pixels
 or targets); all of them are divided by one common constant, the number of garment pixels
 in the masks (``Problem.n_px``), so that their ratios are the paper's whatever the image
 size and number of views. The renders are cut to a window per view around the mask and the
@@ -17,25 +17,19 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as Fnn
 from torch import Tensor
 
 from .. import raster
-from ..geometry import nearest_rotation, vertex_normals
+from ..geometry import nearest_rotation
 from .config import FitConfig
-from .images import chromaticity, eroded, image_features
 
-if TYPE_CHECKING:
-    from .terms.anchor import AnchorRef
-    from .terms.collision import Contacts
-    from .terms.stretch import Edges
-
-__all__ = ["RigParts", "HessianLayout", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem",
-           "contour_length", "occluder_depth", "sanitize_normals", "occluder_or_inf", "check_cues", "cue_notes", "Crop",
-           "crop_window", "crop_frame", "uncrop_fragments", "downsample", "image_finite"]
+__all__ = ["RigParts", "HessianLayout", "Views", "FrameCues", "FlowTargets", "Problem", "Rendered", "Linearisation",
+           "System", "contour_length", "occluder_depth", "sanitize_normals", "occluder_or_inf", "check_cues",
+           "cue_notes", "Crop", "crop_window", "crop_frame", "uncrop_fragments", "downsample", "image_finite"]
 
 
 class RigParts(NamedTuple):
@@ -47,7 +41,6 @@ class RigParts(NamedTuple):
     faces: Tensor  # (F, 3) int64
     edges: tuple  # raster.mesh_edges(faces): (E, 2) vertex ids, (E, 2) faces either side
     layout: "HessianLayout"  # sparsity pattern of the vertex-space Gauss-Newton matrix
-    stretch: "Edges"  # L_stretch's edges and their rest lengths
 
     @staticmethod
     def make(rest: Tensor, weights: Tensor, centres: Tensor, faces: Tensor) -> "RigParts":
@@ -65,10 +58,7 @@ class RigParts(NamedTuple):
         if not (bool(torch.isfinite(rest).all()) and bool(torch.isfinite(weights).all())
                 and bool(torch.isfinite(centres).all())):
             raise ValueError("RigParts: rest, weights or centres contain NaN or inf")
-        from .terms.stretch import rest_edges  # (the terms import this module)
-
-        edges, layout = raster.mesh_edges(faces), HessianLayout.make(faces, V)
-        return RigParts(rest, weights, centres, faces, edges, layout, rest_edges(rest, *edges, faces, layout))
+        return RigParts(rest, weights, centres, faces, raster.mesh_edges(faces), HessianLayout.make(faces, V))
 
 
 class HessianLayout(NamedTuple):
@@ -256,83 +246,45 @@ def cue_notes(cues: FrameCues, flow: FlowTargets | None) -> tuple[FrameCues, Flo
 
 
 class Problem(NamedTuple):
-    """Everything fixed during one frame's optimisation (:func:`make_problem`)."""
+    """Everything fixed during one frame's optimisation (:func:`anidress_core.fit.make_problem`): what every
+    term reads, and each term's own state (:mod:`anidress_core.fit.terms`, its ``setup``)."""
 
     rig: RigParts
     views: Views
     cfg: FitConfig
-    mask: Tensor  # (C, H, W) bool garment pixels
-    mask_flat: Tensor  # (C H W,) float64 garment coverage in [0, 1] (0 where unknown)
+    coverage: Tensor  # (C, H, W) float64 garment coverage of the masks in [0, 1] (0 where unknown)
     n_px: float  # the common normaliser of every image term: garment pixels in the masks (at least 1)
-    normals: Tensor | None  # (C, H, W, 3) float64 or None (L_N off)
-    normal_ok: Tensor | None  # (C, H, W) bool: pixels with a normal target
     occluder: Tensor  # (C, H, W) body depth (+inf: none)
-    flow: FlowTargets | None  # L_flow's targets, or None (off)
-    prior: Tensor | None = None  # (V, 3) L_prior's reference mesh (frame 0's start, or the simulated pose), or None
-    w_prior: float = 0.0  # its weight per vertex: weights.prior / V
-    # (V, 3, 3) I - n n^T at the reference's vertex normals (tangential L_prior), or None
-    prior_proj: Tensor | None = None
-    prior_scale: Tensor | None = None  # (V,) L_prior's factor per vertex (fit/prior_spread_floor), or None (1)
-    anchor_feat: Tensor | None = None  # (C, 9, H, W) image_features of the chromaticity, or None (L_anchor off)
-    anchor_region: Tensor | None = None  # (C, H, W) bool: eroded garment mask (where colours count)
-    anchor: "AnchorRef | None" = None
-    contacts: "Contacts | None" = None  # L_collision's planes, or None (L_collision off)
-    stretch: "Edges | None" = None  # L_stretch's edges, or None (L_stretch off)
-    pixel_ok: Tensor | None = None
-    """(C H W,) float64 1 where the mask is known, 0 where it is not (NaN in a float mask: a pixel
-    left out, or a whole view dropped by :func:`anidress_core.fit.fit_frame`); None = all known.
-    L_silhouette's residuals are multiplied by it; L_normal and L_anchor use only known garment pixels."""
+    states: dict  # term name -> its state for this frame (None: the term is off)
 
 
-def make_problem(rig: RigParts, views: Views, cues: FrameCues, flow: FlowTargets | None, cfg: FitConfig,
-                 prior: Tensor | None = None, anchor: "AnchorRef | None" = None,
-                 contacts: "Contacts | None" = None, prior_scale: Tensor | None = None,
-                 tangent_mesh: Tensor | None = None) -> Problem:
-    """The :class:`Problem` of one frame: cues checked and sanitised, terms with weight 0 (or without
-    their inputs) switched off. prior: (V, 3) L_prior's reference mesh (used when ``cfg.weights.prior``
-    > 0; with ``cfg.prior_tangential`` only the offset along the surface counts: the projection onto the
-    tangent planes of the area-weighted vertex normals of ``tangent_mesh`` (V, 3), default the reference
-    itself); anchor: L_anchor's references; contacts:
-    L_collision's planes; prior_scale: (V,) L_prior's factor per vertex
-    (:func:`anidress_core.fit.terms.prior.spread_scale`; default 1)."""
-    check_cues(views, cues)
-    w = cfg.weights
-    soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
-    known = torch.isfinite(soft)
-    soft = torch.where(known, soft.clamp(0, 1), torch.zeros_like(soft))
-    pixel_ok = None if bool(known.all()) else known.reshape(-1).double()
-    mask = soft > 0.5
-    normals, nok = sanitize_normals(cues.normals if w.normal > 0 else None)
-    if nok is not None:
-        nok = nok & (soft >= 1)
-    occ = occluder_or_inf(cues, views)
-    if flow is not None and (w.flow == 0 or flow.cam.numel() == 0):
-        flow = None
-    anchor_feat = region = None
-    if w.anchor > 0 and cues.image is not None and anchor is not None and bool(anchor.seen.any()):
-        anchor_feat = image_features(chromaticity(cues.image), cfg.image_blur)
-        # colours count inside the eroded garment mask, away from non-finite image pixels (the blur
-        # of image_features spreads them over ~3 sigma: they are grown by that much)
-        region = eroded(soft * image_finite(cues.image, cfg.image_blur).double(), cfg.flow_margin_px)
-    else:
-        anchor = None
-    n_px = float(max(float(soft.sum()), 1.0))  # the paper's sums over pixels / targets, one common scale
-    prior = None if prior is None or w.prior == 0 else prior.detach().double()
-    proj = None
-    if prior is not None and cfg.prior_tangential:
-        planes = prior if tangent_mesh is None else tangent_mesh.detach().to(prior)
-        n = vertex_normals(planes, rig.faces)  # (V, 3) unit (zero at isolated vertices: their offset counts whole)
-        proj = torch.eye(3, dtype=prior.dtype, device=prior.device) - n[:, :, None] * n[:, None, :]
-    return Problem(
-        rig=rig, views=views, cfg=cfg, mask=mask, mask_flat=soft.reshape(-1), n_px=n_px,
-        normals=normals, normal_ok=nok, occluder=occ, flow=flow,
-        prior=prior, w_prior=w.prior / rig.rest.shape[0], prior_proj=proj,
-        prior_scale=None if prior is None or prior_scale is None else prior_scale.detach().double(),
-        anchor_feat=anchor_feat, anchor_region=region, anchor=anchor,
-        contacts=contacts if w.collision > 0 and contacts is not None and contacts.vert.numel() else None,
-        pixel_ok=pixel_ok,
-        stretch=rig.stretch if w.stretch > 0 else None,
-    )
+class Rendered(NamedTuple):
+    """One evaluation's render of the mesh: what every term's ``value`` reads."""
+
+    verts: Tensor  # (V, 3)
+    uv: Tensor  # (C, V, 2) vertex projections
+    z: Tensor  # (C, V) camera depths
+    fragments: raster.Fragments  # occluded fragments (visibility)
+
+
+class Linearisation(NamedTuple):
+    """Where a term's ``gauss_newton`` linearises its residuals: the mesh and its derivatives."""
+
+    verts: Tensor  # (V, 3)
+    uv: Tensor  # (C, V, 2)
+    Puv: Tensor  # (C, V, 2, 3) d uv / d x
+    Jx: Tensor  # (3V, P) d x / d(bone increments), in ``jdtype``
+    jdtype: torch.dtype  # dtype of the (3V, P) Jacobian products
+
+
+class System(NamedTuple):
+    """The Gauss-Newton system a term's ``gauss_newton`` adds to, in place: H (P, P) and g (P,) directly, or
+    the vertex-space blocks (pairs, 3, 3) of :class:`HessianLayout` and gradient gx (V, 3), chained once."""
+
+    H: Tensor
+    g: Tensor
+    blocks: Tensor
+    gx: Tensor
 
 
 def image_finite(image: Tensor, blur: float) -> Tensor:

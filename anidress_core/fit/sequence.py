@@ -30,12 +30,13 @@ from .config import FitConfig
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import levenberg_marquardt
 from .nearest import Candidates, score_poses
-from .objective import evaluate, gauss_newton_system, loss_terms
+from .objective import evaluate, gauss_newton_system, loss_terms, make_problem
 from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, check_cues, crop_frame, crop_window,
-                      cue_notes, make_problem, occluder_or_inf, uncrop_fragments)
+                      cue_notes, occluder_or_inf, uncrop_fragments)
 from .terms.anchor import AnchorRef, update_anchor
 from .terms.collision import body_contacts
 from .terms.flow import flow_targets
+from .terms.prior import Reference
 from .window import pair_flow, refine_window
 
 __all__ = ["FrameFit", "flow_align", "fit_problem", "fit_frame", "smooth_transforms", "fit_sequence"]
@@ -138,9 +139,9 @@ def fit_problem(pb: Problem, transforms: Tensor, max_iters: int) -> FrameFit:
                     ev.fragments)
 
 
-def vertex_adam(pb: Problem, cues: FrameCues, start_verts: Tensor, transforms: Tensor, max_iters: int) -> FrameFit:
+def vertex_adam(pb: Problem, start_verts: Tensor, transforms: Tensor, max_iters: int) -> FrameFit:
     """Ablation (a): Adam on the vertex positions, same loss (autograd through the renderer)."""
-    cfg, rig, views = pb.cfg, pb.rig, pb.views
+    cfg = pb.cfg
     x = start_verts.double().clone().requires_grad_(True)
     opt = torch.optim.Adam([x], lr=cfg.vertex.lr)
     best, best_x, since = float("inf"), x.detach().clone(), 0
@@ -148,7 +149,7 @@ def vertex_adam(pb: Problem, cues: FrameCues, start_verts: Tensor, transforms: T
     it, converged = 0, False
     for it in range(1, max_iters + 1):
         opt.zero_grad()
-        total, terms = loss_terms(rig, views, cues, x, pb.flow, cfg, prior_verts=pb.prior)
+        total, _ = loss_terms(pb, x)
         val = float(total)
         if not math.isfinite(val):
             break
@@ -226,22 +227,17 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         views, cues, flow = crop_frame(views, cues, flow, window)
     if cues.occluder is None:  # the body's depth, in the windows only
         cues = cues._replace(occluder=occluder_or_inf(cues, views), occluder_mesh=None)
-    planes = x_start if cfg.prior_tangent_planes == "start" else None  # L_prior's tangent planes
-    if cfg.method == "vertex":
-        pb = make_problem(rig, views, cues, flow, cfg, prior, tangent_mesh=planes)
-    else:
-        pb = make_problem(rig, views, cues, flow, cfg, prior, anchor, contacts, tangent_mesh=planes)
-        if cfg.method == "rig" and prior_scale is not None and pb.prior is not None:
-            s = torch.as_tensor(prior_scale, device=rig.rest.device).double()
-            if s.shape != (rig.rest.shape[0],) or not bool(torch.isfinite(s).all()) or bool((s < 0).any()):
-                raise ValueError(f"fit_frame: prior_scale must be ({rig.rest.shape[0]},), finite and >= 0")
-            pb = pb._replace(prior_scale=s)
+    if prior is not None:  # L_prior's reference, its factor per vertex, its tangent planes
+        prior = Reference(prior, prior_scale if cfg.method == "rig" else None,
+                          x_start if cfg.prior_tangent_planes == "start" else None)
+    pb = make_problem(rig, views, cues, cfg, flow=flow, prior=prior, anchor=None if cfg.method == "vertex" else anchor,
+                      collision=contacts)
     if notes.get("no_mask") or cfg.method == "nearest":  # the start evaluated, not optimised
         ev = evaluate(pb, x_start)
         res = FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, 0, not notes.get("no_mask"), [ev.loss],
                        ev.fragments)
     elif cfg.method == "vertex":
-        res = vertex_adam(pb, cues, x_start, init, cfg.vertex.max_iters * (3 if first else 1))
+        res = vertex_adam(pb, x_start, init, cfg.vertex.max_iters * (3 if first else 1))
     else:
         res = fit_problem(pb, G, cfg.max_iters_first if first else cfg.max_iters)
     res.notes = notes

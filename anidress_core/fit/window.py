@@ -65,7 +65,7 @@ def evaluate_window(problems: list[Problem], views: Views, pairs: list[PairFlow 
                     ) -> WindowEvaluation:
     """Evaluate W frames' problems at X (W, B, 4, 4) and the coupled L_flow between consecutive frames.
 
-    problems[i]: frame i's problem (render windows allowed; ``flow`` None for i > 0, the coupled term
+    problems[i]: frame i's problem (render windows allowed; L_flow's state None for i > 0, the coupled term
     replaces it); views: the whole-image views; pairs[i] (i > 0): the targets between frames i-1 and i."""
     rig = problems[0].rig
     frames, uvs, pair = [], [], [0.0]
@@ -148,13 +148,13 @@ def refine_window(problems: list[Problem], views: Views, pairs: list[PairFlow | 
                   max_iters: int) -> tuple[list, dict]:
     """Refine W chained frames jointly (module docstring) from their chained poses.
 
-    problems[i]: frame i's problem as the chain built it (its ``flow`` is dropped for i > 0); pairs[i]:
+    problems[i]: frame i's problem as the chain built it (its L_flow is dropped for i > 0); pairs[i]:
     :func:`pair_flow` of frame i's chained targets (pairs[0] unused); fits: the chain's
     :class:`anidress_core.fit.FrameFit` of the W frames; crops[i]: frame i's render window (None: whole
     images). Returns the W refined results (the coupled L_flow as each frame's ``terms['flow']``, ``loss``
     its own total with it) and a record ``{'loss': ..., 'chain_loss': ..., 'iterations': ...}``."""
     cfg, rig = problems[0].cfg, problems[0].rig
-    pbs = [pb if i == 0 else pb._replace(flow=None) for i, pb in enumerate(problems)]
+    pbs = [pb if i == 0 else pb._replace(states={**pb.states, "flow": None}) for i, pb in enumerate(problems)]
     X0 = torch.stack([f.transforms.double() for f in fits])
 
     def update(X: Tensor, delta: Tensor) -> Tensor:

@@ -65,6 +65,6 @@ def test_recovers_known_bone_transforms_from_a_perturbed_start():
     # silhouettes + normals alone (the first frame) lower the loss but pin the shape only loosely:
     # at 2.3 cm per pixel many bone configurations fit 4 binary masks as well as the truth
     r0 = fit.fit_frame(rig, views, cues, G0, cfg, first=True)
-    start = fit.evaluate(fit.make_problem(rig, views, cues, None, cfg), x0).loss
+    start = fit.evaluate(fit.make_problem(rig, views, cues, cfg), x0).loss
     assert r0.loss < 0.7 * start and torch.isfinite(r0.transforms).all()
     assert rmse(r0.verts, xt) < e0

@@ -98,7 +98,7 @@ def test_scoring_picks_the_true_pose_out_of_a_set(weights):
     assert int(torch.argmin(s)) == 5 and bool(torch.isfinite(s).all())
     assert min(rmse(lbs(rig.rest, rig.weights, c), xt) for c in others) > 0.005
     # the score is the loss of evaluate() on the frame's problem (whole images, no crop)
-    pb = fit.make_problem(rig, views, cues, None, cfg.replace(weights={"prior": 0.0}))
+    pb = fit.make_problem(rig, views, cues, cfg.replace(weights={"prior": 0.0}))
     assert abs(float(s[2]) - fit.evaluate(pb, lbs(rig.rest, rig.weights, cand[2])).loss) < 1e-9 * float(s[2])
 
 

@@ -21,11 +21,11 @@ def test_crop_windows_and_downsample_keep_the_loss():
     uv, _ = raster.project_vertices(xt, views.K, views.world_to_cam)
     ft = fit.FlowTargets(torch.tensor([0, 1, 2]), torch.tensor([3, 40, 100]), uv[[0, 1, 2], [3, 40, 100]])
     cfg = config(PAPER)
-    whole = fit.evaluate(fit.make_problem(rig, views, cues, ft, cfg), x)
+    whole = fit.evaluate(fit.make_problem(rig, views, cues, cfg, flow=ft), x)
     win = fit.crop_window(views, cues.mask, x, 4)
     assert win.height < 64 and win.width < 72
     v2, c2, f2 = fit.crop_frame(views, cues, ft, win)
-    part = fit.evaluate(fit.make_problem(rig, v2, c2, f2, cfg), x)
+    part = fit.evaluate(fit.make_problem(rig, v2, c2, cfg, flow=f2), x)
     assert abs(part.loss - whole.loss) < 1e-9 * whole.loss
     back = fit.uncrop_fragments(part.fragments, win, 64, 72, cues.occluder)
     assert torch.equal(back.face_id, whole.fragments.face_id)
@@ -50,18 +50,18 @@ def test_body_occlusion_is_respected():
     cues, _, _ = render(rig, views, Gt, occluder=occ)
     assert not bool(cues.mask[:, :, 20:34].any()) and bool(cues.mask.any())
     cfg = config(PAPER)
-    ev = fit.evaluate(fit.make_problem(rig, views, cues, None, cfg), x)
+    ev = fit.evaluate(fit.make_problem(rig, views, cues, cfg), x)
     # at the true pose the silhouette residual is only the sub-pixel coverage of crossed pixels
     assert ev.terms["silhouette"] < 0.5
     un = fit.make_problem(rig, views, fit.FrameCues(cues.mask, cues.normals, torch.full_like(occ, float("inf"))),
-                          None, cfg)
+                          cfg)
     assert fit.evaluate(un, x).terms["silhouette"] > 5 * ev.terms["silhouette"]  # ignoring the occluder: worse
 
 
 def test_terms_without_weight_or_inputs_are_off():
     rig, views = toy(C=2, H=32, W=32, n_theta=12, n_h=4)
     cues, x, _ = render(rig, views, torch.eye(4, dtype=torch.float64).expand(rig.weights.shape[1], 4, 4))
-    pb = fit.make_problem(rig, views, cues, None, config({"normal": 0.0, "anchor": 1.0}))
-    assert pb.normals is None and pb.anchor_feat is None and pb.flow is None and pb.contacts is None
+    pb = fit.make_problem(rig, views, cues, config({"normal": 0.0, "anchor": 1.0}))
+    assert all(pb.states[k] is None for k in ("normal", "anchor", "flow", "collision", "prior"))
     ev = fit.evaluate(pb, x)
     assert ev.terms["normal"] == 0.0 and ev.terms["anchor"] == 0.0 and ev.terms["flow"] == 0.0

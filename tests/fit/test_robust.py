@@ -54,7 +54,7 @@ def test_unknown_mask_pixels_keep_the_gauss_newton_system_exact():
     ev = check_system(rig, views, cues, G0, config(dict(PAPER, normal=0.0, flow=0.0)), residuals)
     assert math.isfinite(ev.loss) and ev.terms["silhouette"] > 0
     check_system(rig, views, cues, G0, cfg)  # with L_normal: gradient = autograd's
-    pb = fit.make_problem(rig, views, cues, None, cfg)
+    pb = fit.make_problem(rig, views, cues, cfg)
     assert pb.n_px == float(torch.nan_to_num(m).sum())
 
 
@@ -117,8 +117,8 @@ def test_nan_in_mask_normals_and_image_are_left_out_and_counted():
     assert r.notes["normals_nonfinite_px"] == int((~torch.isfinite(n).all(-1) & cues.mask).sum()) > 0
     assert r.notes["image_nonfinite_px"] == 64 * 10
     assert r.iterations > 0 and r.loss < r.curve[0]  # fitted, not kept
-    pb = fit.make_problem(rig, views, bad, None, cfg, anchor=ref)
-    assert pb.n_px == float(torch.nan_to_num(m).sum()) and int((pb.pixel_ok == 0).sum()) == 400
+    pb = fit.make_problem(rig, views, bad, cfg, anchor=ref)
+    assert pb.n_px == float(torch.nan_to_num(m).sum()) and int((pb.states["silhouette"].known == 0).sum()) == 400
 
 
 def test_frames_without_flow_and_nan_flow(caplog):

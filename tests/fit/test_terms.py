@@ -7,27 +7,27 @@ import torch
 
 from anidress_core import fit, raster
 from anidress_core.fit.images import pixel_ok, sample
-from anidress_core.fit.terms import Rendered, collision, stretch
+from anidress_core.fit.problem import Linearisation, Rendered, System
+from anidress_core.fit.terms import collision, stretch
+from anidress_core.fit.terms.prior import Reference
 from anidress_core.geometry import lbs, vertex_normals
 from tests.fit.scenes import PAPER, config, only, pose, render, toy
 
 torch.set_num_threads(1)
 
 
-def check_system(rig, views, cues, G0, cfg, residuals=None, flow=None, irls=False, **problem):
-    """H, g of gauss_newton_system against J^T J, J^T r of ``residuals(d, ev)`` (the weighted residual
-    vector at the increment d, visibility of ev held fixed; by forward-mode autograd), and 2 g against
-    the autograd gradient of loss_terms (the terms' references). Returns the evaluation."""
-    pb = fit.make_problem(rig, views, cues, flow, cfg, problem.get("prior"), problem.get("anchor"),
-                          problem.get("contacts"), problem.get("prior_scale"))
+def check_system(rig, views, cues, G0, cfg, residuals=None, irls=False, **given):
+    """H, g of gauss_newton_system (every term's gauss_newton) against J^T J, J^T r of ``residuals(d, ev)`` (the
+    weighted residual vector at the increment d, visibility of ev held fixed; by forward-mode autograd), and 2 g
+    against the autograd gradient of loss_terms (every term's reference), float64. ``given``: make_problem's
+    inputs of the terms. Returns the evaluation."""
+    pb = fit.make_problem(rig, views, cues, cfg, **given)
     ev = fit.evaluate(pb, lbs(rig.rest, rig.weights, G0))
     assert ev.loss > 0
     H, gvec = fit.gauss_newton_system(pb, ev, G0)
     d = torch.zeros(gvec.numel(), dtype=torch.float64, requires_grad=True)
     x = lbs(rig.rest, rig.weights, fit.apply_increment(G0, rig.centres, d.view(-1, 6)))
-    total, terms = fit.loss_terms(rig, views, cues, x, flow, cfg, fragments=ev.fragments,
-                                  prior_verts=problem.get("prior"), anchor_ref=problem.get("anchor"),
-                                  contacts=problem.get("contacts"), prior_scale=problem.get("prior_scale"))
+    total, terms = fit.loss_terms(pb, x, ev.fragments)
     assert abs(float(total.detach()) - ev.loss) < 1e-10 * ev.loss  # value = reference's value
     for k in fit.TERM_NAMES:
         assert abs(float(terms[k].detach()) - ev.terms[k]) <= 1e-10 * max(ev.terms[k], 1e-300)
@@ -80,8 +80,9 @@ def test_normal():
     def residuals(d, pb, ev):
         x = moved(rig, G0, d)
         n = raster.render_face_normals(x, rig.faces, views.world_to_cam, ev.fragments)
-        sel = (ev.fragments.face_id >= 0) & pb.normal_ok
-        return (n - pb.normals)[sel].reshape(-1) * (0.7 / pb.n_px) ** 0.5
+        st = pb.states["normal"]
+        sel = (ev.fragments.face_id >= 0) & st.ok
+        return (n - st.normals)[sel].reshape(-1) * (0.7 / pb.n_px) ** 0.5
 
     assert check_system(rig, views, cues, G0, cfg, residuals).terms["normal"] > 0
 
@@ -116,8 +117,9 @@ def test_paper_loss_sums_its_terms():
         s = raster.silhouette(x, rig.faces, K, E, ev.fragments, rig.edges)
         r1 = (s - cues.mask.double()).reshape(-1) * (2.0 / pb.n_px) ** 0.5
         n = raster.render_face_normals(x, rig.faces, E, ev.fragments)
-        sel = (ev.fragments.face_id >= 0) & pb.normal_ok
-        r2 = (n - pb.normals)[sel].reshape(-1) * (0.1 / pb.n_px) ** 0.5
+        st = pb.states["normal"]
+        sel = (ev.fragments.face_id >= 0) & st.ok
+        r2 = (n - st.normals)[sel].reshape(-1) * (0.1 / pb.n_px) ** 0.5
         u, _ = raster.project_vertices(x, K, E)
         r3 = (u[ft.cam, ft.vert] - ft.target).reshape(-1) * (3.0 / pb.n_px) ** 0.5
         return torch.cat([r1, r2, r3])
@@ -134,9 +136,9 @@ def test_prior():
         x = moved(rig, G0, d)
         return (x - start).reshape(-1) * (10.0 / x.shape[0]) ** 0.5
 
-    assert check_system(rig, views, cues, G0, cfg, residuals, prior=start).terms["prior"] > 0
+    assert check_system(rig, views, cues, G0, cfg, residuals, prior=Reference(start)).terms["prior"] > 0
     # off without a start mesh (frames t > 0)
-    assert fit.make_problem(rig, views, cues, None, cfg).prior is None
+    assert fit.make_problem(rig, views, cues, cfg).states["prior"] is None
 
 
 def test_prior_tangential():
@@ -151,10 +153,10 @@ def test_prior_tangential():
         tangential = off - (off * n).sum(-1, keepdim=True) * n
         return tangential.reshape(-1) * (10.0 / off.shape[0]) ** 0.5
 
-    ev = check_system(rig, views, cues, G0, cfg, residuals, prior=ref)
+    ev = check_system(rig, views, cues, G0, cfg, residuals, prior=Reference(ref))
     assert 0 < ev.terms["prior"]
     # a move along the reference's normals costs nothing
-    pb = fit.make_problem(rig, views, cues, None, cfg, prior=ref)
+    pb = fit.make_problem(rig, views, cues, cfg, prior=Reference(ref))
     assert fit.evaluate(pb, ref + 0.01 * n).terms["prior"] < 1e-20
     along = torch.linalg.cross(n, torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype).expand_as(n))
     assert fit.evaluate(pb, ref + 0.01 * along).terms["prior"] > 1e-6
@@ -173,9 +175,11 @@ def test_prior_scaled_per_vertex():
         tangential = off - (off * n).sum(-1, keepdim=True) * n
         return (tangential * (10.0 * s[:, None] / off.shape[0]) ** 0.5).reshape(-1)
 
-    scaled = check_system(rig, views, cues, G0, cfg, residuals, prior=ref, prior_scale=s).terms["prior"]
-    whole = fit.evaluate(fit.make_problem(rig, views, cues, None, cfg, prior=ref), lbs(rig.rest, rig.weights, G0))
+    scaled = check_system(rig, views, cues, G0, cfg, residuals, prior=Reference(ref, s)).terms["prior"]
+    whole = fit.evaluate(fit.make_problem(rig, views, cues, cfg, prior=Reference(ref)), lbs(rig.rest, rig.weights, G0))
     assert 0 < scaled < whole.terms["prior"]
+    with pytest.raises(ValueError, match="factor per vertex"):
+        fit.make_problem(rig, views, cues, cfg, prior=Reference(ref, -s))
 
 
 def test_prior_spread_scale():
@@ -218,8 +222,9 @@ def test_anchor():
         x0 = ev.verts
         uv0, _ = raster.project_vertices(x0, views.K, views.world_to_cam)
         vis = raster.visible_vertices(x0, views.K, views.world_to_cam, ev.fragments, cfg.visibility_depth_tol)
-        vis = vis & pixel_ok(pb.anchor_region, uv0) & ref.seen[None]
-        r = (sample(pb.anchor_feat[:, :3], uv) - ref.chroma[None])[vis]  # (N, 3), IRLS weights held fixed
+        st = pb.states["anchor"]
+        vis = vis & pixel_ok(st.region, uv0) & ref.seen[None]
+        r = (sample(st.feat[:, :3], uv) - ref.chroma[None])[vis]  # (N, 3), IRLS weights held fixed
         w = ev.data["anchor"].weight
         return (r * (w[:, None] * 50.0 / pb.n_px) ** 0.5).reshape(-1)
 
@@ -245,14 +250,14 @@ def test_collision():
         xx = moved(rig, G0, d)
         return collision.residual(contacts, xx, cfg.collision_clearance) * (1e3 / xx.shape[0]) ** 0.5
 
-    assert check_system(rig, views, cues, G0, cfg, residuals, contacts=contacts).terms["collision"] > 0
+    assert check_system(rig, views, cues, G0, cfg, residuals, collision=contacts).terms["collision"] > 0
 
 
 def test_stretch():
     """L_stretch: exact J^T J, J^T r of the edges' relative stretch, and zero at the rest pose."""
     rig, views, _, _, cues, _, G0 = scene(7)
     cfg = only("stretch", 30.0)
-    edges = rig.stretch
+    edges = stretch.rest_edges(rig.rest, *rig.edges, rig.faces, rig.layout)
     assert edges.a.numel() == rig.edges[0].shape[0]
     assert torch.allclose(edges.rest, (rig.rest[edges.a] - rig.rest[edges.b]).norm(dim=-1), rtol=0, atol=1e-15)
 
@@ -261,27 +266,28 @@ def test_stretch():
         return s * (30.0 / s.numel()) ** 0.5
 
     assert check_system(rig, views, cues, G0, cfg, residuals).terms["stretch"] > 0
-    pb = fit.make_problem(rig, views, cues, None, cfg)
+    pb = fit.make_problem(rig, views, cues, cfg)
     assert fit.evaluate(pb, rig.rest).terms["stretch"] < 1e-24
 
 
 def test_stretch_of_a_collapsed_mesh_is_finite():
     """Every vertex at one point: stretch -1 on every edge, no NaN in the value or the Gauss-Newton block."""
     rig, views, _, _, cues, _, _ = scene(8)
-    pb = fit.make_problem(rig, views, cues, None, only("stretch", 30.0))
+    pb = fit.make_problem(rig, views, cues, only("stretch", 30.0))
+    st = pb.states["stretch"]
     x = torch.zeros_like(rig.rest)
-    s, _ = stretch.residual(pb.stretch, x)
+    s, _ = stretch.residual(st, x)
     assert torch.equal(s, -torch.ones_like(s))
-    assert stretch.value(pb, Rendered(x, None, None, None))[0] == 1.0
-    blocks = torch.zeros(rig.layout.perm.numel() // 9, 3, 3, dtype=torch.float64)
-    gx = torch.zeros_like(x)
-    assert stretch.gauss_newton(pb, x, blocks, gx) and bool(torch.isfinite(blocks).all() and torch.isfinite(gx).all())
+    assert stretch.value(pb, st, Rendered(x, None, None, None))[0] == 1.0
+    out = System(None, None, torch.zeros(rig.layout.perm.numel() // 9, 3, 3, dtype=torch.float64), torch.zeros_like(x))
+    assert stretch.gauss_newton(pb, st, None, Linearisation(x, None, None, None, torch.float64), out)
+    assert bool(torch.isfinite(out.blocks).all() and torch.isfinite(out.gx).all())
 
 
 def test_total_is_the_weighted_sum_of_the_terms():
     rig, views, _, _, cues, _, G0 = scene(6)
     cfg = config(dict(PAPER, prior=10.0))
-    pb = fit.make_problem(rig, views, cues, None, cfg, prior=lbs(rig.rest, rig.weights, G0) + 0.001)
+    pb = fit.make_problem(rig, views, cues, cfg, prior=Reference(lbs(rig.rest, rig.weights, G0) + 0.001))
     ev = fit.evaluate(pb, lbs(rig.rest, rig.weights, G0))
     assert set(ev.terms) == set(fit.TERM_NAMES)
     want = sum(getattr(cfg.weights, k) * v for k, v in ev.terms.items())

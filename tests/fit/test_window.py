@@ -31,7 +31,7 @@ def window_scene(cfg, W=3, seed=11):
     c, v, e = targets(30)
     uv0, _ = raster.project_vertices(frames[0][1], views.K, views.world_to_cam)
     carried = fit.FlowTargets(c, v, uv0[c, v] + 0.5 * e)
-    pbs = [fit.make_problem(rig, views, frames[i][0], carried if i == 0 else None, cfg) for i in range(W)]
+    pbs = [fit.make_problem(rig, views, frames[i][0], cfg, flow=carried if i == 0 else None) for i in range(W)]
     pairs = [None] + [PairFlow(*targets(40)) for _ in range(W - 1)]
     X = torch.stack([pose(rig, g, 0.02, 0.005, G) for G in Gt])
     return rig, views, pbs, pairs, X
@@ -54,7 +54,7 @@ def test_window_system_is_the_coupled_flows_gauss_newton_system():
     def residuals(d):
         x = [lbs(rig.rest, rig.weights, G) for G in increments(rig, X, d)]
         uv = [raster.project_vertices(xi, views.K, views.world_to_cam)[0] for xi in x]
-        fl = pbs[0].flow
+        fl = pbs[0].states["flow"]
         r = [((uv[0][fl.cam, fl.vert] - fl.target) * (3.0 / pbs[0].n_px) ** 0.5).reshape(-1)]
         for i in range(1, len(pbs)):
             p = pairs[i]
@@ -85,8 +85,7 @@ def test_window_gradient_with_every_image_term():
     total, uvs = 0.0, []
     for i, pb in enumerate(pbs):
         x = lbs(rig.rest, rig.weights, Xd[i])
-        cues = fit.FrameCues(pb.mask, pb.normals, pb.occluder)
-        t, _ = fit.loss_terms(rig, views, cues, x, pb.flow, cfg, fragments=wev.frames[i].fragments)
+        t, _ = fit.loss_terms(pb, x, wev.frames[i].fragments)
         total = total + t
         uvs.append(raster.project_vertices(x, views.K, views.world_to_cam)[0])
     for i in range(1, len(pbs)):

@@ -22,18 +22,15 @@ with dI/duv the central differences of the blurred image (:func:`anidress_core.f
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from ... import raster
-from ..images import chromaticity, eroded, pixel_ok, sample, sample_blurred
-from ..problem import Views, image_finite
-
-if TYPE_CHECKING:
-    from ..config import FitConfig
-    from ..problem import Problem
+from ..config import FitConfig
+from ..images import chromaticity, eroded, image_features, pixel_ok, sample, sample_blurred
+from ..problem import FrameCues, Linearisation, Problem, Rendered, System, Views, image_finite
 
 NAME = "anchor"
 
@@ -43,6 +40,14 @@ class AnchorRef(NamedTuple):
 
     chroma: Tensor  # (V, 3)
     seen: Tensor  # (V,) bool: has a reference
+
+
+class Colours(NamedTuple):
+    """L_anchor's state: the references and the frame's images."""
+
+    ref: AnchorRef
+    feat: Tensor  # (C, 9, H, W) image_features of the chromaticity
+    region: Tensor  # (C, H, W) bool: where colours count (the eroded garment mask, away from non-finite pixels)
 
 
 class ColourData(NamedTuple):
@@ -152,40 +157,47 @@ def cauchy_colour(cam: Tensor, vert: Tensor, samples: Tensor, reference: Tensor,
             ColourData(cam, vert, r, torch.stack([samples[:, 3:6], samples[:, 6:9]], -1), 1.0 / (1.0 + e / s2)))
 
 
-def value(pb: "Problem", r) -> tuple[float, ColourData | None]:
+def setup(pb: Problem, cues: FrameCues, given: AnchorRef | None) -> Colours | None:
+    """On with a weight, images and references ``given`` (some vertex seen). Colours count inside the eroded
+    garment mask, away from non-finite image pixels (the blur of image_features spreads them over ~3 sigma:
+    they are grown by that much)."""
+    cfg = pb.cfg
+    if not (cfg.weights.anchor > 0 and cues.image is not None and given is not None and bool(given.seen.any())):
+        return None
+    feat = image_features(chromaticity(cues.image), cfg.image_blur)
+    return Colours(given, feat, eroded(pb.coverage * image_finite(cues.image, cfg.image_blur).double(),
+                                       cfg.flow_margin_px))
+
+
+def value(pb: Problem, st: Colours, r: Rendered) -> tuple[float, ColourData]:
     """L_anchor at the render ``r``: each visible vertex's chromaticity against its reference."""
-    if pb.anchor_feat is None:
-        return 0.0, None
     views, cfg = pb.views, pb.cfg
     vis_col = raster.visible_vertices(r.verts, views.K, views.world_to_cam, r.fragments, cfg.visibility_depth_tol) \
-        & pixel_ok(pb.anchor_region, r.uv)  # vertices whose colour counts
-    c, vv = (vis_col & pb.anchor.seen[None]).nonzero(as_tuple=True)
-    val, anc = cauchy_colour(c, vv, sample(pb.anchor_feat, r.uv)[c, vv], pb.anchor.chroma, cfg.anchor_scale)
+        & pixel_ok(st.region, r.uv)  # vertices whose colour counts
+    c, vv = (vis_col & st.ref.seen[None]).nonzero(as_tuple=True)
+    val, anc = cauchy_colour(c, vv, sample(st.feat, r.uv)[c, vv], st.ref.chroma, cfg.anchor_scale)
     return val / pb.n_px, anc
 
 
-def gauss_newton(pb: "Problem", cd: ColourData | None, Puv: Tensor, blocks: Tensor, gx: Tensor) -> bool:
+def gauss_newton(pb: Problem, st: Colours, cd: ColourData, lin: Linearisation, out: System) -> bool:
     """Add the IRLS blocks and gradient in place (the reference is fixed: exact)."""
-    wt = pb.cfg.weights.anchor
-    if cd is None or not wt > 0 or not cd.cam.numel():
+    if not cd.cam.numel():
         return False
-    Jr = cd.grad @ Puv[cd.cam, cd.vert]  # (N, 3, 3)
-    w = (wt / pb.n_px) * cd.weight
-    blocks.index_add_(0, pb.rig.layout.diag[cd.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
-    gx.index_add_(0, cd.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, cd.residual))
+    Jr = cd.grad @ lin.Puv[cd.cam, cd.vert]  # (N, 3, 3)
+    w = (pb.cfg.weights.anchor / pb.n_px) * cd.weight
+    out.blocks.index_add_(0, pb.rig.layout.diag[cd.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
+    out.gx.index_add_(0, cd.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, cd.residual))
     return True
 
 
-def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tensor | None:
-    """Differentiable L_anchor (visibility held fixed: ``fragments``), or None when off."""
-    if pb.anchor_feat is None:
-        return None
+def reference(pb: Problem, st: Colours, verts: Tensor, fragments: raster.Fragments) -> Tensor:
+    """Differentiable L_anchor (visibility held fixed: ``fragments``)."""
     cfg = pb.cfg
     K, E = pb.views.K.to(verts.dtype), pb.views.world_to_cam.to(verts.dtype)
     uv, _ = raster.project_vertices(verts, K, E)
     with torch.no_grad():
         vis = raster.visible_vertices(verts.detach(), K, E, fragments, cfg.visibility_depth_tol)
-        vis &= pixel_ok(pb.anchor_region, uv.detach()) & pb.anchor.seen[None]
-    r = (sample(pb.anchor_feat[:, :3], uv) - pb.anchor.chroma.to(uv.dtype)[None])[vis]
+        vis &= pixel_ok(st.region, uv.detach()) & st.ref.seen[None]
+    r = (sample(st.feat[:, :3], uv) - st.ref.chroma.to(uv.dtype)[None])[vis]
     s2 = cfg.anchor_scale ** 2
     return (s2 * torch.log1p((r * r).sum(-1) / s2)).sum() / pb.n_px

@@ -11,14 +11,12 @@ Residual sqrt(w / V) max(0, eps - (x - p).n), Jacobian -n^T where active.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 from torch import Tensor
 
 from ... import raster
-
-if TYPE_CHECKING:
-    from ..problem import Problem
+from ..problem import FrameCues, Linearisation, Problem, Rendered, System
 
 NAME = "collision"
 
@@ -49,32 +47,29 @@ def residual(contacts: Contacts, verts: Tensor, eps: float) -> Tensor:
     return (eps - d).clamp_min(0)
 
 
-def value(pb: "Problem", r) -> tuple[float, None]:
-    """L_collision at the render ``r`` (0.0 when off)."""
-    if pb.contacts is None:
-        return 0.0, None
-    V = r.uv.shape[1]
-    return float(residual(pb.contacts, r.verts, pb.cfg.collision_clearance).pow(2).sum()) / V, None
+def setup(pb: Problem, cues: FrameCues, given: Contacts | None) -> Contacts | None:
+    """The planes ``given`` (:func:`body_contacts`), when there are some and a weight."""
+    return given if pb.cfg.weights.collision > 0 and given is not None and given.vert.numel() else None
 
 
-def gauss_newton(pb: "Problem", verts: Tensor, blocks: Tensor, gx: Tensor) -> bool:
+def value(pb: Problem, st: Contacts, r: Rendered) -> tuple[float, None]:
+    """L_collision at the render ``r``."""
+    return float(residual(st, r.verts, pb.cfg.collision_clearance).pow(2).sum()) / r.verts.shape[0], None
+
+
+def gauss_newton(pb: Problem, st: Contacts, data: None, lin: Linearisation, out: System) -> bool:
     """Add the active planes' blocks w/V n n^T and gradient -w/V r n in place."""
-    if pb.contacts is None:
-        return False
-    ct = pb.contacts
-    V = verts.shape[0]
-    r = residual(ct, verts, pb.cfg.collision_clearance)
+    verts = lin.verts
+    r = residual(st, verts, pb.cfg.collision_clearance)
     on = r > 0
     if not bool(on.any()):
         return False
-    vv, nn, w = ct.vert[on], ct.normal[on].to(verts.dtype), pb.cfg.weights.collision / V
-    blocks.index_add_(0, pb.rig.layout.diag[vv], w * nn[:, :, None] * nn[:, None, :])
-    gx.index_add_(0, vv, -w * r[on][:, None] * nn)
+    vv, nn, w = st.vert[on], st.normal[on].to(verts.dtype), pb.cfg.weights.collision / verts.shape[0]
+    out.blocks.index_add_(0, pb.rig.layout.diag[vv], w * nn[:, :, None] * nn[:, None, :])
+    out.gx.index_add_(0, vv, -w * r[on][:, None] * nn)
     return True
 
 
-def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tensor | None:
-    """Differentiable L_collision, or None when off."""
-    if pb.contacts is None:
-        return None
-    return residual(pb.contacts, verts, pb.cfg.collision_clearance).pow(2).sum() / verts.shape[0]
+def reference(pb: Problem, st: Contacts, verts: Tensor, fragments: raster.Fragments) -> Tensor:
+    """Differentiable L_collision."""
+    return residual(st, verts, pb.cfg.collision_clearance).pow(2).sum() / verts.shape[0]

@@ -9,17 +9,12 @@ vertex's projection: d uv / d x of that vertex.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 from torch import Tensor
 
 from ... import raster
 from ..images import eroded, pixel_ok, sample
-from ..problem import FlowTargets, Views
-
-if TYPE_CHECKING:
-    from ..problem import Problem
+from ..problem import FlowTargets, FrameCues, Linearisation, Problem, Rendered, System, Views
 
 NAME = "flow"
 
@@ -55,33 +50,30 @@ def flow_targets(prev_verts: Tensor, views: Views, prev_fragments: raster.Fragme
     return FlowTargets(c, v, (uv[c, v] + fs[c, v]).double())
 
 
-def value(pb: "Problem", r) -> tuple[float, None]:
-    """L_flow at the render ``r`` (0.0 when there are no targets)."""
-    if pb.flow is None:
-        return 0.0, None
-    d = r.uv[pb.flow.cam, pb.flow.vert] - pb.flow.target
+def setup(pb: Problem, cues: FrameCues, given: FlowTargets | None) -> FlowTargets | None:
+    """The targets ``given`` (:func:`flow_targets`), when there are some and a weight."""
+    return None if given is None or pb.cfg.weights.flow == 0 or given.cam.numel() == 0 else given
+
+
+def value(pb: Problem, st: FlowTargets, r: Rendered) -> tuple[float, None]:
+    """L_flow at the render ``r``."""
+    d = r.uv[st.cam, st.vert] - st.target
     return float((d * d).sum()) / pb.n_px, None
 
 
-def gauss_newton(pb: "Problem", uv: Tensor, Puv: Tensor, blocks: Tensor, gx: Tensor) -> bool:
+def gauss_newton(pb: Problem, st: FlowTargets, data: None, lin: Linearisation, out: System) -> bool:
     """Add the flow residuals' diagonal blocks and gradient in place (d uv / d x of one vertex)."""
-    w_f = pb.cfg.weights.flow
-    if pb.flow is None or not w_f > 0:
-        return False
-    fl = pb.flow
-    w = w_f / pb.n_px
-    r = uv[fl.cam, fl.vert] - fl.target  # (N, 2)
-    Pf = Puv[fl.cam, fl.vert]  # (N, 2, 3)
-    blocks.index_add_(0, pb.rig.layout.diag[fl.vert], w * Pf.transpose(1, 2) @ Pf)
-    gx.index_add_(0, fl.vert, w * torch.einsum("nij,ni->nj", Pf, r))
+    w = pb.cfg.weights.flow / pb.n_px
+    r = lin.uv[st.cam, st.vert] - st.target  # (N, 2)
+    Pf = lin.Puv[st.cam, st.vert]  # (N, 2, 3)
+    out.blocks.index_add_(0, pb.rig.layout.diag[st.vert], w * Pf.transpose(1, 2) @ Pf)
+    out.gx.index_add_(0, st.vert, w * torch.einsum("nij,ni->nj", Pf, r))
     return True
 
 
-def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tensor | None:
-    """Differentiable L_flow, or None when off."""
-    if pb.flow is None:
-        return None
+def reference(pb: Problem, st: FlowTargets, verts: Tensor, fragments: raster.Fragments) -> Tensor:
+    """Differentiable L_flow."""
     K, E = pb.views.K.to(verts.dtype), pb.views.world_to_cam.to(verts.dtype)
     uv, _ = raster.project_vertices(verts, K, E)
-    d = uv[pb.flow.cam, pb.flow.vert] - pb.flow.target.to(uv.dtype)
+    d = uv[st.cam, st.vert] - st.target.to(uv.dtype)
     return (d * d).sum() / pb.n_px

@@ -12,17 +12,22 @@ cameras is one residual, not k); its derivative lives on the face's three corner
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from ... import raster
-
-if TYPE_CHECKING:
-    from ..problem import Problem
+from ..problem import FrameCues, Linearisation, Problem, Rendered, System, sanitize_normals
 
 NAME = "normal"
+
+
+class Targets(NamedTuple):
+    """L_normal's state: the frame's normal maps."""
+
+    normals: Tensor  # (C, H, W, 3) float64 camera-space unit normals (0 where none)
+    ok: Tensor  # (C, H, W) bool: whole garment pixels (coverage 1) with a normal
 
 
 class NormalData(NamedTuple):
@@ -67,18 +72,24 @@ def normal_corner_jacobian(tri: Tensor) -> tuple[Tensor, Tensor]:
     return n, J
 
 
-def value(pb: "Problem", r) -> tuple[float, NormalData | None]:
-    """L_normal at the render ``r`` (0.0, None when off)."""
-    if pb.normals is None:
-        return 0.0, None
+def setup(pb: Problem, cues: FrameCues, given=None) -> Targets | None:
+    """On with a weight and normal maps."""
+    if cues.normals is None or not pb.cfg.weights.normal > 0:
+        return None
+    normals, ok = sanitize_normals(cues.normals)
+    return Targets(normals, ok & (pb.coverage >= 1))
+
+
+def value(pb: Problem, st: Targets, r: Rendered) -> tuple[float, NormalData]:
+    """L_normal at the render ``r``."""
     verts, frags = r.verts, r.fragments
     E = pb.views.world_to_cam
-    sel = (frags.face_id >= 0) & pb.normal_ok
+    sel = (frags.face_id >= 0) & st.ok
     c, row, col = sel.nonzero(as_tuple=True)
     f = frags.face_id[c, row, col]
     F = pb.rig.faces.shape[0]
     key, inv, cnt = torch.unique(c * F + f, return_inverse=True, return_counts=True)
-    tgt = pb.normals[c, row, col]  # (P, 3)
+    tgt = st.normals[c, row, col]  # (P, 3)
     tsum = torch.zeros(key.shape[0], 3, dtype=tgt.dtype, device=tgt.device).index_add(0, inv, tgt)
     kc, kf = key // F, key % F  # (U,) camera, face of each pair
     face, finv = torch.unique(kf, return_inverse=True)  # (Fu,) faces seen, (U,) pair -> face
@@ -92,30 +103,28 @@ def value(pb: "Problem", r) -> tuple[float, NormalData | None]:
     return val / pb.n_px, NormalData(face, count, twf / count[:, None])
 
 
-def gauss_newton(pb: "Problem", nd: NormalData | None, verts: Tensor, Puv: Tensor, blocks: Tensor, gx: Tensor) -> bool:
+def gauss_newton(pb: Problem, st: Targets, nd: NormalData, lin: Linearisation, out: System) -> bool:
     """Add the vertex-space blocks (pairs, 3, 3) and gradient gx (V, 3) in place: per face the
     residual sqrt(count) (n - mean world target) on the face's corners. True if anything was added."""
     w_n = pb.cfg.weights.normal
-    if nd is None or not w_n > 0 or not nd.face.numel():
+    if not nd.face.numel():
         return False
     fv = pb.rig.faces[nd.face]  # (U, 3)
-    n, Jn = normal_corner_jacobian(verts[fv])  # (U, 3), (U, 3 comp, 3 corner, 3 coord)
+    n, Jn = normal_corner_jacobian(lin.verts[fv])  # (U, 3), (U, 3 comp, 3 corner, 3 coord)
     w = w_n / pb.n_px
     cnt = nd.count
     r = n - nd.mean_target  # residual sqrt(cnt) r, Jacobian sqrt(cnt) Jn
     # block[k, l] = cnt sum_i Jn[i, k]^T Jn[i, l];  g_k = cnt sum_i Jn[i, k]^T r_i
     blk = torch.einsum("u,uikj,uilm->ukljm", w * cnt, Jn, Jn)  # (U, 3, 3, 3, 3)
-    blocks.index_add_(0, pb.rig.layout.face_pair[nd.face].reshape(-1), blk.reshape(-1, 3, 3))
+    out.blocks.index_add_(0, pb.rig.layout.face_pair[nd.face].reshape(-1), blk.reshape(-1, 3, 3))
     gk = torch.einsum("u,uikj,ui->ukj", w * cnt, Jn, r)  # (U, 3 corner, 3)
-    gx.index_add_(0, fv.reshape(-1), gk.reshape(-1, 3))
+    out.gx.index_add_(0, fv.reshape(-1), gk.reshape(-1, 3))
     return True
 
 
-def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tensor | None:
-    """Differentiable L_normal (:func:`raster.render_face_normals`), or None when off."""
-    if pb.normals is None:
-        return None
+def reference(pb: Problem, st: Targets, verts: Tensor, fragments: raster.Fragments) -> Tensor:
+    """Differentiable L_normal (:func:`raster.render_face_normals`)."""
     E = pb.views.world_to_cam.to(verts.dtype)
     n = raster.render_face_normals(verts, pb.rig.faces, E, fragments)
-    sel = (fragments.face_id >= 0) & pb.normal_ok
-    return ((n - pb.normals.to(n.dtype)) ** 2).sum(-1)[sel].sum() / pb.n_px
+    sel = (fragments.face_id >= 0) & st.ok
+    return ((n - st.normals.to(n.dtype)) ** 2).sum(-1)[sel].sum() / pb.n_px

@@ -15,59 +15,88 @@ is w s_v / V P.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from ... import raster
-
-if TYPE_CHECKING:
-    from ..problem import Problem
+from ...geometry import vertex_normals
+from ..problem import FrameCues, Linearisation, Problem, Rendered, System
 
 NAME = "prior"
 
 
-def _offset(pb: "Problem", verts: Tensor) -> Tensor:
+class Reference(NamedTuple):
+    """What the caller gives L_prior for a frame."""
+
+    verts: Tensor  # (V, 3) the reference mesh (frame 0's start, or the simulated pose)
+    scale: Tensor | None = None  # (V,) the factor s_v per vertex (:func:`spread_scale`), or None (1)
+    planes: Tensor | None = None  # (V, 3) the mesh whose vertex normals give the tangent planes (None: ``verts``)
+
+
+class Pull(NamedTuple):
+    """L_prior's state."""
+
+    verts: Tensor  # (V, 3) float64 the reference mesh
+    weight: float  # weights.prior / V
+    proj: Tensor | None  # (V, 3, 3) I - n n^T at the tangent planes' vertex normals (tangential), or None
+    scale: Tensor | None  # (V,) float64 s_v, or None (1)
+
+
+def setup(pb: Problem, cues: FrameCues, given: Reference | None) -> Pull | None:
+    """On with a weight and a reference ``given``; its tangent planes (``fit/prior_tangential``) are those of the
+    area-weighted vertex normals of ``given.planes`` (zero at isolated vertices: their offset counts whole)."""
+    V = pb.rig.rest.shape[0]
+    if given is None or pb.cfg.weights.prior == 0:
+        return None
+    ref = given.verts.detach().double()
+    proj = None
+    if pb.cfg.prior_tangential:
+        n = vertex_normals(ref if given.planes is None else given.planes.detach().to(ref), pb.rig.faces)  # (V, 3)
+        proj = torch.eye(3, dtype=ref.dtype, device=ref.device) - n[:, :, None] * n[:, None, :]
+    scale = None
+    if given.scale is not None:
+        scale = torch.as_tensor(given.scale, device=ref.device).double()
+        if scale.shape != (V,) or not bool(torch.isfinite(scale).all()) or bool((scale < 0).any()):
+            raise ValueError(f"L_prior: the factor per vertex must be ({V},), finite and >= 0, got "
+                             f"{tuple(scale.shape)}")
+    return Pull(ref, pb.cfg.weights.prior / V, proj, scale)
+
+
+def _offset(st: Pull, verts: Tensor) -> Tensor:
     """(V, 3) P (x - x_ref)."""
-    d = verts - pb.prior.to(verts.dtype)
-    if pb.prior_proj is None:
-        return d
-    return torch.einsum("vij,vj->vi", pb.prior_proj.to(verts.dtype), d)
+    d = verts - st.verts.to(verts.dtype)
+    return d if st.proj is None else torch.einsum("vij,vj->vi", st.proj.to(verts.dtype), d)
 
 
-def _scale(pb: "Problem", like: Tensor) -> Tensor | float:
+def _scale(st: Pull, like: Tensor) -> Tensor | float:
     """(V, 1) the per-vertex factor s_v, or 1.0."""
-    return 1.0 if pb.prior_scale is None else pb.prior_scale.to(like.dtype)[:, None]
+    return 1.0 if st.scale is None else st.scale.to(like.dtype)[:, None]
 
 
-def value(pb: "Problem", r) -> tuple[float, None]:
-    """L_prior at the render ``r`` (0.0 when off: no reference this frame, or weight 0)."""
-    if pb.prior is None:
-        return 0.0, None
-    off = _offset(pb, r.verts)
-    return float((_scale(pb, off) * off ** 2).sum()) / r.verts.shape[0], None
+def value(pb: Problem, st: Pull, r: Rendered) -> tuple[float, None]:
+    """L_prior at the render ``r``."""
+    off = _offset(st, r.verts)
+    return float((_scale(st, off) * off ** 2).sum()) / r.verts.shape[0], None
 
 
-def gauss_newton(pb: "Problem", verts: Tensor, blocks: Tensor, gx: Tensor) -> bool:
+def gauss_newton(pb: Problem, st: Pull, data: None, lin: Linearisation, out: System) -> bool:
     """Add w s_v / V P to every vertex's diagonal block and w s_v / V P (x - x_ref) to gx, in place."""
-    if pb.prior is None:
-        return False
-    V = verts.shape[0]
-    P = (torch.eye(3, dtype=blocks.dtype, device=blocks.device).expand(V, 3, 3) if pb.prior_proj is None
-         else pb.prior_proj.to(blocks.dtype))
-    s = _scale(pb, blocks)
-    blocks.index_add_(0, pb.rig.layout.diag, pb.w_prior * (s[:, :, None] if torch.is_tensor(s) else s) * P)
-    gx += pb.w_prior * s * _offset(pb, verts)
+    blocks = out.blocks
+    V = lin.verts.shape[0]
+    P = (torch.eye(3, dtype=blocks.dtype, device=blocks.device).expand(V, 3, 3) if st.proj is None
+         else st.proj.to(blocks.dtype))
+    s = _scale(st, blocks)
+    blocks.index_add_(0, pb.rig.layout.diag, st.weight * (s[:, :, None] if torch.is_tensor(s) else s) * P)
+    out.gx.add_(st.weight * s * _offset(st, lin.verts))
     return True
 
 
-def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tensor | None:
-    """Differentiable L_prior, or None when off."""
-    if pb.prior is None:
-        return None
-    off = _offset(pb, verts)
-    return (_scale(pb, off) * off ** 2).sum() / verts.shape[0]
+def reference(pb: Problem, st: Pull, verts: Tensor, fragments: raster.Fragments) -> Tensor:
+    """Differentiable L_prior."""
+    off = _offset(st, verts)
+    return (_scale(st, off) * off ** 2).sum() / verts.shape[0]
 
 
 def spread_scale(spread: Tensor, floor: float) -> Tensor:

@@ -10,15 +10,13 @@ pairs of the vertex-space pattern (every edge lies on a face).
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from ... import raster
-
-if TYPE_CHECKING:
-    from ..problem import HessianLayout, Problem
+from ..problem import FrameCues, HessianLayout, Linearisation, Problem, Rendered, System
 
 NAME = "stretch"
 
@@ -33,7 +31,7 @@ class Edges(NamedTuple):
     pair_ba: Tensor  # (E,) the (b, a) pair
 
 
-def rest_edges(rest: Tensor, edges: Tensor, edge_faces: Tensor, faces: Tensor, layout: "HessianLayout") -> Edges:
+def rest_edges(rest: Tensor, edges: Tensor, edge_faces: Tensor, faces: Tensor, layout: HessianLayout) -> Edges:
     """The :class:`Edges` of the mesh ``rest`` (V, 3) with unique ``edges`` (E, 2), one face of each
     ``edge_faces[:, 0]`` (E,) in ``faces`` (F, 3); edges of zero rest length are left out."""
     a, b = edges[:, 0], edges[:, 1]
@@ -56,35 +54,34 @@ def residual(edges: Edges, verts: Tensor) -> tuple[Tensor, Tensor]:
     return (n - rest) / rest, u
 
 
-def value(pb: "Problem", r) -> tuple[float, None]:
-    """L_stretch at the render ``r`` (0.0 when off)."""
-    if pb.stretch is None:
-        return 0.0, None
-    s, _ = residual(pb.stretch, r.verts)
-    return float(s.pow(2).mean()), None
+def setup(pb: Problem, cues: FrameCues, given=None) -> Edges | None:
+    """The rig's edges (:func:`rest_edges`), with a weight."""
+    rig = pb.rig
+    return rest_edges(rig.rest, *rig.edges, rig.faces, rig.layout) if pb.cfg.weights.stretch > 0 else None
 
 
-def gauss_newton(pb: "Problem", verts: Tensor, blocks: Tensor, gx: Tensor) -> bool:
+def value(pb: Problem, st: Edges, r: Rendered) -> tuple[float, None]:
+    """L_stretch at the render ``r``."""
+    return float(residual(st, r.verts)[0].pow(2).mean()), None
+
+
+def gauss_newton(pb: Problem, st: Edges, data: None, lin: Linearisation, out: System) -> bool:
     """Add w/E uu^T / l^2 to the (a, a), (b, b) blocks, its negative to (a, b), (b, a), and
     +-w/E r u / l to gx, in place."""
-    if pb.stretch is None:
-        return False
-    e = pb.stretch
+    verts, e = lin.verts, st
     s, u = residual(e, verts)
     inv = 1.0 / e.rest.to(verts.dtype)
     c = pb.cfg.weights.stretch / s.numel()
     uu = (c * inv.pow(2))[:, None, None] * u[:, :, None] * u[:, None, :]
     lay = pb.rig.layout
-    blocks.index_add_(0, torch.cat([lay.diag[e.a], lay.diag[e.b], e.pair_ab, e.pair_ba]),
-                      torch.cat([uu, uu, -uu, -uu]).to(blocks.dtype))
+    out.blocks.index_add_(0, torch.cat([lay.diag[e.a], lay.diag[e.b], e.pair_ab, e.pair_ba]),
+                          torch.cat([uu, uu, -uu, -uu]).to(out.blocks.dtype))
     gs = (c * s * inv)[:, None] * u
-    gx.index_add_(0, e.a, gs.to(gx.dtype))
-    gx.index_add_(0, e.b, -gs.to(gx.dtype))
+    out.gx.index_add_(0, e.a, gs.to(out.gx.dtype))
+    out.gx.index_add_(0, e.b, -gs.to(out.gx.dtype))
     return True
 
 
-def reference(pb: "Problem", verts: Tensor, fragments: raster.Fragments) -> Tensor | None:
-    """Differentiable L_stretch, or None when off."""
-    if pb.stretch is None:
-        return None
-    return residual(pb.stretch, verts)[0].pow(2).mean()
+def reference(pb: Problem, st: Edges, verts: Tensor, fragments: raster.Fragments) -> Tensor:
+    """Differentiable L_stretch."""
+    return residual(st, verts)[0].pow(2).mean()
