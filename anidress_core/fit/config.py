@@ -14,6 +14,9 @@ import math
 from dataclasses import dataclass
 from typing import Mapping
 
+from ..config import section_defaults
+from .variants import VARIANTS, apply_variant
+
 __all__ = ["LossWeights", "VertexSettings", "FitConfig", "STAGE_KEYS"]
 
 #: Keys of config section ``fit`` that the stage reads, not the fit itself.
@@ -141,8 +144,6 @@ class FitConfig:
     default is what fits made before the setting existed used."""
 
     def __post_init__(self):
-        from .variants import VARIANTS
-
         if self.loss not in VARIANTS:
             raise ValueError(f"FitConfig.loss must be one of {sorted(VARIANTS)}, got {self.loss!r}")
         if self.method not in ("rig", "vertex", "nearest"):
@@ -194,9 +195,6 @@ class FitConfig:
         """The settings of config section ``fit`` (keys left out: the schema's defaults), as the
         loss variant ``loss`` (default: the section's ``loss``) uses them. No key is renamed;
         the stage-level keys (:data:`STAGE_KEYS`) are ignored, any other unknown key is an error."""
-        from ..config import section_defaults
-        from .variants import apply_variant
-
         p = section_defaults("fit", dict(section or {}))
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(p) - names - set(STAGE_KEYS))

@@ -22,20 +22,19 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
-from .config import FitConfig, LossWeights
-
 __all__ = ["PAPER_WEIGHTS", "Variant", "VARIANTS", "apply_variant"]
 
-#: The paper's weights (lambda_M, lambda_N, lambda_of) = (2.0, 0.1, 3.0), none of ours.
-PAPER_WEIGHTS = LossWeights(silhouette=2.0, normal=0.1, flow=3.0, anchor=0.0, collision=0.0, prior=0.0, stretch=0.0)
+#: The paper's weights (lambda_M, lambda_N, lambda_of) = (2.0, 0.1, 3.0), none of ours (``fit/weights``).
+PAPER_WEIGHTS = {"silhouette": 2.0, "normal": 0.1, "flow": 3.0, "anchor": 0.0, "collision": 0.0, "prior": 0.0,
+                 "stretch": 0.0}
 
 
 class Variant(NamedTuple):
     description: str
-    apply: Callable[[FitConfig], FitConfig]
+    apply: Callable  # FitConfig -> FitConfig (:meth:`anidress_core.fit.FitConfig.replace`; config imports this module)
 
 
-def _paper(c: FitConfig) -> FitConfig:
+def _paper(c):
     return c.replace(weights=PAPER_WEIGHTS, smooth_passes=0, window=0, method="rig")
 
 
@@ -80,7 +79,7 @@ VARIANTS: dict[str, Variant] = {
 }
 
 
-def apply_variant(cfg: FitConfig, name: str) -> FitConfig:
+def apply_variant(cfg, name: str):
     """The settings of variant ``name`` derived from the pipeline's ``cfg``; ``loss`` records the name."""
     if name not in VARIANTS:
         raise ValueError(f"unknown fit loss variant {name!r}; choose from {sorted(VARIANTS)}")

@@ -41,7 +41,7 @@ def test_variant_configs():
     assert base.window > 1 and fit.FitConfig.from_config({}, "pipeline_no_window").window == 0
     assert fit.FitConfig.from_config({}, "nearest").window == 0
     paper = fit.FitConfig.from_config({"weights": {"anchor": 7.0, "normal": 300.0}}, "paper")
-    assert paper.weights == fit.PAPER_WEIGHTS and paper.smooth_passes == 0 and paper.window == 0
+    assert paper.weights == fit.LossWeights(**fit.PAPER_WEIGHTS) and paper.smooth_passes == 0 and paper.window == 0
     assert paper.method == "rig"
     assert {k: getattr(paper.weights, k) for k in fit.TERM_NAMES} == PAPER
     assert paper.max_iters == base.max_iters  # the solver is the section's
