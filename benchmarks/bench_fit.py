@@ -242,7 +242,7 @@ def reusable(path: Path, method: str, params: dict, ensemble: str | None = None,
     used = dataclasses.asdict(FitConfig.from_config(params, OPTIMUM_OF if oracle else method))
     # what the fit read of the ensemble (L_prior's reference, frame 0's start) says which members it had
     read = " ".join(meta.get(k) or "" for k in ("followed_simulation", "first_frame_start"))
-    from anidress_core.stages.fit import ENSEMBLE_NOTE_MARK, ensemble_note
+    from anidress_core.fit.ensemble import ENSEMBLE_NOTE_MARK, ensemble_note
 
     if ENSEMBLE_NOTE_MARK in read:
         from anidress_core.io.sim import read_sim

@@ -20,7 +20,7 @@ its Gauss-Newton system), :mod:`.lm`
 (Levenberg-Marquardt), :mod:`.jacobians` (bone increments), :mod:`.sequence` (frames and
 sequences: the forward chain), :mod:`.window` (windows of chained frames refined jointly, L_flow
 coupling their poses), :mod:`.nearest` (the ``nearest`` baseline: simulated poses scored by the
-loss), :mod:`.images` (image sampling).
+loss), :mod:`.ensemble` (the stiffness ensemble L_prior follows), :mod:`.images` (image sampling).
 """
 from __future__ import annotations
 
@@ -29,8 +29,8 @@ from .images import blurred, chromaticity, image_features, sample, sample_blurre
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import LMResult, levenberg_marquardt
 from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, make_problem, total_loss
-from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, contour_length, crop_frame,
-                      crop_window, cue_notes, downsample, occluder_depth, uncrop_fragments)
+from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, crop_frame, crop_window, cue_notes,
+                      occluder_depth, uncrop_fragments)
 from .sequence import FrameFit, fit_frame, fit_problem, fit_sequence, flow_align, smooth_transforms
 from .terms import TERM_NAMES, TERMS
 from .terms.anchor import AnchorRef, texture_anchor, texture_blur_texels, update_anchor
@@ -44,10 +44,8 @@ __all__ = [
     "RigParts", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem", "Evaluation", "evaluate",
     "gauss_newton_system", "loss_terms", "total_loss", "TERMS", "TERM_NAMES", "LMResult",
     "levenberg_marquardt", "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "cue_notes",
-    "flow_align", "smooth_transforms", "flow_targets",
-    "AnchorRef", "PriorReference", "update_anchor", "texture_anchor", "texture_blur_texels", "Contacts",
-    "body_contacts",
-    "chromaticity", "image_features", "blurred", "sample", "sample_blurred", "contour_length", "occluder_depth",
-    "downsample", "Crop", "crop_window", "crop_frame", "uncrop_fragments", "JACOBIAN_DTYPE", "apply_increment",
-    "skin_jacobian", "projection_jacobian",
+    "flow_align", "smooth_transforms", "flow_targets", "AnchorRef", "PriorReference", "update_anchor",
+    "texture_anchor", "texture_blur_texels", "Contacts", "body_contacts", "chromaticity", "image_features",
+    "blurred", "sample", "sample_blurred", "occluder_depth", "Crop", "crop_window", "crop_frame",
+    "uncrop_fragments", "JACOBIAN_DTYPE", "apply_increment", "skin_jacobian", "projection_jacobian",
 ]

@@ -51,6 +51,8 @@ import numpy as np
 import torch
 
 from .. import fit as FIT
+from ..fit import ensemble as ENS
+from ..fit.ensemble import ensemble_note
 from ..io.garment_poses import load_garment_poses, save_garment_poses
 from ..io import files
 from ..io.rig import read_rig
@@ -242,7 +244,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     """Fit the garment poses of sequence ``seq`` and write ``out_npz`` (see the module docstring).
 
     params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
-    None/'full' (the section's ``loss``) or a loss variant (:data:`anidress_core.fit.VARIANTS`) to
+    None (the section's ``loss``) or a loss variant (:data:`anidress_core.fit.VARIANTS`) to
     run instead. motions_dir: the simulated body motions (``results/<scene>/motions``, rule motions),
     read by the ``nearest`` baseline (its database, :func:`simulation_database`).
     body_dir: the sequence's body poses refined by rule refine_body, read instead of its smpl/.
@@ -255,7 +257,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     t_start = time.perf_counter()
     scene_dir = Path(scene_dir)
     info = read_scene(scene_dir)
-    cfg = FIT.FitConfig.from_config(params, None if ablation in (None, "", "full") else ablation)
+    cfg = FIT.FitConfig.from_config(params, ablation)
     method = cfg.loss
     threads = int(params.get("threads", 0) or 0)
     if threads > 0:
@@ -445,51 +447,27 @@ def gt_correspondence(rest: np.ndarray, gt_rest: np.ndarray, gt_faces: np.ndarra
 
 
 def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None, device) -> tuple[torch.Tensor, str]:
-    """(frames, B, 4, 4) float64: the rig's least-squares bone transforms (:func:`anidress_core.rig.fit_transforms`)
-    of the first ``frames`` (None: all) of the ensemble's mean simulation at ``path``
-    (:func:`anidress_core.stages.simulate.run_simulate_ensemble`), and a line saying what it is. Raises, naming
-    the file, when it is missing or does not fit the rig."""
+    """:func:`anidress_core.fit.ensemble.ensemble_transforms` of the ensemble's mean simulation at ``path``
+    (:func:`anidress_core.stages.simulate.run_simulate_ensemble`) for the rig ``art``, and a line saying what it is.
+    Raises, naming the file, when it is missing or does not fit the rig."""
     from ..io.sim import read_sim
-    from ..rig import fit_transforms
 
     if path is None or not Path(path).is_file():
         raise FileNotFoundError(f"{path}: fit/prior_reference 'sim_ensemble' needs the ensemble's mean simulation of "
                                 "the observed motion (rule simulate_ensemble: "
                                 "results/<scene>/sim_ensemble/seq-<seq>.npz); or set fit/prior_reference: sim")
     s = read_sim(path, members=False)
-    V = art.model.rest.shape[0]
-    frames = s.frames.shape[0] if frames is None else frames
-    if s.frames.ndim != 3 or s.frames.shape[1:] != (V, 3) or s.frames.shape[0] < frames:
-        raise files.ArtifactError(f"{path}: frames {tuple(s.frames.shape)}, the fit needs ({frames}+, {V}, 3) (the "
-                                  "rig's template, every frame of the sequence)")
-    X = torch.as_tensor(s.frames[:frames], device=device, dtype=torch.float64)
-    if not torch.isfinite(X).all():
-        raise files.ArtifactError(f"{path}: non-finite vertices")
-    G = fit_transforms(art.model, X).double()
+    try:
+        G = ENS.ensemble_transforms(art.model, s.frames, frames, device)
+    except ValueError as e:
+        raise files.ArtifactError(f"{path}: {e}") from e
     return G, f"{path}: {ensemble_note(s.meta)}, rig transforms fitted to it"
 
 
-#: the words of every :func:`ensemble_note`, by which a fit's header says it read an ensemble file
-ENSEMBLE_NOTE_MARK = "simulations (bending stiffness"
-
-
-def ensemble_note(meta: dict) -> str:
-    """What an ensemble file's members are, from its header's ``meta`` (:func:`read_sim`'s): the line the fit
-    records as the simulation it followed, and by which benchmarks.bench_fit tells whether a stored fit followed
-    the same ensemble."""
-    ms = meta.get("members", [])
-    k = sorted({m.get("bend_stiffness") for m in ms})
-    n = sorted({m.get("settle_frames") for m in ms if m.get("settle_frames") is not None})
-    return (f"the mean of {len(ms)} {ENSEMBLE_NOTE_MARK} {k} J"
-            + (f", settle frames {n}" if n else "") + ")")
-
-
 def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) -> torch.Tensor:
-    """(frames, V) float64 L_prior's factor per frame and vertex from the spread stored with the ensemble's mean
-    at ``path`` (:func:`anidress_core.fit.terms.prior.spread_scale` with ``floor``). Raises, naming the file,
-    when it has no spread (written before the spread was stored: rerun rule simulate_ensemble, or set
-    fit/prior_spread_floor: null), fewer frames or a bad one."""
-    from ..fit.terms.prior import spread_scale
+    """:func:`anidress_core.fit.ensemble.ensemble_prior_scales` of the spread stored with the ensemble's mean at
+    ``path``. Raises, naming the file, when it has no spread (written before the spread was stored: rerun rule
+    simulate_ensemble, or set fit/prior_spread_floor: null), fewer frames or a bad one."""
     from ..io.sim import read_sim
 
     spread = read_sim(path, members=False).spread
@@ -497,12 +475,9 @@ def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) ->
         raise files.ArtifactError(f"{path}: no 'spread' (the members' spread about their mean; written by rule "
                                   "simulate_ensemble since fit/prior_spread_floor exists: rerun it), or set "
                                   "fit/prior_spread_floor: null")
-    if spread.shape[0] < frames:
-        raise files.ArtifactError(f"{path}: spread {tuple(spread.shape)} must hold {frames}+ frames")
-    spread = spread[:frames]
     try:
-        return spread_scale(torch.as_tensor(spread, dtype=torch.float64), floor)
-    except ValueError as e:  # a non-finite or negative spread: named with its file
+        return ENS.ensemble_prior_scales(spread, frames, floor)
+    except ValueError as e:  # fewer frames, a non-finite or negative spread: named with its file
         raise files.ArtifactError(f"{path}: {e}") from e
 
 

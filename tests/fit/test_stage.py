@@ -307,7 +307,7 @@ def test_the_ensemble_has_every_stiffness_at_every_settle_length(tiny_skirt, tmp
     pytest.importorskip("warp")
     from anidress_core.config import section_defaults
     from anidress_core.io.sim import read_sim
-    from anidress_core.stages.fit import ensemble_note
+    from anidress_core.fit.ensemble import ensemble_note
     from anidress_core.stages.simulate import run_simulate, run_simulate_ensemble
 
     data, res = tiny_skirt

@@ -19,9 +19,8 @@ rule fit:
     params:
         fit=lambda wc: fit_params(wc.scene),
         cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
-        ablation="full",
     threads: 2
-    priority: 2  # the garment chain (cues, motions, simulate, rig, fit, then the full field) is the demo's longest: first
+    priority: 2  # the garment chain (cues, motions, simulate, rig, fit, the full field): the demo's longest, so first
     resources:
         mem_mb=4000,
         runtime=30,
@@ -44,9 +43,10 @@ rule fit_ablation:
     benchmark:
         "benchmarks/runs/{scene}/{seq}/fit_ablations/{ablation}.tsv"
     params:
-        fit=lambda wc: {k: v for k, v in fit_params(wc.scene).items() if k != "loss"},  # the ablation is the loss
+        fit=lambda wc: {**fit_params(wc.scene),  # the ablation is the loss
+                        "loss": check_fit_variant(wc.ablation, f"target {wc.scene}/{wc.seq}/fit_ablations/"
+                                                               f"{wc.ablation}")},
         cues=lambda wc: fit_cue_dirs(wc.scene, wc.seq),
-        ablation=lambda wc: check_fit_variant(wc.ablation, f"target {wc.scene}/{wc.seq}/fit_ablations/{wc.ablation}"),
     threads: 2
     resources:
         mem_mb=4000,

@@ -10,7 +10,6 @@ try:
     params = dict(snakemake.params.fit, threads=snakemake.threads)
     run_fit(snakemake.input.scene, snakemake.wildcards.seq, snakemake.input.rig, snakemake.input.template,
             cues["masks"], cues["flows"], cues["normals"], params, snakemake.output[0],
-            ablation=None if snakemake.params.ablation == "full" else snakemake.params.ablation,
             cue_source=cues["source"], undistorted_dir=snakemake.input.get("undistorted") or None,
             motions_dir=Path(snakemake.input.motions[0]).parent if snakemake.input.get("motions") else None,
             body_dir=snakemake.input.get("body") or None, sim_ensemble_npz=snakemake.input.get("sim_ensemble") or None)
