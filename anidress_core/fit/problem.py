@@ -28,8 +28,8 @@ from ..geometry import nearest_rotation
 from .config import FitConfig
 
 __all__ = ["RigParts", "HessianLayout", "Views", "FrameCues", "FlowTargets", "Problem", "Rendered", "Linearisation",
-           "System", "contour_length", "occluder_depth", "sanitize_normals", "occluder_or_inf", "check_cues",
-           "cue_notes", "Crop", "crop_window", "crop_frame", "uncrop_fragments", "downsample", "image_finite"]
+           "System", "occluder_depth", "occluder_or_inf", "check_cues",
+           "cue_notes", "Crop", "crop_window", "crop_frame", "uncrop_fragments", "image_finite"]
 
 
 class RigParts(NamedTuple):
@@ -155,27 +155,10 @@ class FlowTargets(NamedTuple):
     target: Tensor  # (N, 2) float64 pixel positions in frame t
 
 
-def contour_length(mask: Tensor) -> Tensor:
-    """(C,) number of horizontally or vertically adjacent pixel pairs with different labels in mask (C, H, W)."""
-    m = mask.bool()
-    return (m[:, :, 1:] != m[:, :, :-1]).sum((1, 2)) + (m[:, 1:, :] != m[:, :-1, :]).sum((1, 2))
-
-
 def occluder_depth(verts: Tensor, faces: Tensor, views: Views) -> Tensor:
     """(C, H, W) camera z of an occluding mesh (the posed body), +inf where it is absent."""
     return raster.rasterize(verts, faces, views.K.to(verts.dtype), views.world_to_cam.to(verts.dtype),
                             views.height, views.width, with_bary=False).depth
-
-
-def sanitize_normals(normals: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
-    """(normals with NaN/inf replaced by 0, valid (C, H, W) bool) or (None, None)."""
-    if normals is None:
-        return None, None
-    n = normals.double()
-    ok = torch.isfinite(n).all(-1)
-    n = torch.where(ok[..., None], n, torch.zeros_like(n))
-    ok &= n.norm(dim=-1) > 0.5
-    return n, ok
 
 
 def occluder_or_inf(cues: FrameCues, views: Views) -> Tensor:
@@ -373,49 +356,3 @@ def uncrop_fragments(frags: raster.Fragments, c: Crop, height: int, width: int,
     fid[ci, rr[:, :, None], cc[:, None, :]] = frags.face_id
     depth[ci, rr[:, :, None], cc[:, None, :]] = frags.depth
     return raster.Fragments(fid, None, depth)  # type: ignore[arg-type]
-
-
-def downsample(views: Views, cues: FrameCues, flow: FlowTargets | None, factor: int
-               ) -> tuple[Views, FrameCues, FlowTargets | None]:
-    """The same frame at 1/factor resolution: coarse pixel = factor x factor block of fine pixels.
-
-    Cameras: ``u_coarse = (u - (factor - 1) / 2) / factor`` (pixel centres stay at integer
-    coordinates), H // factor x W // factor (a remainder row/column is dropped). Masks
-    become soft (the garment fraction of each block, i.e. supersampled area coverage,
-    which the antialiased silhouette matches to sub-pixel accuracy); normals are the
-    normalised block mean where the whole block is garment with valid normals (else
-    none); the occluder depth is the block minimum; flow targets are mapped like pixels.
-    A wider basin for the silhouette loss (an edge is seen ``factor`` fine pixels away).
-    """
-    f = int(factor)
-    if f == 1:
-        return views, cues, flow
-    C, H, W = cues.mask.shape
-    Hc, Wc = H // f, W // f
-    if Hc < 1 or Wc < 1:
-        raise ValueError(f"downsample: {H}x{W} images cannot be reduced by {f}")
-    K = views.K.clone()
-    K[:, :2, :] = K[:, :2, :] / f
-    K[:, 0, 2] = (views.K[:, 0, 2] - (f - 1) / 2) / f
-    K[:, 1, 2] = (views.K[:, 1, 2] - (f - 1) / 2) / f
-    crop = lambda x: x[:, : Hc * f, : Wc * f]  # noqa: E731
-    pool = lambda x: Fnn.avg_pool2d(x, f)  # noqa: E731  (N, ch, H, W)
-    soft = cues.mask.double() if cues.mask.is_floating_point() else cues.mask.bool().double()
-    m = pool(crop(soft)[:, None])[:, 0]
-    normals = None
-    if cues.normals is not None:
-        n, ok = sanitize_normals(crop(cues.normals))
-        ok = ok & (crop(soft) >= 1)
-        okf = ok.double()
-        ns = pool((n * okf[..., None]).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
-        full = pool(okf[:, None])[:, 0] >= 1
-        ns = ns / ns.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        normals = torch.where(full[..., None], ns, torch.zeros_like(ns))
-    occ = -Fnn.max_pool2d(-crop(occluder_or_inf(cues, views))[:, None], f)[:, 0]
-    image = None
-    if cues.image is not None:
-        image = pool(crop(cues.image.double()).permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
-    fl = None
-    if flow is not None:
-        fl = FlowTargets(flow.cam, flow.vert, (flow.target - (f - 1) / 2) / f)
-    return Views(K, views.world_to_cam, Hc, Wc), FrameCues(m, normals, occ, None, image), fl

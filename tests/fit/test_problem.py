@@ -1,4 +1,4 @@
-"""anidress_core.fit.problem: render windows, downsampling, the body occluder."""
+"""anidress_core.fit.problem: render windows, the body occluder."""
 from __future__ import annotations
 
 import torch
@@ -10,9 +10,8 @@ from tests.fit.scenes import PAPER, config, pose, render, toy
 torch.set_num_threads(1)
 
 
-def test_crop_windows_and_downsample_keep_the_loss():
-    """Rendering windows around the garment gives the loss of the whole images; a reduced
-    level's soft masks are the block means."""
+def test_crop_windows_keep_the_loss():
+    """Rendering windows around the garment gives the loss of the whole images."""
     rig, views = toy(C=3, H=64, W=72)
     g = torch.Generator().manual_seed(8)
     Gt = pose(rig, g, 0.1, 0.02)
@@ -29,13 +28,6 @@ def test_crop_windows_and_downsample_keep_the_loss():
     assert abs(part.loss - whole.loss) < 1e-9 * whole.loss
     back = fit.uncrop_fragments(part.fragments, win, 64, 72, cues.occluder)
     assert torch.equal(back.face_id, whole.fragments.face_id)
-    v4, c4, f4 = fit.downsample(views, cues, ft, 4)
-    assert (v4.height, v4.width) == (16, 18) and c4.mask.dtype == torch.float64
-    torch.testing.assert_close(c4.mask[0, 3, 5], cues.mask[0, 12:16, 20:24].double().mean())
-    # a pixel centre maps to the centre of its block: fine (u, v) -> ((u - 1.5) / 4, (v - 1.5) / 4)
-    uv4, _ = raster.project_vertices(xt, v4.K, v4.world_to_cam)
-    torch.testing.assert_close(uv4, (uv - 1.5) / 4)
-    torch.testing.assert_close(f4.target, (ft.target - 1.5) / 4)
 
 
 def test_body_occlusion_is_respected():

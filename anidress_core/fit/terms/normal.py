@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ... import raster
-from ..problem import FrameCues, Linearisation, Problem, Rendered, System, sanitize_normals
+from ..problem import FrameCues, Linearisation, Problem, Rendered, System
 
 NAME = "normal"
 
@@ -73,11 +73,13 @@ def normal_corner_jacobian(tri: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def setup(pb: Problem, cues: FrameCues, given=None) -> Targets | None:
-    """On with a weight and normal maps."""
+    """On with a weight and normal maps; pixels with a non-finite or zero normal have none."""
     if cues.normals is None or not pb.cfg.weights.normal > 0:
         return None
-    normals, ok = sanitize_normals(cues.normals)
-    return Targets(normals, ok & (pb.coverage >= 1))
+    n = cues.normals.double()
+    ok = torch.isfinite(n).all(-1)
+    n = torch.where(ok[..., None], n, torch.zeros_like(n))
+    return Targets(n, ok & (n.norm(dim=-1) > 0.5) & (pb.coverage >= 1))
 
 
 def value(pb: Problem, st: Targets, r: Rendered) -> tuple[float, NormalData]:
