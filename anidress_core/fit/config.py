@@ -40,9 +40,8 @@ class LossWeights:
     prior: float
     """L_prior, mean squared vertex offset from the reference pose (``FitConfig.prior_reference``), m^2 (ours)."""
     stretch: float = 0.0
-    """L_stretch, mean squared relative stretch of the template's edges from their rest lengths (ours;
-    the pipeline's 300 was chosen on the tuning suite among 100-3000: median 2.74 -> 2.54x the rig floor at
-    8 views, better on 9 of 10 scenes; studies/fit/README.md section 14). 0 where a caller leaves it out."""
+    """L_stretch, mean squared relative stretch of the template's edges from their rest lengths (ours; the choice
+    of the pipeline's weight: studies/fit/README.md section 14). 0 where a caller leaves it out."""
 
 
 @dataclass(frozen=True)
@@ -108,24 +107,19 @@ class FitConfig:
     """Ablation (a): Adam settings."""
     window: int
     """Frames refined jointly after the chain (:mod:`anidress_core.fit.window`: L_flow couples the window's
-    poses instead of carrying targets from the previous result); 0 or 1 = off. Chosen on the tuning suite
-    (median 2.95 -> 2.76x the rig floor at 8 views, better on 10 of 10 scenes; windows of 10 no better, 3
-    evaluations per window less of the gain) at 1.4-1.75x the fit's CPU time; on the held-out suite, with
-    L_stretch, 2.58 -> 2.53x at 8 views (better on 7 of 10), 3.07 -> 3.00x at 4 (benchmarks/fit.md;
-    studies/fit/README.md section 13)."""
+    poses instead of carrying targets from the previous result); 0 or 1 = off. Its gain and cost:
+    benchmarks/fit.md, studies/fit/README.md section 13."""
     window_iters: int
     """Most loss evaluations of one window's joint Levenberg-Marquardt (each evaluates all its frames)."""
     start: str
-    """Start of frame t > 0: ``previous``, frame t-1's result (the only value kept; that result moved as the
-    simulation moves was worse and left the package, studies/fit/README.md section 9)."""
+    """Start of frame t > 0: ``previous``, frame t-1's result (the only value; studies/fit/README.md section 9)."""
 
     prior_reference: str
     """L_prior's reference: ``start`` (frame 0 only: its start pose), ``sim`` (every frame: the rig's
     simulated pose of the observed motion at that frame, :mod:`anidress_core.fit.terms.prior`) or
     ``sim_ensemble`` (every frame: the mean of the simulations of the observed motion at several bending
-    stiffnesses, rule simulate_ensemble, carried into the rig; closer to the truth than any one member on
-    10 of 10 tuning scenes, studies/fit/README.md section 16). ``sim`` and ``sim_ensemble`` also give
-    frame 0's start (``first_frame_init`` auto / sim)."""
+    stiffnesses, rule simulate_ensemble, carried into the rig: :mod:`anidress_core.fit.ensemble`). ``sim`` and
+    ``sim_ensemble`` also give frame 0's start (``first_frame_init`` auto / sim)."""
     prior_tangential: bool
     """L_prior counts only the offset along the surface (its tangent plane at each vertex, from
     ``prior_tangent_planes``); the images alone place the surface along its normals."""
@@ -196,25 +190,7 @@ class FitConfig:
         loss variant ``loss`` (default: the section's ``loss``) uses them. No key is renamed;
         the stage-level keys (:data:`STAGE_KEYS`) are ignored, any other unknown key is an error."""
         p = section_defaults("fit", dict(section or {}))
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(p) - names - set(STAGE_KEYS))
-        if unknown:
-            raise ValueError(f"config section fit: unknown keys {unknown}")
-        kw = {k: p[k] for k in names}
-        kw["weights"] = LossWeights(**{k: float(v) for k, v in kw["weights"].items()})
-        kw["vertex"] = VertexSettings(float(kw["vertex"]["lr"]), int(kw["vertex"]["max_iters"]),
-                                      int(kw["vertex"]["patience"]))
-        for k in ("max_iters", "max_iters_first", "flow_margin_px", "flow_align_iters", "crop_margin", "smooth_passes",
-                  "window", "window_iters"):
-            kw[k] = int(kw[k])
-        for k in ("rel_tol", "step_tol", "damping", "visibility_depth_tol", "image_blur", "anchor_scale",
-                  "collision_clearance", "collision_radius"):
-            kw[k] = float(kw[k])
-        kw["prior_tangential"] = bool(kw["prior_tangential"])
-        if kw["prior_spread_floor"] is not None:
-            kw["prior_spread_floor"] = float(kw["prior_spread_floor"])
-        kw["loss"] = "pipeline"
-        return apply_variant(cls(**kw), loss or p["loss"])
+        return apply_variant(_typed(cls, {**p, "loss": "pipeline"}, STAGE_KEYS), loss or p["loss"])
 
     def replace(self, **changes) -> "FitConfig":
         """A copy with fields changed; ``weights`` may be a mapping of the weights to change."""
@@ -225,3 +201,16 @@ class FitConfig:
         if isinstance(v, Mapping):
             changes["vertex"] = dataclasses.replace(self.vertex, **v)
         return dataclasses.replace(self, **changes)
+
+
+def _typed(cls, values: Mapping, ignore=()):
+    """``cls`` (a dataclass of this module) from the config's ``values``, each field cast to its type (nested: its
+    dataclass; a field left out keeps its default); keys other than the fields and ``ignore``: ValueError."""
+    fields = dataclasses.fields(cls)
+    unknown = sorted(set(values) - {f.name for f in fields} - set(ignore))
+    if unknown:
+        raise ValueError(f"config section fit: unknown keys {unknown}")
+    cast = {"int": int, "float": float, "bool": bool, "str": str,
+            "float | None": lambda v: None if v is None else float(v),
+            "LossWeights": lambda v: _typed(LossWeights, v), "VertexSettings": lambda v: _typed(VertexSettings, v)}
+    return cls(**{f.name: cast[f.type](values[f.name]) for f in fields if f.name in values})

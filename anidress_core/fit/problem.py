@@ -137,7 +137,7 @@ class FrameCues(NamedTuple):
     """The 2D observations of one frame in C views (pixels on the image grid)."""
 
     mask: Tensor  # (C, H, W) bool garment pixels (label 2), or float garment coverage in [0, 1]; NaN = unknown
-    # (a float mask's NaN pixels are left out of every pixel term: :attr:`Problem.pixel_ok`)
+    # (a float mask's NaN pixels are left out of every pixel term: L_silhouette's :attr:`Target.known`)
     normals: Tensor | None  # (C, H, W, 3) camera-space unit normals; non-finite / zero = none
     occluder: Tensor | None  # (C, H, W) camera z of the body (+inf where none), see occluder_depth
     occluder_mesh: tuple | None = None
