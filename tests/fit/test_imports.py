@@ -77,6 +77,11 @@ def test_no_import_circle_in_the_fit():
     assert cycles("anidress_core.fit") == []
 
 
+def test_no_import_circle_in_the_package():
+    """The same check over all of anidress_core (issue 48: "the same check holds for the whole tree")."""
+    assert cycles("anidress_core") == []
+
+
 def test_the_check_sees_a_circle(tmp_path):
     """The check finds a circle through an import inside a function and one under TYPE_CHECKING."""
     pkg = tmp_path / "pkg"

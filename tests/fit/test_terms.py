@@ -2,6 +2,8 @@
 reference (float64), and its value against the reference's."""
 from __future__ import annotations
 
+import inspect
+
 import pytest
 import torch
 
@@ -45,6 +47,16 @@ def check_system(rig, views, cues, G0, cfg, residuals=None, irls=False, **given)
         torch.testing.assert_close(H, J.t() @ J, rtol=1e-6, atol=1e-9 * float(H.abs().max()))
         torch.testing.assert_close(gvec, J.t() @ r, rtol=1e-6, atol=1e-9 * float(gvec.abs().max()))
     return ev
+
+
+def test_every_term_has_the_one_protocol():
+    """Every term of TERMS: NAME and setup, value, gauss_newton, reference with the same parameters."""
+    want = {"setup": ["pb", "cues", "given"], "value": ["pb", "st", "r"],
+            "gauss_newton": ["pb", "st", "data", "lin", "out"], "reference": ["pb", "st", "verts", "fragments"]}
+    for term in fit.TERMS:
+        assert term.NAME in fit.TERM_NAMES
+        for name, params in want.items():
+            assert list(inspect.signature(getattr(term, name)).parameters) == params, (term.NAME, name)
 
 
 def scene(seed, C=3, H=48, W=48, n_theta=20, n_h=6):

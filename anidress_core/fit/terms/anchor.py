@@ -179,14 +179,14 @@ def value(pb: Problem, st: Colours, r: Rendered) -> tuple[float, ColourData]:
     return val / pb.n_px, anc
 
 
-def gauss_newton(pb: Problem, st: Colours, cd: ColourData, lin: Linearisation, out: System) -> bool:
+def gauss_newton(pb: Problem, st: Colours, data: ColourData, lin: Linearisation, out: System) -> bool:
     """Add the IRLS blocks and gradient in place (the reference is fixed: exact)."""
-    if not cd.cam.numel():
+    if not data.cam.numel():
         return False
-    Jr = cd.grad @ lin.Puv[cd.cam, cd.vert]  # (N, 3, 3)
-    w = (pb.cfg.weights.anchor / pb.n_px) * cd.weight
-    out.blocks.index_add_(0, pb.rig.layout.diag[cd.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
-    out.gx.index_add_(0, cd.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, cd.residual))
+    Jr = data.grad @ lin.Puv[data.cam, data.vert]  # (N, 3, 3)
+    w = (pb.cfg.weights.anchor / pb.n_px) * data.weight
+    out.blocks.index_add_(0, pb.rig.layout.diag[data.vert], w[:, None, None] * Jr.transpose(1, 2) @ Jr)
+    out.gx.index_add_(0, data.vert, w[:, None] * torch.einsum("nij,ni->nj", Jr, data.residual))
     return True
 
 

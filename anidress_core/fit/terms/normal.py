@@ -72,7 +72,7 @@ def normal_corner_jacobian(tri: Tensor) -> tuple[Tensor, Tensor]:
     return n, J
 
 
-def setup(pb: Problem, cues: FrameCues, given=None) -> Targets | None:
+def setup(pb: Problem, cues: FrameCues, given: None) -> Targets | None:
     """On with a weight and normal maps; pixels with a non-finite or zero normal have none."""
     if cues.normals is None or not pb.cfg.weights.normal > 0:
         return None
@@ -105,20 +105,20 @@ def value(pb: Problem, st: Targets, r: Rendered) -> tuple[float, NormalData]:
     return val / pb.n_px, NormalData(face, count, twf / count[:, None])
 
 
-def gauss_newton(pb: Problem, st: Targets, nd: NormalData, lin: Linearisation, out: System) -> bool:
+def gauss_newton(pb: Problem, st: Targets, data: NormalData, lin: Linearisation, out: System) -> bool:
     """Add the vertex-space blocks (pairs, 3, 3) and gradient gx (V, 3) in place: per face the
     residual sqrt(count) (n - mean world target) on the face's corners. True if anything was added."""
     w_n = pb.cfg.weights.normal
-    if not nd.face.numel():
+    if not data.face.numel():
         return False
-    fv = pb.rig.faces[nd.face]  # (U, 3)
+    fv = pb.rig.faces[data.face]  # (U, 3)
     n, Jn = normal_corner_jacobian(lin.verts[fv])  # (U, 3), (U, 3 comp, 3 corner, 3 coord)
     w = w_n / pb.n_px
-    cnt = nd.count
-    r = n - nd.mean_target  # residual sqrt(cnt) r, Jacobian sqrt(cnt) Jn
+    cnt = data.count
+    r = n - data.mean_target  # residual sqrt(cnt) r, Jacobian sqrt(cnt) Jn
     # block[k, l] = cnt sum_i Jn[i, k]^T Jn[i, l];  g_k = cnt sum_i Jn[i, k]^T r_i
     blk = torch.einsum("u,uikj,uilm->ukljm", w * cnt, Jn, Jn)  # (U, 3, 3, 3, 3)
-    out.blocks.index_add_(0, pb.rig.layout.face_pair[nd.face].reshape(-1), blk.reshape(-1, 3, 3))
+    out.blocks.index_add_(0, pb.rig.layout.face_pair[data.face].reshape(-1), blk.reshape(-1, 3, 3))
     gk = torch.einsum("u,uikj,ui->ukj", w * cnt, Jn, r)  # (U, 3 corner, 3)
     out.gx.index_add_(0, fv.reshape(-1), gk.reshape(-1, 3))
     return True

@@ -41,7 +41,7 @@ class SilhouetteData(NamedTuple):
     residual: Tensor  # (C H W,) s - m
 
 
-def setup(pb: Problem, cues: FrameCues, given=None) -> Target:
+def setup(pb: Problem, cues: FrameCues, given: None) -> Target:
     """Always on (its value is reported at any weight)."""
     known = torch.isfinite(cues.mask) if cues.mask.is_floating_point() else None
     known = None if known is None or bool(known.all()) else known.reshape(-1).double()
@@ -81,21 +81,21 @@ def crossing_rows(s: SilhouetteData, uv: Tensor, Puv: Tensor, Jx: Tensor, jdtype
     return torch.einsum("nj,njp->np", a0.to(jdtype), J3[e0]) + torch.einsum("nj,njp->np", a1.to(jdtype), J3[e1])
 
 
-def gauss_newton(pb: Problem, st: Target, s: SilhouetteData, lin: Linearisation, out: System) -> bool:
+def gauss_newton(pb: Problem, st: Target, data: SilhouetteData, lin: Linearisation, out: System) -> bool:
     """Add w/n J^T J to H (P, P) and w/n J^T r to g (P,) in place: each crossing's row
     (:func:`crossing_rows`) summed per pixel. Nothing in vertex space: False."""
     w_sil = pb.cfg.weights.silhouette
-    if not (w_sil > 0 and s.pixel.numel()):
+    if not (w_sil > 0 and data.pixel.numel()):
         return False
     jdtype = lin.jdtype
-    Jt = crossing_rows(s, lin.uv, lin.Puv, lin.Jx, jdtype)
-    upix, inv = torch.unique(s.pixel, return_inverse=True)
+    Jt = crossing_rows(data, lin.uv, lin.Puv, lin.Jx, jdtype)
+    upix, inv = torch.unique(data.pixel, return_inverse=True)
     Jp = torch.zeros(upix.shape[0], Jt.shape[-1], dtype=jdtype, device=Jt.device).index_add(0, inv, Jt)
     if st.known is not None:
         Jp = Jp * st.known[upix].to(jdtype)[:, None]
     w = w_sil / pb.n_px
     out.H.add_(w * (Jp.t() @ Jp).double())
-    out.g.add_(w * (Jp.t() @ s.residual[upix].to(jdtype)).double())
+    out.g.add_(w * (Jp.t() @ data.residual[upix].to(jdtype)).double())
     return False
 
 

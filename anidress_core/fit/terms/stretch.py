@@ -54,7 +54,7 @@ def residual(edges: Edges, verts: Tensor) -> tuple[Tensor, Tensor]:
     return (n - rest) / rest, u
 
 
-def setup(pb: Problem, cues: FrameCues, given=None) -> Edges | None:
+def setup(pb: Problem, cues: FrameCues, given: None) -> Edges | None:
     """The rig's edges (:func:`rest_edges`), with a weight."""
     rig = pb.rig
     return rest_edges(rig.rest, *rig.edges, rig.faces, rig.layout) if pb.cfg.weights.stretch > 0 else None
