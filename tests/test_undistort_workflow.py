@@ -52,13 +52,15 @@ def test_the_dag_undistorts_once_and_the_cue_rules_read_it(wd):
     # 1. the plan up to the fit: one undistort job; shipped masks, so no masks job
     plan = job_counts(_snakemake(wd, "results/cap/walk/garment_poses.npz", "-n", "--quiet", "rules"))
     assert plan.get("undistort") == 1 and "masks" not in plan and plan.get("flows") == 1 and plan.get("fit") == 1
-    # 2. run the cues: undistort, then flows on the undistorted shipped masks, normals recorded from the copy
+    # 2. run the cues: undistort, then flows on the undistorted shipped masks, normals checked on the copy
     res = _snakemake(wd, "results/cap/walk/flows", "results/cap/walk/normals.json")
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     und = wd / "results" / "cap" / "walk" / "undistorted"
     rec = read_json(und / "undistort.json")
     assert rec["distorted"] == ["01", "02"] and "normals" in rec["undistorted"]
-    assert read_json(wd / "results" / "cap" / "walk" / "normals.json")["dir"] == "results/cap/walk/undistorted/normals"
+    rec = read_json(wd / "results" / "cap" / "walk" / "normals.json")  # checked on the copy, written for the fit
+    assert rec["dir"] == "results/cap/walk/normals" and rec["convention_axes"] == "x, y, z" and rec["format"] == "exr"
+    assert (wd / "results" / "cap" / "walk" / "normals" / "01" / "000001.exr").is_file()
     assert read_exr(wd / "results" / "cap" / "walk" / "flows" / "01" / "000001.exr").shape[-1] == 3
     # 3. nothing left to do; a stage's setting does not rerun the undistortion
     assert job_counts(_snakemake(wd, "results/cap/walk/flows", "results/cap/walk/normals.json", "-n", "--quiet",

@@ -4,7 +4,8 @@ Normal predictors write camera-space normals in their own axes: Sapiens and ICON
 render with y up and z towards the viewer (OpenGL), the pipeline uses OpenCV's (x right,
 y down, z forward). The body is known (its poses are an input), so the convention is
 measured rather than assumed: on the pixels where the posed body is seen, every signed
-axis permutation ``M`` (48 of them) turns the predicted normals ``n`` into ``M n``, and
+axis permutation ``M`` that keeps the frame right-handed (24 of them) turns the predicted
+normals ``n`` into ``M n``, and
 the one whose mean cosine with the body's rendered normals is highest wins, provided it
 agrees (mean cosine at least :data:`AGREEMENT`) and stands out (it beats the second best
 in at least a fraction :data:`CONSISTENCY` of the images). Pure functions: arrays in, arrays out.
@@ -12,12 +13,11 @@ in at least a fraction :data:`CONSISTENCY` of the images). Pure functions: array
 Why these thresholds (studies/cues/normal_convention.md: the synthetic predicted normals of
 the demo skirt and three suite scenes, against the body posed as the scene says, the
 skinned garment template hiding the body where it covers it): the right convention
-agrees at a mean cosine of 0.92 to 0.97, the next best (y flipped) at 0.69 to 0.78, an x
-flip at 0.48 to 0.57 and OpenGL's axes (y, z flipped) at -0.57 to -0.48. A mean of 0.5 leaves
-room for a body estimate a few centimetres off and a smoothing predictor. The y flip is
-the close one (an upright body's normals are mostly horizontal); on the tiny scenes of
-the tests, with 2 cm of body-pose noise, it trails by only 0.06, but it loses in every
-image: the decision asks for a lead in 90% of the images rather than a lead in cosine.
+agrees at a mean cosine of 0.92 to 0.97, the best other rotation at 0.61 to 0.66 (a quarter
+turn about z; OpenGL's axes, y and z flipped, at -0.57 to -0.48). A mean of 0.5 leaves
+room for a body estimate a few centimetres off and a smoothing predictor. The mirrored y
+flip, not a candidate, would come second at 0.69 to 0.78 there and within 0.005 of the right
+one on a tiny scene of the tests; the win in 90% of the images is asked for on top of the mean.
 """
 from __future__ import annotations
 
@@ -42,13 +42,18 @@ def _signed_permutations() -> np.ndarray:
             M = np.zeros((3, 3))
             for row, (col, s) in enumerate(zip(perm, signs)):
                 M[row, col] = s
-            out.append(M)
+            if np.linalg.det(M) > 0:  # right-handed frames only
+                out.append(M)
     out.sort(key=lambda M: (not np.array_equal(M, np.eye(3)),))  # the identity first
     return np.stack(out)
 
 
 SIGNED_PERMUTATIONS = _signed_permutations()
-"""(48, 3, 3) every signed axis permutation, the identity first: a map ``n -> M n``."""
+"""(24, 3, 3) every signed axis permutation that keeps a frame right-handed (a rotation), the identity first: a
+map ``n -> M n``. Camera frames are right-handed in every convention in use (OpenCV; OpenGL / Blender, y up and
+z towards the viewer; PyTorch3D, x left and y up); a mirrored frame (one axis flipped alone) is not a
+candidate, so that the y flip, which an upright body's mostly horizontal normals hardly tell apart, never
+competes with the right convention."""
 
 
 class Convention(NamedTuple):
@@ -67,7 +72,7 @@ class Convention(NamedTuple):
 def convention_scores(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Mean cosine of ``M pred`` with ``ref`` for each M of :data:`SIGNED_PERMUTATIONS`.
 
-    pred, ref: (N, 3) unit (or zero-free) normals -> (48,) float64.
+    pred, ref: (N, 3) unit (or zero-free) normals -> (24,) float64.
     """
     pred = np.asarray(pred, np.float64)
     ref = np.asarray(ref, np.float64)

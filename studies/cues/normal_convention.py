@@ -2,7 +2,8 @@
 
 For each scene: the synthetic predicted normals (OpenCV axes) of 4 frames spread over a sequence, the 8 training
 cameras, on the pixels where the body posed as the scene says is seen (the skinned garment template hides it
-where it covers it): the mean cosine of every signed axis permutation, the best ones, the x and y flips and
+where it covers it): the mean cosine of every right-handed signed axis permutation (the candidates of
+anidress_core.cues.normals), the best two, and for reference the mirrored x and y flips (not candidates) and
 OpenGL's axes. Inputs: the scenes and templates of `make demo` and of the field suite (data/, results/).
 
     .venv/bin/python -m studies.cues.normal_convention   # writes studies/cues/normal_convention.md
@@ -22,10 +23,11 @@ from anidress_core.stages.cues import ShapePrior, _cameras, sequence_frames
 
 REPO = Path(__file__).resolve().parents[2]
 SCENES = [("skirt", "walk"), ("fsuite_02", "twirl"), ("fsuite_03", "sway"), ("fsuite_05", "run")]
-NAMED = {"x flip": np.diag([-1.0, 1, 1]), "y flip": np.diag([1.0, -1, 1]), "OpenGL (y, z flipped)": np.diag([1.0, -1, -1])}
+NAMED = {"x flip (mirrored)": np.diag([-1.0, 1, 1]), "y flip (mirrored)": np.diag([1.0, -1, 1]),
+         "OpenGL (y, z flipped)": np.diag([1.0, -1, -1])}
 
 
-def scores(scene: Path, seq: str, template: Path) -> tuple[np.ndarray, int, float]:
+def scores(scene: Path, seq: str, template: Path) -> tuple[np.ndarray, int, float, dict]:
     info = read_scene(scene)
     names = select_cameras(info, "train", scene)
     frames = sequence_frames(scene / seq, names)
@@ -41,22 +43,23 @@ def scores(scene: Path, seq: str, template: Path) -> tuple[np.ndarray, int, floa
         img.append(k * len(names) + np.nonzero(sel)[0])
     P, R = np.concatenate(P), np.concatenate(R)
     conv = cn.find_convention(P, R, np.concatenate(img))
-    return cn.convention_scores(P, R), len(P), conv.consistency
+    Pn = P / np.linalg.norm(P, axis=1, keepdims=True)
+    Rn = R / np.linalg.norm(R, axis=1, keepdims=True)
+    named = {k: float(np.mean(np.sum((Pn @ M.T) * Rn, 1))) for k, M in NAMED.items()}
+    return cn.convention_scores(P, R), len(P), conv.consistency, named
 
 
 def main() -> int:
     rows = []
     for name, seq in SCENES:
-        s, n, won = scores(REPO / "data" / name, seq, REPO / "results" / name / "template.npz")
+        s, n, won, named = scores(REPO / "data" / name, seq, REPO / "results" / name / "template.npz")
         o = np.argsort(-s)
-        named = {k: float(s[[i for i in range(48) if np.array_equal(cn.SIGNED_PERMUTATIONS[i], M)][0]])
-                 for k, M in NAMED.items()}
         rows.append((f"{name}/{seq}", n, cn.describe(cn.SIGNED_PERMUTATIONS[o[0]]), s[o[0]],
                      cn.describe(cn.SIGNED_PERMUTATIONS[o[1]]), s[o[1]], won, named))
     lines = ["# The axis convention of predicted normals against the posed body", "",
              f"Command: `.venv/bin/python -m studies.cues.normal_convention` ({__doc__.splitlines()[0]})", "",
-             "| scene/seq | body pixels | best | mean cos | second | mean cos | best wins in | x flip | y flip | "
-             "OpenGL |", "| --- | ---: | --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |"]
+             "| scene/seq | body pixels | best | mean cos | second | mean cos | best wins in | x flip (mirrored) | "
+             "y flip (mirrored) | OpenGL |", "| --- | ---: | --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |"]
     for r in rows:
         lines.append(f"| {r[0]} | {r[1]} | {r[2]} | {r[3]:.3f} | {r[4]} | {r[5]:.3f} | {r[6]:.0%} of the images | "
                      + " | ".join(f"{v:.3f}" for v in r[7].values()) + " |")

@@ -124,8 +124,10 @@ def test_a_body_file_edit_reruns_its_motion_and_what_reads_the_body(wd):
     people = json.loads(body.read_text())
     people[0]["Th"][0][0] += 0.01  # one centimetre
     with edited(body, json.dumps(people).encode()):
+        # normals too: rule normals checks the shipped normals' axes against the posed body
         assert _jobs(wd) == {"scene_files": 1, "validate_scene": 1, "motions": 1, "simulate": 1, "simulate_ensemble": 1,
-                             "rig": 1, "flows": 1, "fit": 1, "train_field": 2, "render_novel_view": 2, "evaluate_field": 2, "report": 1, "all": 1}
+                             "rig": 1, "flows": 1, "normals": 1, "fit": 1, "train_field": 2, "render_novel_view": 2,
+                             "evaluate_field": 2, "report": 1, "all": 1}
 
 
 def test_an_image_edit_reruns_what_reads_the_images(wd):

@@ -53,7 +53,8 @@ CASES = [
     ("scenes/tiny/fit/anchor_reference", "images", set(), {}),  # a tight scene has no fit
     # the stages' sections
     ("template/vertices", 500, {"template"},
-     {"template": 1, "simulate": 2, "simulate_ensemble": 1, "rig": 1, "masks": 1, "flows": 1, "fit": 1, "fit_eval": 1, "train_field": 2,
+     {"template": 1, "simulate": 2, "simulate_ensemble": 1, "rig": 1, "masks": 1, "flows": 1, "normals": 1, "fit": 1,
+      "fit_eval": 1, "train_field": 2,
       "render_novel_view": 2, "render_library": 2, "evaluate_field": 2, "report": 1, "all": 1}),
     ("simulate/cloth/damping", 0.6, {"simulate", "simulate_ensemble"},
      {"simulate": 2, "simulate_ensemble": 1, "rig": 1, **FIT_DOWN}),

@@ -74,7 +74,7 @@ rule normals:
         scene=scene_input,
         check=ancient("results/{scene}/scene_check.json"),
         files=scene_inputs_fn(("scene", "body", "cameras", "smpl", "normals")),
-        template=_cue_template,
+        template=lambda wc: _cue_template(wc) if shipped_normals_dir(wc.scene, wc.seq) else [],  # the check's body
         undistorted=lambda wc: undistorted_input(wc.scene, wc.seq),
     output:
         record="results/{scene}/{seq}/normals.json",

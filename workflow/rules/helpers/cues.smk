@@ -47,7 +47,7 @@ def masks_dir(scene, seq):
 
 
 def flows_dir(scene, seq):
-    """Forward optical flow t-1 -> t of a sequence (rule flows: estimated, or shipped ones converted)."""
+    """Forward optical flow t-1 -> t of a sequence, by rule flows (estimated, or shipped ones converted)."""
     return f"results/{scene}/{seq}/flows"
 
 
@@ -66,7 +66,7 @@ def shipped_normals_dir(scene, seq):
 
 def normals_dir(scene, seq):
     """The normal maps the fit reads, or None (normal weight 0): a synthetic scene's own (pipeline format and
-    axes) as they are; a captured sequence's as rule normals wrote them (results/<scene>/<seq>/normals: any
+    axes) as they are; a captured sequence's as rule normals wrote them in results/<scene>/<seq>/normals (any
     shipped format, axis convention checked against the body and applied)."""
     shipped = shipped_normals_dir(scene, seq)
     if shipped is None or config["scenes"][scene]["synthetic"]:
