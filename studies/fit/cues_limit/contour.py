@@ -1,4 +1,6 @@
-"""Probe: a contour term with a wider basin than L_silhouette (the distance-transform silhouette energy of
+"""Runnable only at git 5d00caa: it patches L_silhouette's internals (its old signatures, Problem.pixel_ok / mask), which the fit's one term protocol (issue 48 item 2) replaced.
+
+Probe: a contour term with a wider basin than L_silhouette (the distance-transform silhouette energy of
 model-based tracking, e.g. Gavrila & Davis 1996; Sminchisescu & Telea 2002).
 
 L_silhouette sees a misplaced rendered outline only at the pixels it crosses (a residual of at most one per

@@ -1,4 +1,6 @@
-"""Probe: L_flow for the start only. Each frame t > 0 starts from frame t-1's result moved by the flow alignment (as in
+"""Runnable only at git 5d00caa: it calls the old anidress_core.fit.sequence.make_problem, which the fit's one term protocol (issue 48 item 2) replaced.
+
+Probe: L_flow for the start only. Each frame t > 0 starts from frame t-1's result moved by the flow alignment (as in
 the pipeline) and is then fitted with the pipeline's loss without L_flow, so the frame's minimum is the image terms'
 and L_prior's, not that of L_flow's targets carried from the previous result (studies/fit section 22: from the rig
 floor 1.76x without L_flow, 2.43x with it). Registers ``flow_start_only`` (the pipeline, window off: the window's
