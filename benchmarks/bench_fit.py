@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from anidress_core.config import load_config, scene_section
-from anidress_core.fit import VARIANTS, FitConfig, LossWeights
+from anidress_core.fit import VARIANTS, FitConfig
 from anidress_core.io.garment_poses import load_garment_poses
 from anidress_core.io.scene import read_scene
 from anidress_core.stages import setup_logging
@@ -258,14 +258,14 @@ def reusable(path: Path, method: str, params: dict, ensemble: str | None = None,
             and key(with_new_settings(stored_config, used)) == key(used))
 
 
-def with_new_settings(stored: dict, used: dict, legacy: dict | None = None) -> dict:
+#: the settings added to the fit since the first stored fits, each at the value that does what the fit did before
+#: it existed (the schema holds the pipeline's values): a stored fit without one stands for a variant at that value
+HISTORICAL_SETTINGS = {"prior_tangent_planes": "reference", "prior_spread_floor": None, "weights": {"stretch": 0.0}}
+
+
+def with_new_settings(stored: dict, used: dict, legacy: dict = HISTORICAL_SETTINGS) -> dict:
     """``stored`` (a fit's settings as recorded) with every setting added since filled in from ``used``
-    where ``used`` has it at its legacy value (the field's default in :class:`FitConfig` or
-    :class:`LossWeights`, the value that does what the fit did before the setting existed)."""
-    if legacy is None:
-        legacy = {f.name: f.default for f in dataclasses.fields(FitConfig) if f.default is not dataclasses.MISSING}
-        legacy["weights"] = {f.name: f.default for f in dataclasses.fields(LossWeights)
-                             if f.default is not dataclasses.MISSING}
+    where ``used`` has it at its historical value (:data:`HISTORICAL_SETTINGS`)."""
     out = dict(stored)
     for k, v in used.items():
         if k not in out:

@@ -39,9 +39,9 @@ class LossWeights:
     """L_collision, mean over vertices of the squared clearance shortfall outside the body, m^2 (ours)."""
     prior: float
     """L_prior, mean squared vertex offset from the reference pose (``FitConfig.prior_reference``), m^2 (ours)."""
-    stretch: float = 0.0
+    stretch: float
     """L_stretch, mean squared relative stretch of the template's edges from their rest lengths (ours; the choice
-    of the pipeline's weight: studies/fit/README.md section 14). 0 where a caller leaves it out."""
+    of the pipeline's weight: studies/fit/README.md section 14)."""
 
 
 @dataclass(frozen=True)
@@ -58,7 +58,8 @@ class VertexSettings:
 
 @dataclass(frozen=True)
 class FitConfig:
-    """Parameters of the garment fit (config section ``fit``; build with :meth:`from_config`)."""
+    """Parameters of the garment fit (config section ``fit``; build with :meth:`from_config`: no field has a default
+    but the schema's)."""
 
     loss: str
     """The loss variant these settings are of (:data:`anidress_core.fit.variants.VARIANTS`):
@@ -123,19 +124,17 @@ class FitConfig:
     prior_tangential: bool
     """L_prior counts only the offset along the surface (its tangent plane at each vertex, from
     ``prior_tangent_planes``); the images alone place the surface along its normals."""
-    prior_tangent_planes: str = "reference"
+    prior_tangent_planes: str
     """Whose vertex normals give the tangent planes of the tangential L_prior: ``start`` (the frame's
     start mesh, the previous result moved by the flow alignment: near the surface the images place) or
     ``reference`` (L_prior's reference mesh; the ensemble's mean is smoother than the cloth, and its
-    planes let L_prior pull the surface; studies/fit/README.md section 16). The config's default is
-    ``start``; this field's default is what fits made before the setting existed used."""
-    prior_spread_floor: float | None = None
+    planes let L_prior pull the surface; studies/fit/README.md section 16)."""
+    prior_spread_floor: float | None
     """L_prior's weight per vertex from the stiffness ensemble's spread (used with ``prior_reference``
     sim_ensemble only, and stored as None otherwise; :func:`anidress_core.fit.terms.prior.spread_scale`):
     the factor 1 / (sigma^2 + sigma_0^2), mean 1 over each frame's vertices, sigma the members' RMS
     distance from their mean, sigma_0 this value times its median over the sequence; None = one weight
-    for every vertex (studies/fit/README.md section 17). The config's default is 1.0; this field's
-    default is what fits made before the setting existed used."""
+    for every vertex (studies/fit/README.md section 17)."""
 
     def __post_init__(self):
         if self.loss not in VARIANTS:
@@ -205,7 +204,7 @@ class FitConfig:
 
 def _typed(cls, values: Mapping, ignore=()):
     """``cls`` (a dataclass of this module) from the config's ``values``, each field cast to its type (nested: its
-    dataclass; a field left out keeps its default); keys other than the fields and ``ignore``: ValueError."""
+    dataclass); keys other than the fields and ``ignore``: ValueError."""
     fields = dataclasses.fields(cls)
     unknown = sorted(set(values) - {f.name for f in fields} - set(ignore))
     if unknown:
