@@ -20,7 +20,8 @@ its Gauss-Newton system), :mod:`.lm`
 (Levenberg-Marquardt), :mod:`.jacobians` (bone increments), :mod:`.sequence` (frames and
 sequences: the forward chain), :mod:`.window` (windows of chained frames refined jointly, L_flow
 coupling their poses), :mod:`.nearest` (the ``nearest`` baseline: simulated poses scored by the
-loss), :mod:`.ensemble` (the stiffness ensemble L_prior follows), :mod:`.images` (image sampling).
+loss), :mod:`.ensemble` (the stiffness ensemble L_prior follows), :mod:`.plan` (the settings
+plus the loaded artifacts: one sequence's fit as it will run), :mod:`.images` (image sampling).
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from .config import FitConfig, LossWeights, VertexSettings
 from .images import blurred, chromaticity, image_features, sample, sample_blurred
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import LMResult, levenberg_marquardt
+from .plan import FitPlan, plan_fit
 from .objective import Evaluation, evaluate, gauss_newton_system, loss_terms, make_problem, total_loss
 from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, crop_frame, crop_window, cue_notes,
                       occluder_depth, uncrop_fragments)
@@ -40,7 +42,7 @@ from .terms.prior import Reference as PriorReference
 from .variants import PAPER_WEIGHTS, VARIANTS, apply_variant
 
 __all__ = [
-    "FitConfig", "LossWeights", "VertexSettings", "VARIANTS", "PAPER_WEIGHTS", "apply_variant",
+    "FitConfig", "LossWeights", "VertexSettings", "FitPlan", "plan_fit", "VARIANTS", "PAPER_WEIGHTS", "apply_variant",
     "RigParts", "Views", "FrameCues", "FlowTargets", "Problem", "make_problem", "Evaluation", "evaluate",
     "gauss_newton_system", "loss_terms", "total_loss", "TERMS", "TERM_NAMES", "LMResult",
     "levenberg_marquardt", "FrameFit", "fit_problem", "fit_frame", "fit_sequence", "cue_notes",

@@ -287,41 +287,27 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         raise files.ArtifactError(f"{sdir / 'smpl'}: no frames")
     if int(params.get("frames", 0) or 0) > 0:  # a prefix of the sequence (quick runs, benchmarks)
         T = min(T, int(params["frames"]))
-    # 4. the simulation of the observed motion the fit follows (frame 0's start, L_prior), start of frame 0
-    start = params.get("first_frame_init", "auto")
+    # 4. the plan: frame 0's start, the simulation L_prior follows and its weight per vertex, the settings as used
     sim_name = f"seq-{seq}"
-    followed, followed_note = None, None
-    if cfg.prior_reference == "sim_ensemble" and (cfg.prior_follows_simulation or start in ("auto", "sim")):
-        followed, followed_note = ensemble_transforms(sim_ensemble_npz, art, T, device)
-    elif sim_name in art.sequences:
-        followed = art.transforms_of(sim_name).double()
-        followed_note = f"rig transforms of the simulated sequence {sim_name}"
-    if start in ("auto", "sim") and followed is not None:
-        G0 = followed[0]
-        start_used = f"{followed_note}, frame 0"
-    elif start == "sim":
-        raise ValueError(f"{rig_npz}: first_frame_init is 'sim' but the rig has no simulated sequence {sim_name!r} "
-                         f"(has {sorted(art.sequences)})")
-    else:
+
+    def body_start():  # the template skinned by the body at frame 0, in the rig
         from ..rig import fit_transforms
 
         tpl = read_template(template_npz)
         if tpl.verts.shape != tuple(art.model.rest.shape):
             raise files.ArtifactError(f"{template_npz}: template has {tpl.verts.shape[0]} vertices, the rig "
                                       f"{art.model.rest.shape[0]}")
-        skinned = tpl.skin(posed.transforms[:1].double())  # (1, V, 3)
-        G0 = fit_transforms(art.model, skinned.to(device))[0].double()
-        start_used = "template skinned by the body at frame 0, rig transforms fitted to it"
-        if start == "auto":
-            log.info("fit: the rig has no simulated sequence %s; frame 0 starts from the body-skinned template",
-                     sim_name)
+        return fit_transforms(art.model, tpl.skin(posed.transforms[:1].double()).to(device))[0].double()
+
+    rig_sim = (lambda: (art.transforms_of(sim_name).double().to(device),
+                        f"rig transforms of the simulated sequence {sim_name}")) if sim_name in art.sequences else None
     if starts is not None:  # an oracle: every frame started from a given pose
         starts = torch.as_tensor(starts).double().to(device)
-        G0 = starts[0]
-        start_used = "every frame from the given starts (an oracle)"
-    if normals_dir is None:
-        log.info("fit: no normal maps for %s; the normal loss is off (weight 0)", seq)
-        cfg = cfg.replace(weights={"normal": 0.0})
+    plan = FIT.plan_fit(cfg, params.get("first_frame_init", "auto"),
+                        lambda: ensemble_transforms(sim_ensemble_npz, art, T, device), rig_sim, body_start,
+                        lambda: ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device),
+                        starts, normals_dir is not None, f"{rig_npz} (simulated sequences {sorted(art.sequences)})")
+    cfg, G0, start_used = plan.cfg, plan.init, plan.start_note
     log.info("fit %s/%s (loss %s, method %s): %d frames, %d views %s, %d vertices, %d bones, weights %s, "
              "start: %s, device %s", scene_dir.name, seq, method, cfg.method, T, len(names), names,
              rig.rest.shape[0], rig.weights.shape[1], dataclasses.asdict(cfg.weights), start_used, device)
@@ -357,29 +343,15 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
 
         db_note = f"{db.transforms.shape[0]} simulated frames of {list(db.names)}"
         log.info("fit: candidates every frame (method nearest) from %s", db_note)
-    sim_transforms = None
-    # L_prior pulls every frame towards the simulation of the observed motion
-    if cfg.prior_follows_simulation:
-        if followed is None:
-            raise ValueError(f"{rig_npz}: fit/prior_reference 'sim' needs the rig's simulated sequence {sim_name!r}; "
-                             f"it has {sorted(art.sequences)} (rule motions simulates every captured sequence; or set "
-                             "fit/prior_reference: start, the variant pipeline_no_sim_prior)")
-        sim_transforms = followed.to(device)
-        log.info("fit: L_prior follows %s", followed_note)
-    prior_scales = None
-    if cfg.prior_spread_floor is not None:  # set only where L_prior follows the ensemble (FitConfig)
-        prior_scales = ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device)
-        followed_note += (f"; L_prior's weight per vertex from the members' spread (prior_spread_floor "
-                          f"{cfg.prior_spread_floor:g})")
-        log.info("fit: L_prior's weight per vertex from the ensemble's spread, factor %.2f-%.2f (median %.2f)",
-                 float(prior_scales.min()), float(prior_scales.max()), float(prior_scales.median()))
+    if plan.followed_note:
+        log.info("fit: L_prior follows %s", plan.followed_note)
     # 7. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
     try:
         res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
-                               anchor_init=anchor_init, candidates_of=candidates_of, sim_transforms=sim_transforms,
-                               starts=starts, prior_scales=prior_scales)
+                               anchor_init=anchor_init, candidates_of=candidates_of,
+                               sim_transforms=plan.sim_transforms, starts=starts, prior_scales=plan.prior_scales)
     finally:
         reader.close()
     wall_fit = time.perf_counter() - t_fit
@@ -409,7 +381,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
         "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
         "simulation_database": db_note,
-        "followed_simulation": followed_note if sim_transforms is not None else None,
+        "followed_simulation": plan.followed_note,
         "starts": None if starts is None else "given per frame (oracle)",
         "frame_notes": {str(t): r.notes for t, r in enumerate(res) if r.notes},  # what was done about bad cues
         # (anidress_core.fit.FrameFit.notes: views dropped, frames kept at their start, NaN pixels, no flow)
