@@ -13,6 +13,7 @@ from typing import Callable, NamedTuple
 from torch import Tensor
 
 from .config import FitConfig
+from .terms.anchor import AnchorRef
 
 __all__ = ["FitPlan", "plan_fit"]
 
@@ -35,11 +36,16 @@ class FitPlan(NamedTuple):
     """(T, V) L_prior's weight per frame and vertex from the ensemble's spread, else None."""
     followed_note: str | None
     """The simulation L_prior follows and its weighting (the header's ``followed_simulation``), else None."""
+    anchor_init: AnchorRef | None
+    """L_anchor's references from frame 0 on (the garment texture), else None (from the images as seen)."""
+    anchor_note: str | None
+    """Where L_anchor's references come from (the header's ``anchor_reference``); None: L_anchor off."""
 
 
 def plan_fit(cfg: FitConfig, first_frame_init: str, ensemble: Followed, rig_sim: Followed | None,
              body_start: Callable[[], Tensor], spread: Callable[[], Tensor], starts: Tensor | None = None,
-             normals: bool = True, rig_name: str = "the rig") -> FitPlan:
+             normals: bool = True, rig_name: str = "the rig",
+             texture: Callable[[Tensor], tuple[AnchorRef, str]] | None = None) -> FitPlan:
     """The plan of one sequence's fit.
 
     first_frame_init: ``auto`` (the followed simulation's frame 0 where there is one, else the body-skinned
@@ -50,7 +56,9 @@ def plan_fit(cfg: FitConfig, first_frame_init: str, ensemble: Followed, rig_sim:
     (T, V) :func:`anidress_core.fit.ensemble.ensemble_prior_scales` at ``cfg.prior_spread_floor`` (called only
     where it is set). starts: (T, B, 4, 4) an oracle start for every frame (frame 0's start is ``starts[0]``).
     normals: whether normal maps exist (else L_normal's weight is 0). ValueError, naming ``rig_name``, where the
-    settings need a simulation the rig does not have.
+    settings need a simulation the rig does not have. texture: (B, 4, 4) frame 0's start -> L_anchor's references
+    from the garment texture and a line saying what they are (:func:`anidress_core.fit.texture_anchor`), called with
+    ``anchor_reference: texture`` and L_anchor on.
     """
     followed, note = None, None
     if cfg.prior_reference == "sim_ensemble" and (cfg.prior_follows_simulation or first_frame_init in ("auto", "sim")):
@@ -78,4 +86,12 @@ def plan_fit(cfg: FitConfig, first_frame_init: str, ensemble: Followed, rig_sim:
                     f"{cfg.prior_spread_floor:g})"
     if not normals:
         cfg = cfg.replace(weights={"normal": 0.0})
-    return FitPlan(cfg, init, start_note, sim_transforms, scales, note if sim_transforms is not None else None)
+    anchor_init, anchor_note = None, None
+    if cfg.weights.anchor > 0:
+        anchor_note = "images (each vertex's chromaticity where first seen)"
+        if cfg.anchor_reference == "texture":
+            if texture is None:
+                raise ValueError("fit/anchor_reference is 'texture' but no garment texture was given")
+            anchor_init, anchor_note = texture(init)
+    return FitPlan(cfg, init, start_note, sim_transforms, scales, note if sim_transforms is not None else None,
+                   anchor_init, anchor_note)

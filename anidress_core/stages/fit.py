@@ -306,7 +306,9 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     plan = FIT.plan_fit(cfg, params.get("first_frame_init", "auto"),
                         lambda: ensemble_transforms(sim_ensemble_npz, art, T, device), rig_sim, body_start,
                         lambda: ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device),
-                        starts, normals_dir is not None, f"{rig_npz} (simulated sequences {sorted(art.sequences)})")
+                        starts, normals_dir is not None, f"{rig_npz} (simulated sequences {sorted(art.sequences)})",
+                        lambda G0: texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.image_blur,
+                                                     device))
     cfg, G0, start_used = plan.cfg, plan.init, plan.start_note
     log.info("fit %s/%s (loss %s, method %s): %d frames, %d views %s, %d vertices, %d bones, weights %s, "
              "start: %s, device %s", scene_dir.name, seq, method, cfg.method, T, len(names), names,
@@ -319,13 +321,9 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         p = _frame_file(Path(masks_dir), cam, 0, "png")
         if not p.is_file():
             raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
-    # 5. L_anchor's references: from the images (first frame each vertex is seen) or the template's texture
-    anchor_init, anchor_note = None, None
-    if w.anchor > 0 and cfg.anchor_reference == "texture":
-        anchor_init, anchor_note = texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.image_blur,
-                                                     device)
-        log.info("fit: L_anchor references from the garment texture: %s", anchor_note)
-    # 6. the nearest baseline's candidates from the simulation database
+    if plan.anchor_init is not None:
+        log.info("fit: L_anchor references from the garment texture: %s", plan.anchor_note)
+    # 5. the nearest baseline's candidates from the simulation database
     candidates_of, db_note = None, None
     if cfg.method == "nearest":
         from ..fit.nearest import body_features, frame_candidates
@@ -345,12 +343,12 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         log.info("fit: candidates every frame (method nearest) from %s", db_note)
     if plan.followed_note:
         log.info("fit: L_prior follows %s", plan.followed_note)
-    # 7. fit
+    # 6. fit
     t_fit = time.perf_counter()
     c_fit = time.process_time()
     try:
         res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
-                               anchor_init=anchor_init, candidates_of=candidates_of,
+                               anchor_init=plan.anchor_init, candidates_of=candidates_of,
                                sim_transforms=plan.sim_transforms, starts=starts, prior_scales=plan.prior_scales)
     finally:
         reader.close()
@@ -374,8 +372,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         "config": dataclasses.asdict(cfg), "params": dict(params), "scene": scene_dir.name,
         "sequence": seq, "cameras": names, "masks_dir": str(masks_dir), "normals_dir": None if normals_dir is None
         else str(normals_dir), "flows_dir": None if flows_dir is None else str(flows_dir), "cue_source": cue_source,
-        "first_frame_start": start_used, "anchor_reference": anchor_note or (
-            "images (each vertex's chromaticity where first seen)" if w.anchor > 0 else None),
+        "first_frame_start": start_used, "anchor_reference": plan.anchor_note,
         "rig": str(rig_npz), "frames": T, "device": str(device),
         "wall_fit_s": wall_fit, "wall_total_s": time.perf_counter() - t_start, "fps": T / wall_fit,
         "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
