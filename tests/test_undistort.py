@@ -232,3 +232,13 @@ def test_flow_vectors_are_remapped_through_the_lens():
     _, ok2 = undistort_flow(F, bad, maps, 0, K, dist)
     assert ok2.sum() < ok.sum() and not ok2[np.abs(maps.map_x[0] - 40) < 0.5][np.abs(maps.map_y[0] - 30)[
         np.abs(maps.map_x[0] - 40) < 0.5] < 0.5].any()
+
+
+def test_undistort_memory_follows_the_image_size():
+    """rule undistort's mem_mb: at least 2000 MB, twice the measured peak (about 260 MB + 90 MB per megapixel)."""
+    from anidress_core.io.scene_info import undistort_mem_mb
+
+    assert undistort_mem_mb(1080, 1920) == 2000 and undistort_mem_mb(256, 342) == 2000
+    assert undistort_mem_mb(3000, 4000) == 3000  # 12 MP
+    assert undistort_mem_mb(6000, 8000) == 10200  # 48 MP
+    assert undistort_mem_mb(6000, 8000) > 2 * (260 + 90 * 48)

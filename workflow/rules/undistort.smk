@@ -23,7 +23,7 @@ rule undistort:
         "benchmarks/runs/{scene}/{seq}/undistort.tsv"
     threads: 2
     resources:
-        mem_mb=2000,
+        mem_mb=lambda wc: undistort_mem_mb(*config["scenes"][wc.scene]["image_size"]),  # from the image size
         runtime=20,
     wildcard_constraints:
         seq="|".join(_UNDISTORT_SEQUENCES) or "^$",

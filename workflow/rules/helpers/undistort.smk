@@ -23,6 +23,13 @@ def undistorted_dir(scene, seq):
     return f"results/{scene}/{seq}/undistorted" if distorted_cameras(scene_dir, seq) else None
 
 
+def undistort_mem_mb(height, width):
+    """rule undistort's memory in MB for images of this size (anidress_core.io.scene_info.undistort_mem_mb)."""
+    from anidress_core.io.scene_info import undistort_mem_mb as mem_mb  # torch-free
+
+    return mem_mb(height, width)
+
+
 def undistorted_input(scene, seq):
     """The input a stage rule adds for one sequence, the undistorted folder or nothing ([])."""
     return undistorted_dir(scene, seq) or []
