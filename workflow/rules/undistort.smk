@@ -1,7 +1,7 @@
 # Lens distortion (issue 24): a captured sequence whose intri.yml has non-zero dist_<cam> is
 # undistorted once, here, to pinhole working cameras; every later stage (masks, flows, normals,
 # fit, train_field, render_*, evaluate_field) reads that copy instead of data/{scene}/{seq}:
-#   undistort -> results/{scene}/{seq}/undistorted/  (images/, masks/, normals/, gt/masks, backgrounds/,
+#   undistort -> results/{scene}/{seq}/undistorted/  (images/, masks/, normals/, flows/, gt/masks, backgrounds/,
 #                intri.yml of the working cameras, extri.yml, original_intri.yml, undistort.json)
 # The decision is anidress_core.io.scene_info.distorted_cameras / io.scene.sequence_source, taken at
 # DAG time by undistorted_dir() (helpers/undistort.smk); pinhole sequences (all synthetic scenes) have
