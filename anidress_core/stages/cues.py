@@ -66,7 +66,6 @@ __all__ = [
     "run_flows",
     "run_convert_flows",
     "run_normals",
-    "body_normals",
     "evaluate_cues",
     "format_table",
 ]
@@ -539,12 +538,6 @@ def run_convert_flows(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.
 # --------------------------------------------------------------------------- normals
 
 
-def body_normals(scene_dir: Path, seq: str, info: dict, seq_dir: Path, names: Sequence[str], frames: list[int],
-                 template_npz: str | os.PathLike | None) -> ShapePrior:
-    """The shape prior of the frames ``frames`` of a sequence (its :meth:`ShapePrior.body_normals` give the posed
-    body's normals where it is seen)."""
-    return ShapePrior(scene_dir, seq, info, template_npz, _cameras(seq_dir, names, info), frames)
-
 
 def run_normals(scene_dir: str | os.PathLike, seq: str, normals_dir: str | os.PathLike | None,
                 out_json: str | os.PathLike, cameras: str | Sequence[str] = "train",
@@ -597,7 +590,7 @@ def run_normals(scene_dir: str | os.PathLike, seq: str, normals_dir: str | os.Pa
     # 1. the axis convention, on a few frames spread over the sequence
     pick = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(check_frames, len(frames))).round()
                                          .astype(int))]
-    prior = body_normals(scene_dir, seq, info, seq_dir, names, pick, template_npz)
+    prior = ShapePrior(scene_dir, seq, info, template_npz, _cameras(seq_dir, names, info), pick)
     pred, ref, image = [], [], []
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
         for k, f in enumerate(pick):
