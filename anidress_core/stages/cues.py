@@ -538,7 +538,6 @@ def run_convert_flows(scene_dir: str | os.PathLike, seq: str, out_dir: str | os.
 # --------------------------------------------------------------------------- normals
 
 
-
 def run_normals(scene_dir: str | os.PathLike, seq: str, normals_dir: str | os.PathLike | None,
                 out_json: str | os.PathLike, cameras: str | Sequence[str] = "train",
                 reason: str | None = None, undistorted_dir: str | os.PathLike | None = None,
