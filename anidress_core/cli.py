@@ -615,8 +615,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-gap", type=int, default=0, help="interpolate up to this many frames without the person")
     s.add_argument("--cameras", help="a subset of intri.yml's cameras (names or 0-based indices, comma-separated)")
     s.add_argument("--masks", help="mask folder <cam>/<frame:06d>.png (relative to SRC or absolute)")
-    s.add_argument("--mask-format", default="person", choices=["person", "cihp", "labels"],
-                   help="person: non-zero is the person; cihp: CIHP part labels; labels: 0/1/2 (default: %(default)s)")
+    s.add_argument("--mask-format", default="person", choices=["person", "cihp", "labels", "schp"],
+                   help="person: non-zero is the person; cihp: CIHP part labels; labels: 0/1/2; schp: EasyMocap's "
+                        "mask-schp (<frame>_<i>.png silhouettes, CIHP labels in the sibling mask-schp-parsing/) "
+                        "(default: %(default)s)")
     s.add_argument("--garment", help="garment template mesh (.obj); none: a tight-clothed scene")
     s.add_argument("--garment-kind", choices=["skirt", "dress"], help="the garment's kind (with --garment)")
     s.add_argument("--garment-texture", help="the garment template's texture image (optional)")

@@ -181,3 +181,32 @@ def test_cli_import_easymocap(tiny, tmp_path, capsys):
     assert set(np.unique(m)) <= {0, 1}  # a tight scene: the garment label is body
     validate_scene(tmp_path / "c")
     assert main(["import-easymocap", str(cap), str(tmp_path / "d")]) == 2  # two people, no --person-id
+
+
+def test_easymocap_mask_schp_silhouettes_and_parsing_become_labels(tiny, tmp_path):
+    """--mask-format schp: EasyMocap's mask-schp (a 0 / 255 silhouette per person, written as its SCHP fork does)
+    with the CIHP part labels in mask-schp-parsing/: the person's pixels, dress / skirt as the garment."""
+    import shutil
+
+    from anidress_core.io import cue_files
+
+    data, _, cap0 = tiny
+    cap = tmp_path / "cap"
+    shutil.copytree(cap0, cap)
+    for p in sorted((cap / "mask").rglob("*.png")):
+        lab = files.read_mask(p)
+        cam, t = p.parent.name, p.stem
+        (cap / "mask-schp" / cam).mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(cap / "mask-schp" / cam / f"{t}_0.png"), ((lab > 0) * 255).astype(np.uint8))
+        parsing = np.choose(lab, [0, 13, 12]).astype(np.uint8)  # body: CIHP face, garment: skirt
+        parsing[:2] = 2  # hair of someone else above the person: outside the silhouette, not theirs
+        cue_files.write_schp_png(cap / "mask-schp-parsing" / cam / f"{t}.png", parsing)
+    dst = tmp_path / "s"
+    _import(cap, dst, data, sequence="walk", masks="mask-schp", mask_format="schp")
+    for cam in ("01", "03"):
+        want = files.read_mask(data / "walk" / "gt" / "masks" / cam / "000002.png")
+        want[:2] = np.where(want[:2] > 0, 1, 0)  # the hair label is body where the silhouette has the person
+        np.testing.assert_array_equal(files.read_mask(dst / "walk" / "masks" / cam / "000002.png"), want)
+    shutil.rmtree(cap / "mask-schp-parsing")
+    with pytest.raises(ValueError, match="without part labels"):
+        _import(cap, tmp_path / "s2", data, sequence="walk", masks="mask-schp", mask_format="schp")

@@ -55,7 +55,7 @@ import yaml
 
 from .. import __version__
 from ..garment import KINDS
-from ..io import easymocap, files
+from ..io import cue_files, easymocap, files
 from ..io.images import image_size_from_header
 from ..io.motion import read_easymocap_smpl_dir, write_easymocap_smpl_dir
 from ..io.scene_info import scene_config_entry
@@ -457,9 +457,11 @@ def run_import_zju(src: str | os.PathLike, dst: str | os.PathLike, sequence: str
 SMPL_DIRS = ("smpl", "output-smpl-3d/smpl", "output/smpl")
 """Where an EasyMocap capture keeps its body files, in the order they are looked for: ``smpl/``, the
 output of EasyMocap >= 0.2's ``apps/demo/mocap.py`` (``output-smpl-3d/smpl``), 0.1's ``output/smpl``."""
-MASK_FORMATS = ("person", "cihp", "labels")
+MASK_FORMATS = ("person", "cihp", "labels", "schp")
 """What a capture's mask files hold: ``person`` (0 background, non-zero person: body), ``cihp`` (CIHP
-part labels, garment from ``garment_labels``), ``labels`` (the pipeline's 0 / 1 / 2)."""
+part labels, garment from ``garment_labels``), ``labels`` (the pipeline's 0 / 1 / 2), ``schp`` (EasyMocap's
+``mask-schp``: a 0 / 255 silhouette per person ``<frame>_<i>.png`` with SCHP's CIHP part labels in the sibling
+``mask-schp-parsing/``, or SCHP's CIHP palette PNGs; :func:`anidress_core.io.cue_files.read_schp_indices`)."""
 EASYMOCAP_FPS = 30.0
 """Frame rate written to scene.yaml when none is given (EasyMocap's files store none: an
 assumption; pass the capture's real rate)."""
@@ -610,7 +612,17 @@ def run_import_easymocap(src: str | os.PathLike, dst: str | os.PathLike, sequenc
     }
     images = [[per[cam][f] for cam in sources] for f in picked]
     labels = None
-    if mdir is not None:
+    if mdir is not None and mask_format == "schp":
+        def labels(k: int, c: int) -> np.ndarray:
+            idx, path = cue_files.read_schp_indices(mdir, sources[c], picked[k])
+            if idx.shape != size:
+                raise ValueError(f"{path}: mask is {idx.shape[1]}x{idx.shape[0]} (WxH), the images are "
+                                 f"{size[1]}x{size[0]}")
+            try:
+                return zju_mask_labels(None, idx, labels_garment)
+            except ValueError as e:
+                raise ValueError(f"{path}: {e}") from e
+    elif mdir is not None:
         def labels(k: int, c: int) -> np.ndarray:
             return _easymocap_labels(mdir / sources[c] / f"{picked[k]:06d}.png", size, mask_format, labels_garment)
     n_masks = _write_sequence(dst, seq, role, existing, cam_dict, images, labels, body, record, link, dict(
