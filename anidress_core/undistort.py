@@ -34,11 +34,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .camera import Cameras, distort_normalized, undistort_normalized
+from .camera import Cameras, distort_normalized, project, unproject
 from .io.scene import DIST_EPS
 
 __all__ = ["UndistortMaps", "undistort_maps", "fold_radius", "working_cameras", "undistort_image", "undistort_labels",
-           "undistort_normals", "remap_flow", "undistort_flow", "distorted_camera_names", "DIST_EPS"]
+           "undistort_normals", "remap_flow", "pixel_map", "undistort_flow", "distorted_camera_names", "DIST_EPS"]
 
 class UndistortMaps(NamedTuple):
     """Per-camera lookup maps from the working (pinhole) image into the source (distorted) image."""
@@ -218,22 +218,31 @@ def remap_flow(flow: np.ndarray, valid: np.ndarray, map_x: np.ndarray, map_y: np
     return out, ok
 
 
+def pixel_map(src: Cameras, dst: Cameras):
+    """The map of one camera's pixels from the image model ``src`` to ``dst`` (each a single camera, same pose):
+    (N, 2) float64 source pixels -> (N, 2) target pixels, through the camera's own :func:`unproject` (lens
+    undone) and :func:`project` (lens applied): the rays are the same, only intrinsics and distortion differ."""
+    src, dst = src.to(dtype=torch.float64), dst.to(dtype=torch.float64)
+
+    def to_target(s: np.ndarray) -> np.ndarray:
+        uv = torch.from_numpy(np.asarray(s, np.float64))
+        X = unproject(uv, torch.ones(1, len(uv), dtype=torch.float64), src)
+        return project(X, dst).uv[0].numpy()
+
+    return to_target
+
+
 def undistort_flow(flow: np.ndarray, valid: np.ndarray, maps: UndistortMaps, cam: int, K: Tensor, dist: Tensor,
                    K_new: Tensor | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A forward flow field of camera ``cam`` (source camera K (3, 3), dist (5,)) in the working camera
-    (K_new, default K): :func:`remap_flow` with ``to_target(s) = K_new undistort(K^-1 s)``. flow: (H, W, 2),
-    valid: (H, W) bool -> (flow (H, W, 2) float32, valid (H, W) bool)."""
+    (K_new, default K): :func:`remap_flow` with ``to_target(s) = K_new undistort(K^-1 s)`` (:func:`pixel_map`).
+    flow: (H, W, 2), valid: (H, W) bool -> (flow (H, W, 2) float32, valid (H, W) bool)."""
     _check(flow, maps, cam, "undistort_flow")
-    K = torch.as_tensor(K, dtype=torch.float64)
-    Kn = K if K_new is None else torch.as_tensor(K_new, dtype=torch.float64)
-    d = torch.as_tensor(dist, dtype=torch.float64).reshape(5)
-
-    def to_target(s: np.ndarray) -> np.ndarray:
-        s = torch.from_numpy(s)
-        y = (s[:, 1] - K[1, 2]) / K[1, 1]
-        x = (s[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
-        xu = undistort_normalized(torch.stack([x, y], -1), d)
-        return torch.stack([Kn[0, 0] * xu[:, 0] + Kn[0, 1] * xu[:, 1] + Kn[0, 2],
-                            Kn[1, 1] * xu[:, 1] + Kn[1, 2]], -1).numpy()
-
-    return remap_flow(flow, valid, maps.map_x[cam], maps.map_y[cam], maps.valid[cam], to_target)
+    K = torch.as_tensor(K, dtype=torch.float64).reshape(1, 3, 3)
+    Kn = K if K_new is None else torch.as_tensor(K_new, dtype=torch.float64).reshape(1, 3, 3)
+    d = torch.as_tensor(dist, dtype=torch.float64).reshape(1, 5)
+    H, W = flow.shape[:2]
+    R, T = torch.eye(3, dtype=torch.float64)[None], torch.zeros(1, 3, dtype=torch.float64)
+    src = Cameras(["src"], K, d, R, T, H, W)
+    work = Cameras(["src"], Kn, torch.zeros_like(d), R, T, H, W)
+    return remap_flow(flow, valid, maps.map_x[cam], maps.map_y[cam], maps.valid[cam], pixel_map(src, work))

@@ -110,8 +110,6 @@ from .files import ArtifactError, _require, atomic_path, read_exr, write_json
 __all__ = [
     "SCHP_LABEL_SETS",
     "SCHP_GARMENT_LABELS",
-    "MASK_FORMATS_SCHP",
-    "NORMAL_FORMATS",
     "FLOW_SUFFIXES",
     "ICON_CROP_SIZE",
     "NORMAL_LENGTH_RANGE",
@@ -161,15 +159,6 @@ SCHP_GARMENT_LABELS: dict[str, tuple[int, ...]] = {
 }
 """The labels taken as the loose garment by default: Dress and Skirt (lip (6, 12), atr (7, 5),
 cihp (6, 12)), the garments AniDress simulates; every other non-background label is body."""
-
-MASK_FORMATS_SCHP = ("lip", "atr", "cihp")
-"""The SCHP label sets (scene.yaml ``cues/masks/label_set``)."""
-
-NORMAL_FORMATS = ("exr", "sapiens", "png", "icon")
-"""Normal cue formats: the pipeline's own EXR (camera-space unit normals stored as they are,
-read with :func:`~anidress_core.io.files.read_exr`), Sapiens ``.npy``
-(:func:`read_sapiens_normals`), full-frame (n+1)/2 images (:func:`read_normal_image`), ICON /
-ECON crops with ``crops.json`` (:func:`read_normal_image` + :func:`paste_crop`)."""
 
 FLOW_SUFFIXES = {".flo": "raft", ".png": "kitti", ".exr": "exr"}
 """Flow file suffix -> format (the pipeline's EXR holds channels X, Y, valid)."""
@@ -736,10 +725,10 @@ def read_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         return read_kitti_flow(path)
     if fmt == "exr":
         arr = read_exr(path)
-        if arr.shape[-1] < 2:
-            raise ArtifactError(f"{path}: a flow EXR has channels X, Y (, valid), got {arr.shape[-1]} channel")
+        if arr.ndim != 3 or arr.shape[-1] < 2:
+            raise ArtifactError(f"{path}: a flow EXR has channels X, Y (, valid), got an array of shape {arr.shape}")
         valid = arr[..., 2] > 0.5 if arr.shape[-1] > 2 else np.ones(arr.shape[:2], bool)
-        return np.ascontiguousarray(arr[..., :2]), valid
+        return np.ascontiguousarray(arr[..., :2], dtype=np.float32), valid
     raise ArtifactError(f"{path}: unknown flow file suffix {path.suffix!r} (known: {', '.join(FLOW_SUFFIXES)})")
 
 

@@ -161,17 +161,6 @@ def read_flow(root: str | Path, cam: str, frame: int, fmt: str, shape: tuple[int
     root = Path(root)
     suffix = CUE_SUFFIX[("flows", fmt)]
     path = frame_files(root / cam, (suffix,)).get(int(frame), root / cam / f"{int(frame):06d}{suffix}")
-    if fmt == "exr":
-        a = files.read_exr(path)
-        if a.ndim != 3 or a.shape[-1] < 2:
-            raise files.ArtifactError(f"{path}: flow must be (H, W, 2) or (H, W, 3) with validity, got {a.shape}")
-        flow = np.asarray(a[..., :2], np.float32)
-        valid = a[..., 2] > 0.5 if a.shape[-1] > 2 else np.ones(a.shape[:2], bool)
-    elif fmt == "raft":
-        flow, valid = cue_files.read_flo(path)
-    elif fmt == "kitti":
-        flow, valid = cue_files.read_kitti_flow(path)
-    else:
-        raise ValueError(f"unknown flow format {fmt!r}")
+    flow, valid = cue_files.read_flow(path)  # the reader of the format's suffix
     cue_files.check_flow(flow, valid, tuple(shape), path)
     return flow, valid

@@ -247,27 +247,14 @@ def warp_normals(normals: np.ndarray, maps: WarpMaps, cam: int, eps: float = 1e-
 def warp_flow(flow: np.ndarray, valid: np.ndarray, maps: WarpMaps, cam: int, src: Cameras,
               dst: Cameras) -> tuple[np.ndarray, np.ndarray]:
     """A forward flow (H, W, 2) of camera ``cam`` with validity (H, W) as the exported camera sees it, the
-    vectors remapped (:func:`anidress_core.undistort.remap_flow`: source pixel s goes to ``K' distort(K^-1 s)``).
-    Returns (flow (H', W', 2) float32, valid (H', W') bool)."""
-    from ..camera import distort_normalized
-    from ..undistort import remap_flow
+    vectors remapped (:func:`anidress_core.undistort.remap_flow`: source pixel s goes to ``K' distort(K^-1 s)``,
+    :func:`anidress_core.undistort.pixel_map`). Returns (flow (H', W', 2) float32, valid (H', W') bool)."""
+    from ..undistort import pixel_map, remap_flow
 
-    K = src.K[cam].to(torch.float64)
-    K2 = dst.K[cam].to(torch.float64)
-    d = dst.dist[cam].to(torch.float64)
     H, W = flow.shape[:2]
     mx, my = maps.map_x[cam], maps.map_y[cam]
     inside = (mx >= -0.5) & (mx <= W - 0.5) & (my >= -0.5) & (my <= H - 0.5)
-
-    def to_target(s: np.ndarray) -> np.ndarray:
-        s = torch.from_numpy(s)
-        y = (s[:, 1] - K[1, 2]) / K[1, 1]
-        x = (s[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
-        xd = distort_normalized(torch.stack([x, y], -1), d)
-        return torch.stack([K2[0, 0] * xd[:, 0] + K2[0, 1] * xd[:, 1] + K2[0, 2], K2[1, 1] * xd[:, 1] + K2[1, 2]],
-                           -1).numpy()
-
-    return remap_flow(flow, valid, mx, my, inside, to_target)
+    return remap_flow(flow, valid, mx, my, inside, pixel_map(src.select(cam), dst.select(cam)))
 
 
 def network_flow(flow: np.ndarray, valid: np.ndarray, rng: np.random.Generator, scale: float = 1.0,

@@ -54,8 +54,7 @@ def test_label_sets_and_default_garment_labels():
     assert sets["cihp"][10] == "Torso-skin"
     assert [a for a, b in zip(sets["lip"], sets["cihp"]) if a != b] == ["Jumpsuits"]  # differ at 10 only
     assert cf.SCHP_GARMENT_LABELS == {"lip": (6, 12), "atr": (7, 5), "cihp": (6, 12)}
-    assert cf.MASK_FORMATS_SCHP == tuple(sets) == SCHP_LABEL_SET_NAMES
-    assert cf.NORMAL_FORMATS == SHIPPED_CUE_FORMATS["normals"]
+    assert tuple(sets) == SCHP_LABEL_SET_NAMES  # scene.yaml's label sets (io.scene_info)
     assert set(cf.FLOW_SUFFIXES.values()) == set(SHIPPED_CUE_FORMATS["flows"])
 
 
