@@ -8,7 +8,8 @@ cameras, 8 train, 256 x 256, 3K-vertex garment) with ``--frames`` frames of walk
 
 Variants (``--variants``, in order; each a separate Snakemake run in ``WORK/<variant>``, one at a time):
 
-* ``synthetic``: the scene as rule synth writes it (plates, texture, exact poses, pinhole, square);
+* ``synthetic``: the scene as rule synth writes it (plates, texture, exact poses, pinhole, square), the fit's
+  L_anchor on the texture (fit/anchor_reference: texture);
 * ``capture``: every degradation (distortion, 4:3 images, 2 cm body noise, no masks: the pipeline's
   masks from a temporal median, no plates, no texture: fit anchor on image references);
 * ``crutchless``: no plates, no texture (always dropped by the export) but pinhole, square, exact poses;
@@ -249,8 +250,9 @@ def run_variant(args, name: str, work_root: Path) -> dict:
         row.update(distort=False, image_size="256x256", pose_noise_cm=0.0, masks="plate background", plates=True,
                    texture=name == "synthetic", body_joint_error_cm=0.0,
                    body_joint_angle_deg=0.0, body_jitter_cm=0.0)
+        # the synthetic run uses the texture the scene hands it; image_anchor the default image references
+        entry["fit"] = {**entry.get("fit", {}), "anchor_reference": "texture" if name == "synthetic" else "images"}
         if name == "image_anchor":
-            entry["fit"] = {**entry.get("fit", {}), "anchor_reference": "images"}
             if not (work / "data" / scene_name).is_dir():  # the synthetic run, mtimes and records kept
                 shutil.rmtree(work)
                 subprocess.run(["cp", "-a", str(work_root / "synthetic"), str(work)], check=True)

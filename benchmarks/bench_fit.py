@@ -55,7 +55,7 @@ CODE_PATHS = ("anidress_core/fit", "anidress_core/raster.py", "anidress_core/sta
 #: the loss variants fitted by default: the paper's loss, the pipeline's, the paper's ablations (Fig. 9)
 DEFAULT_METHODS = ("paper", "pipeline", "paper_vertex", "paper_no_normal_flow", "paper_no_flow")
 #: the methods of the suite (--suite): the pipeline, it without the garment texture, the baselines
-SUITE_METHODS = ("pipeline", "pipeline_image_anchor", "paper", "nearest")
+SUITE_METHODS = ("pipeline", "pipeline_texture_anchor", "paper", "nearest")
 #: issue 23's criteria on the held-out scenes (pipeline defaults): median ratio to the rig floor per views,
 #: the worst at 8 views, drift on every scene
 SUITE_MEDIAN = {8: 1.6, 4: 2.0}

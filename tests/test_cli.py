@@ -57,10 +57,10 @@ def test_fit_command_applies_the_scene_overrides(monkeypatch, tmp_path):
     base = ["fit", str(scene), "walk", "--rig", "r.npz", "--template", "t.npz", "--masks", "m", "-o",
             str(tmp_path / "o.npz"), "--no-normals", "--config", "config/config.yaml"]
     assert main(base) in (0, None)
-    assert seen["params"]["anchor_reference"] == "texture"  # config.yaml: scenes/skirt/fit
-    assert main(base + ["--anchor-reference", "images", "--sim-ensemble", "e.npz"]) in (0, None)
-    assert seen["params"]["anchor_reference"] == "images" and seen["ensemble"] == "e.npz"
+    assert seen["params"]["anchor_reference"] == "images"  # config.yaml: the fit section (the schema's default)
+    assert main(base + ["--anchor-reference", "texture", "--sim-ensemble", "e.npz"]) in (0, None)
+    assert seen["params"]["anchor_reference"] == "texture" and seen["ensemble"] == "e.npz"
     other = tmp_path / "custom"  # a scene config.yaml does not define
     other.mkdir()
     assert main(["fit", str(other)] + base[2:]) in (0, None)
-    assert seen["params"]["anchor_reference"] == "texture"  # the top-level fit section (the schema's default)
+    assert seen["params"]["anchor_reference"] == "images"  # the top-level fit section (the schema's default)

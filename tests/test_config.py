@@ -94,10 +94,10 @@ def test_fit_config_keys_are_the_schema_keys_and_the_weights_are_stored_as_used(
     fields = {f.name for f in dataclasses.fields(FitConfig)}
     assert fields | set(STAGE_KEYS) - {"frames"} == set(fit_schema)  # no renamed key, none missing
     assert {f.name for f in dataclasses.fields(LossWeights)} == set(fit_schema["weights"]["properties"])
-    # the pipeline's defaults: lambda_N 300 with texture references, no swap hidden anywhere
+    # the pipeline's defaults: lambda_N 300 with image references, no swap hidden anywhere
     cfg = FitConfig.from_config({})
-    assert cfg.loss == "pipeline" and cfg.anchor_reference == "texture" and cfg.weights.normal == 300.0
-    assert FitConfig.from_config({"anchor_reference": "images"}).weights.normal == 300.0
+    assert cfg.loss == "pipeline" and cfg.anchor_reference == "images" and cfg.weights.normal == 300.0
+    assert FitConfig.from_config({"anchor_reference": "texture"}).weights.normal == 300.0
     assert FitConfig.from_config({"weights": {"normal": 0.1}}).weights.normal == 0.1
     # fit/loss switches the loss; an explicit variant wins over it
     assert FitConfig.from_config({"loss": "paper"}) == FitConfig.from_config({}, "paper")

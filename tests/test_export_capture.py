@@ -291,7 +291,7 @@ def test_cli_export_capture(tiny, tmp_path, capsys):
                  "60x48", "--seed", "2", "--threads", "1"]) == 0
     text = capsys.readouterr().out
     assert "body joint error 1.5" in text and "distortion off" in text and f"{out}: OK" in text
-    assert "scenes:" in text and "anchor_reference: images" in text
+    assert "scenes:" in text and "anchor_reference" not in text  # the default fit needs no texture
     assert main(["export-capture", str(data), str(out)]) == 2  # exists: refused, named
 
 

@@ -4,8 +4,8 @@ rules ``fit`` and ``fit_ablation``, the CLI).
 * ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
 * ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, no temporal
   filter, no window refinement, no simulation prior); ``pipeline_uniform_prior``: without L_prior's weight
-  per vertex from the ensemble's spread; ``pipeline_image_anchor``: L_anchor's references from the images,
-  not the garment texture (the pipeline's own references are the texture's).
+  per vertex from the ensemble's spread; ``pipeline_texture_anchor``: L_anchor's references from the
+  synthetic garment's texture at the template's UVs, not the images (a capture has no such texture).
 * ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
   lowest pipeline loss (:mod:`anidress_core.fit.nearest`).
 * ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress,
@@ -62,9 +62,9 @@ VARIANTS: dict[str, Variant] = {
     "pipeline_uniform_prior": Variant("the pipeline with one L_prior weight for every vertex, not weighted by the "
                                       "stiffness ensemble's spread (fit/prior_spread_floor null)",
                                       lambda c: c.replace(prior_spread_floor=None)),
-    "pipeline_image_anchor": Variant("the pipeline's loss with L_anchor's references from the images, not the garment "
-                                     "texture (which a capture does not have)",
-                                     lambda c: c.replace(anchor_reference="images")),
+    "pipeline_texture_anchor": Variant("the pipeline's loss with L_anchor's references from the garment texture at "
+                                       "the template's UVs, not the images (a capture has no such texture)",
+                                       lambda c: c.replace(anchor_reference="texture")),
     "nearest": Variant("baseline, no fitting: per frame the simulated pose (nearest simulated frames by body pose and "
                        "velocity, the simulation of the observed motion at t +- offsets) with the lowest pipeline loss "
                        "on the frame's cues", lambda c: c.replace(method="nearest", smooth_passes=0, window=0)),

@@ -130,17 +130,11 @@ def distorted_cameras(scene_dir: str | os.PathLike, seq: str, info: dict | None 
 def scene_config_entry(info: dict) -> dict:
     """The ``scenes/<scene>`` entry of the pipeline config (workflow/schemas/config.schema.yaml) for a
     captured scene whose parsed scene.yaml is ``info``: synthetic false, kind, fps, image_size and
-    the sequences (name, frames, role; no motion: a captured sequence's motion is its smpl/).
-
-    A garment without a texture (a capture has none unless one was given) gets the scene override
-    ``fit: {anchor_reference: images}``: the default ``texture`` references need the texture and
-    the fit would stop on it."""
+    the sequences (name, frames, role; no motion: a captured sequence's motion is its smpl/)."""
     entry = {"synthetic": False, "kind": info.get("kind", "tight"), "fps": info["fps"],
              "image_size": list(info["image_size"]),
              "sequences": [{"name": s["name"], "frames": int(s["frames"]), "role": s.get("role", "train")}
                            for s in info["sequences"]]}
-    if info.get("garment_template") and not info.get("garment_texture"):
-        entry["fit"] = {"anchor_reference": "images"}
     return entry
 
 

@@ -17,7 +17,7 @@ def _sim(value: float, note: str):
 
 
 def test_the_pipeline_follows_the_ensemble_and_weights_by_its_spread():
-    cfg = fit.FitConfig.from_config({})
+    cfg = fit.FitConfig.from_config({"anchor_reference": "texture"})
     scales = torch.ones(3, 5, dtype=torch.float64)
     p = fit.plan_fit(cfg, "auto", _sim(1.0, "ensemble"), _sim(2.0, "rig"), _never, lambda: scales,
                      texture=lambda G0: (G0, "texture at the start"))  # L_anchor's references at frame 0's start
@@ -28,11 +28,11 @@ def test_the_pipeline_follows_the_ensemble_and_weights_by_its_spread():
 
 
 def test_without_a_simulation_prior_frame_0_starts_from_the_body_and_the_ensemble_is_not_read():
-    cfg = fit.FitConfig.from_config({"anchor_reference": "images"}, "pipeline_no_sim_prior")
+    cfg = fit.FitConfig.from_config({}, "pipeline_no_sim_prior")
     body = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
     p = fit.plan_fit(cfg, "body", _never, _sim(2.0, "rig"), lambda: body, _never, normals=False)
     assert p.init is body and p.sim_transforms is None and p.prior_scales is None and p.followed_note is None
-    assert p.anchor_init is None and p.anchor_note.startswith("images")  # the variant's references: the images'
+    assert p.anchor_init is None and p.anchor_note.startswith("images")  # the default references: the images'
     assert p.cfg.weights.normal == 0.0 and p.cfg.replace(weights={"normal": cfg.weights.normal}) == cfg
     starts = torch.rand(3, 2, 4, 4, dtype=torch.float64)
     assert torch.equal(fit.plan_fit(cfg, "auto", _never, None, _never, _never, starts).init, starts[0])  # an oracle

@@ -57,7 +57,7 @@ def test_variant_configs():
     assert nsp.prior_reference == "start" and not nsp.prior_tangential and nsp.weights.prior == 10.0
     assert base.prior_spread_floor == 1.0
     assert fit.FitConfig.from_config({}, "pipeline_uniform_prior").prior_spread_floor is None
-    assert fit.FitConfig.from_config({}, "pipeline_image_anchor").anchor_reference == "images"
+    assert fit.FitConfig.from_config({}, "pipeline_texture_anchor").anchor_reference == "texture"
 
 
 def test_the_variants_kept():
@@ -67,7 +67,7 @@ def test_the_variants_kept():
     assert list(fit.VARIANTS) == [
         "pipeline", "pipeline_no_normal", "pipeline_no_flow", "pipeline_no_anchor", "pipeline_no_collision",
         "pipeline_no_stretch", "pipeline_no_prior", "pipeline_no_smooth", "pipeline_no_window",
-        "pipeline_no_sim_prior", "pipeline_uniform_prior", "pipeline_image_anchor", "nearest", "paper",
+        "pipeline_no_sim_prior", "pipeline_uniform_prior", "pipeline_texture_anchor", "nearest", "paper",
         "paper_vertex", "paper_no_normal_flow", "paper_no_flow"]
     fit_schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]["fit"]
     for key in ("proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine",

@@ -1,6 +1,6 @@
 """rule validate_scene reports a fit's missing garment texture before any long stage (issue 24).
 
-With fit/anchor_reference 'texture' (the default) L_anchor samples the garment texture; a captured scene
+With fit/anchor_reference 'texture' L_anchor samples the garment texture; a captured scene
 without one used to pass validate_scene and stop rule fit after template, simulate, rig, masks and
 flows had run. The workflow passes rule validate_scene what the scene's effective fit section needs
 (helpers/fit.smk fit_texture_check: only when a fit needs a texture the scene lacks), and
@@ -22,7 +22,7 @@ from anidress_core.stages.validate import validate_scene
 from tests.io.test_scene_cameras import build_tiny_skirt
 
 REPO = Path(__file__).resolve().parents[2]
-CFG = {"run_scenes": ["cap"],
+CFG = {"run_scenes": ["cap"], "fit": {"anchor_reference": "texture"},
        "scenes": {"cap": {"synthetic": False, "kind": "skirt", "sequences": [{"name": "walk", "frames": 3}]}}}
 
 
@@ -70,7 +70,7 @@ def _snakemake(wd: Path, cfg: dict, *args: str, importtime: bool = False) -> sub
 
 
 def test_the_workflow_stops_at_validate_scene_and_runs_with_images_references(capture):
-    # 1. the default anchor_reference (texture): the plan builds without torch; validate_scene fails, naming both
+    # 1. anchor_reference texture: the plan builds without torch; validate_scene fails, naming both
     res = _snakemake(capture, CFG, "-n", "--quiet", "rules", importtime=True)
     assert res.returncode == 0, res.stderr[-3000:]
     mods = {ln.rsplit("|", 1)[1].strip() for ln in res.stderr.splitlines() if ln.startswith("import time:")}
@@ -86,8 +86,9 @@ def test_the_workflow_stops_at_validate_scene_and_runs_with_images_references(ca
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     # 3. texture references again, but the paper's loss (its L_anchor weight is 0): nothing to rerun; an
     #    ablation with the pipeline's loss needs the texture: validate_scene is planned again
-    res = _snakemake(capture, {**CFG, "fit": {"loss": "paper"}}, "results/cap/scene_check.json", "-n", "--quiet", "rules")
+    res = _snakemake(capture, {**CFG, "fit": {**CFG["fit"], "loss": "paper"}}, "results/cap/scene_check.json", "-n",
+                     "--quiet", "rules")
     assert res.returncode == 0 and "validate_scene" not in res.stdout + res.stderr, res.stdout[-2000:]
-    res = _snakemake(capture, {**CFG, "fit": {"loss": "paper", "ablations": ["pipeline_no_flow"]}},
+    res = _snakemake(capture, {**CFG, "fit": {**CFG["fit"], "loss": "paper", "ablations": ["pipeline_no_flow"]}},
                      "results/cap/scene_check.json", "-n", "--quiet", "rules")
     assert res.returncode == 0 and "validate_scene" in res.stdout + res.stderr, res.stdout[-2000:]

@@ -49,8 +49,8 @@ CASES = [
     ("scenes/tinyskirt/garment/texture", "plaid", {"synth"}, SKIRT_ALL),
     ("scenes/tiny/render/noise_std", 0.01, {"synth"}, TIGHT_ALL),
     ("scenes/tinyskirt/predicted_normals/blur_px", 1.0, {"synth"}, SKIRT_ALL),
-    ("scenes/tinyskirt/fit/anchor_reference", "images", {"fit"}, FIT_DOWN),
-    ("scenes/tiny/fit/anchor_reference", "images", set(), {}),  # a tight scene has no fit
+    ("scenes/tinyskirt/fit/anchor_reference", "texture", {"fit"}, FIT_DOWN),
+    ("scenes/tiny/fit/anchor_reference", "texture", set(), {}),  # a tight scene has no fit
     # the stages' sections
     ("template/vertices", 500, {"template"},
      {"template": 1, "simulate": 2, "simulate_ensemble": 1, "rig": 1, "masks": 1, "flows": 1, "normals": 1, "fit": 1,
