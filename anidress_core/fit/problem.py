@@ -25,6 +25,7 @@ from torch import Tensor
 
 from .. import raster
 from ..geometry import nearest_rotation
+from ..rig import RigModel, fit_transforms
 from .config import FitConfig
 
 __all__ = ["RigParts", "HessianLayout", "Views", "FrameCues", "FlowTargets", "Problem", "Rendered", "Linearisation",
@@ -59,6 +60,13 @@ class RigParts(NamedTuple):
                 and bool(torch.isfinite(centres).all())):
             raise ValueError("RigParts: rest, weights or centres contain NaN or inf")
         return RigParts(rest, weights, centres, faces, raster.mesh_edges(faces), HessianLayout.make(faces, V))
+
+    def closest_pose(self, verts: Tensor) -> Tensor:
+        """(T, B, 4, 4) float64: the bone transforms that best explain ``verts`` (T, V, 3)
+        (:func:`anidress_core.rig.fit_transforms`)."""
+        model = RigModel(self.rest, self.weights, self.rest.new_zeros(0, self.weights.shape[1], 4, 4), self.centres,
+                         float("nan"))
+        return fit_transforms(model, verts).double()
 
 
 class HessianLayout(NamedTuple):

@@ -29,8 +29,9 @@ from ..geometry import lbs, nearest_rotation
 from .config import FitConfig
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import levenberg_marquardt
-from .nearest import Candidates, score_poses
+from .nearest import score_poses
 from .objective import evaluate, gauss_newton_system, loss_terms, make_problem
+from .plan import FitPlan
 from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, check_cues, crop_frame, crop_window,
                       cue_notes, occluder_or_inf, uncrop_fragments)
 from .terms.anchor import AnchorRef, update_anchor
@@ -293,61 +294,47 @@ def _refine_window(fits: list[FrameFit], pairs: list, views: Views, cfg: FitConf
     return [dataclasses.replace(f, problem=None, crop=None) for f in fits]
 
 
-def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable[[int], FrameCues],
-                 flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], init: Tensor,
-                 cfg: FitConfig | None = None, progress: bool = True, log=None,
-                 anchor_init: AnchorRef | None = None, candidates_of: Callable[[int], Candidates] | None = None,
-                 sim_transforms: Tensor | None = None, starts: Tensor | None = None,
-                 prior_scales: Tensor | None = None) -> list[FrameFit]:
-    """Fit frames 0..T-1 in order, frame t starting from frame t-1's result.
+def fit_sequence(plan: FitPlan, cues_of: Callable[[int], FrameCues],
+                 flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], progress: bool = True,
+                 log=None) -> list[FrameFit]:
+    """Fit frames 0..T-1 of ``plan`` (:class:`anidress_core.fit.FitPlan`) in order, frame t starting from frame
+    t-1's result (or from ``plan.starts[t]``, the oracle, with the flow alignment and the rest as usual).
 
-    cues_of(t) -> :class:`FrameCues` (with ``image`` for L_anchor); flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W)
-    or None) of t-1 -> t, or None (no flow for that frame: L_flow off there, logged, ``notes['no_flow']``);
-    init: (B, 4, 4) start of frame 0. Returns one :class:`FrameFit` per frame (with the
-    wall time of each in ``terms['wall_s']``). L_anchor's references are taken from each frame's
-    result (:func:`update_anchor`) and used from the next frame on; ``anchor_init`` (e.g.
-    :func:`texture_anchor`) gives references from frame 0 on (vertices it covers keep them).
-    Each frame's ``notes`` (what was done about defective cues, :func:`anidress_core.fit.problem.cue_notes`)
-    are logged as a warning.
+    cues_of(t) -> :class:`FrameCues` (with ``image`` for L_anchor); flow_of(t) -> (flow (C, H, W, 2), valid
+    (C, H, W) or None) of t-1 -> t, or None (no flow for that frame: L_flow off there, logged,
+    ``notes['no_flow']``). Returns one :class:`FrameFit` per frame (with the wall time of each in
+    ``terms['wall_s']``; each frame's ``notes`` are logged as a warning). L_anchor's references are taken from
+    each frame's result (:func:`update_anchor`) and used from the next frame on; ``plan.anchor_init`` gives
+    references from frame 0 on (vertices it covers keep them).
 
-    ``cfg.window`` > 1 (method rig): after every ``window`` chained frames (and at the last frame)
-    those frames are refined jointly, L_flow coupling their poses (:mod:`anidress_core.fit.window`); the
-    next frame is chained from the refined last one. The temporal filter comes last.
-
-    L_prior following the simulation (:attr:`FitConfig.prior_follows_simulation`): at every frame t towards
-    the skinned ``sim_transforms[t]`` (sim_transforms: (>= T, B, 4, 4), the rig's transforms of the simulation
-    of the observed motion, or of the ensemble's mean), its weight per vertex times ``prior_scales[t]``
-    ((>= T, V), e.g. the ensemble's :func:`anidress_core.fit.terms.prior.spread_scale`; default 1).
-    Method 'nearest' (a baseline, not optimised): frame t's pose is the candidate of ``candidates_of(t)``
-    (:func:`anidress_core.fit.nearest.frame_candidates`) with the lowest loss
-    (:func:`anidress_core.fit.nearest.score_poses`; ``notes['nearest']``: its label).
-    ``starts`` (>= T, B, 4, 4): every frame t starts from ``starts[t]`` instead (the flow alignment and
-    the rest as usual; ``init`` is then ``starts[0]``): an oracle for benchmarks, e.g. the ground
-    truth's rig floor, to find the loss's own minimum near it.
+    ``cfg.window`` > 1 (method rig): after every ``window`` chained frames (and at the last frame) those frames
+    are refined jointly, L_flow coupling their poses (:mod:`anidress_core.fit.window`); the next frame is
+    chained from the refined last one. The temporal filter comes last. L_prior following the simulation
+    (:attr:`FitConfig.prior_follows_simulation`): at every frame t towards the skinned ``plan.sim_transforms[t]``,
+    its weight per vertex times ``plan.prior_scales[t]``. Method 'nearest' (a baseline, not optimised): frame t's
+    pose is the candidate of ``plan.candidates_of(t)`` with the lowest loss (:func:`score_poses`;
+    ``notes['nearest']``: its label). Method 'vertex': the stored transforms are the rig's closest to the fitted
+    vertices (:func:`anidress_core.rig.fit_transforms`).
     """
     from tqdm import tqdm
 
-    cfg = FitConfig.from_config({}) if cfg is None else cfg
-    if starts is not None and starts.shape[0] < num_frames:
-        raise ValueError(f"fit_sequence: starts must hold all {num_frames} frames, got {tuple(starts.shape)}")
-    if cfg.prior_follows_simulation:
-        if sim_transforms is None or sim_transforms.shape[0] < num_frames:
-            raise ValueError(f"fit_sequence: prior_reference {cfg.prior_reference!r} needs the simulated "
-                             f"transforms of all {num_frames} frames, got "
-                             f"{None if sim_transforms is None else tuple(sim_transforms.shape)}")
-        S = torch.as_tensor(sim_transforms, device=rig.rest.device).double()
-    if prior_scales is not None and prior_scales.shape[0] < num_frames:
-        raise ValueError(f"fit_sequence: prior_scales must hold all {num_frames} frames, got "
-                         f"{tuple(prior_scales.shape)}")
-
+    cfg, rig, views, T = plan.cfg, plan.rig, plan.views, plan.frames
+    dev = rig.rest.device
+    follows = cfg.prior_follows_simulation
+    if follows and (plan.sim_transforms is None or plan.sim_transforms.shape[0] < T):
+        raise ValueError(f"fit_sequence: prior_reference {cfg.prior_reference!r} needs the simulated transforms of "
+                         f"all {T} frames")
+    for name in ("starts", "prior_scales"):
+        if getattr(plan, name) is not None and getattr(plan, name).shape[0] < T:
+            raise ValueError(f"fit_sequence: {name} must hold all {T} frames, got {tuple(getattr(plan, name).shape)}")
+    if cfg.method == "nearest" and plan.candidates_of is None:
+        raise ValueError("fit_sequence: method 'nearest' needs candidates_of (the simulation database)")
     use_window = cfg.window > 1 and cfg.method == "rig"
     pairs: list = []  # the current window's coupled flow targets (pair_flow), one per frame so far
     out: list[FrameFit] = []
-    G = torch.as_tensor(init, device=rig.rest.device).double()
-    x_prev = None
-    prev_mask = None
-    anchor = anchor_init
-    for t in tqdm(range(num_frames), desc="fit", unit="frame", disable=not progress):
+    G = torch.as_tensor(plan.init, device=dev).double()
+    x_prev, prev_mask, anchor = None, None, plan.anchor_init
+    for t in tqdm(range(T), desc="fit", unit="frame", disable=not progress):
         t0 = time.perf_counter()
         cues = cues_of(t)
         targets = None
@@ -360,23 +347,22 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
                 prev = out[-1]
                 targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask,
                                        cfg.visibility_depth_tol, cfg.flow_margin_px)
-        if starts is not None:
-            G = torch.as_tensor(starts[t], device=rig.rest.device).double()
+        if plan.starts is not None:
+            G = torch.as_tensor(plan.starts[t], device=dev).double()
         picked = None
         if cfg.method == "nearest":  # the baseline: the database pose with the lowest loss, not optimised
-            if candidates_of is None:
-                raise ValueError("fit_sequence: method 'nearest' needs candidates_of (the simulation database)")
-            cands = candidates_of(t)
+            cands = plan.candidates_of(t)
             scores = score_poses(rig, views, cues, cands.transforms, cfg, targets, anchor)
             i = int(torch.argmin(torch.nan_to_num(scores, nan=float("inf"))))
             G, picked = cands.transforms[i].double(), {"kept": cands.labels[i], "candidates": len(cands.labels)}
         if use_window:
             pairs.append(None if t % cfg.window == 0 else pair_flow(targets, out[-1].verts, views))
+        prior = None
+        if follows:
+            prior = lbs(rig.rest, rig.weights, torch.as_tensor(plan.sim_transforms[t], device=dev).double())
         res = fit_frame(rig, views, cues, G, cfg, targets, first=(t == 0), init_verts=x_prev, anchor=anchor,
-                        prior_verts=lbs(rig.rest, rig.weights, S[t]) if cfg.prior_follows_simulation else None,
-                        keep_problem=use_window,
-                        prior_scale=None if prior_scales is None or not cfg.prior_follows_simulation
-                        else prior_scales[t])
+                        prior_verts=prior, keep_problem=use_window,
+                        prior_scale=plan.prior_scales[t] if follows and plan.prior_scales is not None else None)
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
         if res.notes and log is not None:
@@ -388,7 +374,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
         res.terms["wall_s"] = time.perf_counter() - t0
         res.terms["flow_targets"] = 0 if targets is None else int(targets.cam.numel())
         out.append(res)
-        if use_window and ((t + 1) % cfg.window == 0 or t == num_frames - 1):
+        if use_window and ((t + 1) % cfg.window == 0 or t == T - 1):
             first_of_window = t + 1 - len(pairs)
             out[first_of_window:] = _refine_window(out[first_of_window:], pairs, views, cfg, log)
             pairs = []
@@ -399,4 +385,7 @@ def fit_sequence(rig: RigParts, views: Views, num_frames: int, cues_of: Callable
         Gs = smooth_transforms(torch.stack([r.transforms for r in out]), cfg.smooth_passes)
         for r, g in zip(out, Gs):
             r.transforms, r.verts = g, lbs(rig.rest, rig.weights, g)
+    if cfg.method == "vertex" and out:  # no bone transforms: the rig pose closest to the fitted vertices
+        for r, g in zip(out, rig.closest_pose(torch.stack([r.verts.detach() for r in out]))):
+            r.transforms = g
     return out

@@ -16,8 +16,7 @@
   (``undistorted_dir``, rule undistort) when the cameras have lens distortion
   (:func:`anidress_core.io.scene.sequence_source` decides);
 * the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
-* ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start.
-
+* ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start;
 * for the ``nearest`` baseline the body motions of the rig's simulated sequences
   (``motions_dir``: ``results/<scene>/motions/<name>.npz``, rule motions), its database;
 * with ``prior_reference: sim_ensemble`` (the default) ``results/<scene>/sim_ensemble/seq-<seq>.npz``
@@ -52,9 +51,8 @@ import torch
 
 from .. import fit as FIT
 from ..fit import ensemble as ENS
-from ..fit.ensemble import ensemble_note
-from ..io.garment_poses import load_garment_poses, save_garment_poses
 from ..io import files
+from ..io.garment_poses import load_garment_poses, save_garment_poses
 from ..io.rig import read_rig
 from ..io.scene import (garment_texture_path, image_path, load_body, load_sequence_motion, read_scene, scene_cameras,
                         sequence_source)
@@ -73,36 +71,16 @@ FIT_METRIC_COLUMNS = (
 )
 
 
-def texture_anchor_of(scene_dir: Path, info: Mapping, template_npz, rig: FIT.RigParts, views: FIT.Views,
-                      G0: torch.Tensor, image_blur: float, device) -> tuple[FIT.AnchorRef, str]:
-    """L_anchor's references from the template's UVs and the scene's garment texture
-    (:func:`anidress_core.fit.texture_anchor`), blurred to the images' footprint at the start pose G0."""
-    from ..geometry import lbs
-
-    path = garment_texture_path(scene_dir, info)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: fit/anchor_reference is 'texture' but the garment has no texture "
-                                f"(set garment_texture in {scene_dir / 'scene.yaml'}, or anchor_reference: images)")
-    tpl = read_template(template_npz)
-    faces = torch.as_tensor(np.asarray(tpl.faces), device=device).long()
-    if tpl.face_uv is None or not torch.equal(faces, rig.faces):
-        raise files.ArtifactError(f"{template_npz}: no UVs, or faces that are not the rig's")
-    face_uv = torch.as_tensor(np.asarray(tpl.face_uv), device=device).double()
-    tex = torch.as_tensor(files.read_image(path), device=device).double()
-    start = lbs(rig.rest, rig.weights, G0.to(device))
-    blur = FIT.texture_blur_texels(rig.rest, faces, face_uv, tuple(tex.shape[:2]), start, views, image_blur)
-    return (FIT.texture_anchor(faces, face_uv, tex, blur, num_vertices=rig.rest.shape[0]),
-            f"{path} ({tex.shape[1]}x{tex.shape[0]}), blurred by {blur:.2f} texels (one image pixel + the images' "
-            "blur)")
-
-
-def simulation_database(art, motions_dir: str | os.PathLike, body):
+def simulation_database(art, motions_dir: str | os.PathLike | None, body):
     """The simulation database of the ``nearest`` baseline (:func:`anidress_core.fit.nearest.make_database`):
     every simulated sequence of the rig (``rig.npz`` ``sequences``) with the body it was simulated
     on, ``<motions_dir>/<name>.npz`` (rule motions), posed by the scene's body model."""
     from ..fit.nearest import make_database
     from ..io.body_motion import read_motion
 
+    if motions_dir is None:
+        raise ValueError("the method 'nearest' needs the simulated body motions (motions_dir: "
+                         "results/<scene>/motions, rule motions)")
     seqs = {}
     for name in art.sequences:
         path = Path(motions_dir) / f"{name}.npz"
@@ -249,7 +227,7 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     read by the ``nearest`` baseline (its database, :func:`simulation_database`).
     body_dir: the sequence's body poses refined by rule refine_body, read instead of its smpl/.
     starts: (T, B, 4, 4) a start for every frame (an oracle for benchmarks, e.g. the rig floor:
-    :func:`anidress_core.fit.fit_sequence`), recorded in the header's ``starts``.
+    :class:`anidress_core.fit.FitPlan`), recorded in the header's ``starts``.
     sim_ensemble_npz: the ensemble's mean simulation of ``seq`` (``results/<scene>/sim_ensemble/seq-<seq>.npz``,
     rule simulate_ensemble), read with ``fit/prior_reference: sim_ensemble`` (:func:`ensemble_transforms`).
     Returns the header metadata written.
@@ -258,161 +236,119 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
     scene_dir = Path(scene_dir)
     info = read_scene(scene_dir)
     cfg = FIT.FitConfig.from_config(params, ablation)
-    method = cfg.loss
-    threads = int(params.get("threads", 0) or 0)
-    if threads > 0:
-        torch.set_num_threads(threads)
+    if int(params.get("threads", 0) or 0) > 0:
+        torch.set_num_threads(int(params["threads"]))
     dev_name = params.get("device", "auto")
-    device = torch.device("cuda" if dev_name == "auto" and torch.cuda.is_available() else
-                          ("cpu" if dev_name == "auto" else dev_name))
-    # 1. cameras (training views, optionally a subset)
+    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if dev_name == "auto" else dev_name)
+    # 1. cameras (training views, optionally a subset) of the images as the fit reads them (pinhole)
     train = (info.get("cameras") or {}).get("train")
     if not train:
         raise files.ArtifactError(f"{scene_dir / 'scene.yaml'}: no cameras/train list")
     names = select_views(train, int(params.get("views", 0)))
-    sdir = scene_dir / seq
-    src = sequence_source(scene_dir, seq, undistorted_dir, info)  # images and cameras (pinhole)
+    for cam in names:  # fail early, naming the file
+        if not _frame_file(masks_dir, cam, 0, "png").is_file():
+            raise FileNotFoundError(f"{_frame_file(masks_dir, cam, 0, 'png')}: mask of camera {cam} frame 0 not found")
+    src = sequence_source(scene_dir, seq, undistorted_dir, info)
     cams = scene_cameras(scene_dir, seq, names, info, seq_dir=src).to(device=device)
-    views = FIT.Views.from_cameras(cams)
-    # 2. rig
+    # 2. rig, body (the occluder) per frame
     art = read_rig(rig_npz, device=device, dtype=torch.float64)
     rig = FIT.RigParts.make(art.model.rest, art.model.weights, art.model.bone_centres,
                             torch.as_tensor(art.faces, device=device))
-    # 3. body (occluder) per frame
     body = load_body(scene_dir, info)
     motion = load_sequence_motion(scene_dir, seq, info["fps"], body_dir)
     posed = body.pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
     T = int(posed.vertices.shape[0])
     if T == 0:
-        raise files.ArtifactError(f"{sdir / 'smpl'}: no frames")
+        raise files.ArtifactError(f"{scene_dir / seq / 'smpl'}: no frames")
     if int(params.get("frames", 0) or 0) > 0:  # a prefix of the sequence (quick runs, benchmarks)
         T = min(T, int(params["frames"]))
-    # 4. the plan: frame 0's start, the simulation L_prior follows and its weight per vertex, the settings as used
+    # 3. the plan: the settings and the artifacts, each file read only where the settings need it
     sim_name = f"seq-{seq}"
 
-    def body_start():  # the template skinned by the body at frame 0, in the rig
-        from ..rig import fit_transforms
-
+    def body_start():  # the template skinned by the body at frame 0
         tpl = read_template(template_npz)
-        if tpl.verts.shape != tuple(art.model.rest.shape):
+        if tpl.verts.shape != tuple(rig.rest.shape):
             raise files.ArtifactError(f"{template_npz}: template has {tpl.verts.shape[0]} vertices, the rig "
-                                      f"{art.model.rest.shape[0]}")
-        return fit_transforms(art.model, tpl.skin(posed.transforms[:1].double()).to(device))[0].double()
+                                      f"{rig.rest.shape[0]}")
+        return tpl.skin(posed.transforms[:1].double()).to(device)
 
-    rig_sim = (lambda: (art.transforms_of(sim_name).double().to(device),
-                        f"rig transforms of the simulated sequence {sim_name}")) if sim_name in art.sequences else None
-    if starts is not None:  # an oracle: every frame started from a given pose
-        starts = torch.as_tensor(starts).double().to(device)
-    plan = FIT.plan_fit(cfg, params.get("first_frame_init", "auto"),
-                        lambda: ensemble_transforms(sim_ensemble_npz, art, T, device), rig_sim, body_start,
-                        lambda: ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device),
-                        starts, normals_dir is not None, f"{rig_npz} (simulated sequences {sorted(art.sequences)})",
-                        lambda G0: texture_anchor_of(scene_dir, info, template_npz, rig, views, G0, cfg.image_blur,
-                                                     device))
-    cfg, G0, start_used = plan.cfg, plan.init, plan.start_note
-    log.info("fit %s/%s (loss %s, method %s): %d frames, %d views %s, %d vertices, %d bones, weights %s, "
-             "start: %s, device %s", scene_dir.name, seq, method, cfg.method, T, len(names), names,
-             rig.rest.shape[0], rig.weights.shape[1], dataclasses.asdict(cfg.weights), start_used, device)
-    w = cfg.weights
-    reader = CueReader(cams, masks_dir, None if w.normal == 0 else normals_dir,
-                        None if w.flow == 0 else flows_dir, posed.vertices.double(), body.faces, views, device,
-                        num_frames=T, seq_dir=src if w.anchor > 0 else None)
-    for cam in names:  # fail early, naming the file
-        p = _frame_file(Path(masks_dir), cam, 0, "png")
-        if not p.is_file():
-            raise FileNotFoundError(f"{p}: mask of camera {cam} frame 0 not found")
-    if plan.anchor_init is not None:
-        log.info("fit: L_anchor references from the garment texture: %s", plan.anchor_note)
-    # 5. the nearest baseline's candidates from the simulation database
-    candidates_of, db_note = None, None
-    if cfg.method == "nearest":
-        from ..fit.nearest import body_features, frame_candidates
+    def rig_sim():  # the rig's simulation of the observed motion
+        return art.transforms_of(sim_name).double().to(device), f"rig transforms of the simulated sequence {sim_name}"
 
-        if motions_dir is None:
-            raise ValueError("the method 'nearest' needs the simulated body motions (motions_dir: "
-                             "results/<scene>/motions, rule motions)")
-        db = simulation_database(art, motions_dir, body)
-        query = body_features(posed.transforms.double().cpu(), float(info["fps"]))
-        own = sim_name if sim_name in art.sequences else None
-
-        def candidates_of(t):
-            c = frame_candidates(db, query, t, own=own)
-            return c._replace(transforms=c.transforms.to(device))
-
-        db_note = f"{db.transforms.shape[0]} simulated frames of {list(db.names)}"
-        log.info("fit: candidates every frame (method nearest) from %s", db_note)
-    if plan.followed_note:
-        log.info("fit: L_prior follows %s", plan.followed_note)
-    # 6. fit
-    t_fit = time.perf_counter()
-    c_fit = time.process_time()
+    plan = FIT.plan_fit(
+        cfg, rig, FIT.Views.from_cameras(cams), T, params.get("first_frame_init", "auto"), body_start=body_start,
+        ensemble=lambda: ensemble_transforms(sim_ensemble_npz, art, T, device),
+        rig_sim=rig_sim if sim_name in art.sequences else None,
+        spread=lambda: ensemble_prior_scales(sim_ensemble_npz, T, cfg.prior_spread_floor).to(device),
+        texture=lambda: garment_texture(scene_dir, info, template_npz, rig.faces),
+        database=lambda: (simulation_database(art, motions_dir, body), posed.transforms.double().cpu(),
+                          float(info["fps"])),
+        own=sim_name, starts=None if starts is None else torch.as_tensor(starts).double().to(device),
+        normals=normals_dir is not None, rig_name=f"{rig_npz} (simulated sequences {sorted(art.sequences)})")
+    cfg, w = plan.cfg, plan.cfg.weights
+    log.info("fit %s/%s (loss %s, method %s): %d frames, %d views %s, %d vertices, %d bones, weights %s, device %s; %s",
+             scene_dir.name, seq, cfg.loss, cfg.method, T, len(names), names, rig.rest.shape[0], rig.weights.shape[1],
+             dataclasses.asdict(w), device, {k: v for k, v in plan.notes.items() if v})
+    # 4. fit, the cues of frame t + 1 read while frame t is fitted
+    reader = CueReader(cams, masks_dir, None if w.normal == 0 else normals_dir, None if w.flow == 0 else flows_dir,
+                       posed.vertices.double(), body.faces, plan.views, device, num_frames=T,
+                       seq_dir=src if w.anchor > 0 else None)
+    t_fit, c_fit = time.perf_counter(), time.process_time()
     try:
-        res = FIT.fit_sequence(rig, views, T, reader.cues, reader.flow, G0, cfg, progress=progress, log=log,
-                               anchor_init=plan.anchor_init, candidates_of=candidates_of,
-                               sim_transforms=plan.sim_transforms, starts=starts, prior_scales=plan.prior_scales)
+        res = FIT.fit_sequence(plan, reader.cues, reader.flow, progress=progress, log=log)
     finally:
         reader.close()
-    wall_fit = time.perf_counter() - t_fit
-    cpu_fit = time.process_time() - c_fit
-    L = max(len(r.curve) for r in res)
-    curve = np.full((T, L), np.nan)
+    wall_fit, cpu_fit = time.perf_counter() - t_fit, time.process_time() - c_fit
+    # 5. write
+    curve = np.full((T, max(len(r.curve) for r in res)), np.nan)
     for t, r in enumerate(res):
         curve[t, :len(r.curve)] = r.curve
     tf = torch.stack([r.transforms for r in res])
     vs = torch.stack([r.verts.detach() for r in res])
     if not (bool(torch.isfinite(tf).all()) and bool(torch.isfinite(vs).all())):  # fit_frame guarantees it
         raise RuntimeError(f"fit {seq}: non-finite poses")
-    if cfg.method == "vertex":  # no bone transforms: store the rig pose closest to the fitted vertices
-        from ..rig import fit_transforms
-
-        tf = fit_transforms(art.model, vs.to(art.model.rest.dtype)).double()
     meta = {
-        "method": cfg.method, "loss": method, "description": FIT.VARIANTS[method].description,
-        "weights": dataclasses.asdict(cfg.weights),
-        "config": dataclasses.asdict(cfg), "params": dict(params), "scene": scene_dir.name,
-        "sequence": seq, "cameras": names, "masks_dir": str(masks_dir), "normals_dir": None if normals_dir is None
-        else str(normals_dir), "flows_dir": None if flows_dir is None else str(flows_dir), "cue_source": cue_source,
-        "first_frame_start": start_used, "anchor_reference": plan.anchor_note,
-        "rig": str(rig_npz), "frames": T, "device": str(device),
-        "wall_fit_s": wall_fit, "wall_total_s": time.perf_counter() - t_start, "fps": T / wall_fit,
-        "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
-        "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values,
-        "simulation_database": db_note,
-        "followed_simulation": plan.followed_note,
-        "starts": None if starts is None else "given per frame (oracle)",
-        "frame_notes": {str(t): r.notes for t, r in enumerate(res) if r.notes},  # what was done about bad cues
-        # (anidress_core.fit.FrameFit.notes: views dropped, frames kept at their start, NaN pixels, no flow)
-        "transforms_note": "vertex ablation: rig transforms fitted to the fitted vertices" if cfg.method == "vertex"
-        else ("fitted bone transforms" + (f", then smooth_transforms ({cfg.smooth_passes} passes); the per-frame "
-                                          "losses are those of the fit before it" if cfg.smooth_passes else "")),
+        "method": cfg.method, "loss": cfg.loss, "description": FIT.VARIANTS[cfg.loss].description,
+        "weights": dataclasses.asdict(w), "config": dataclasses.asdict(cfg), "params": dict(params),
+        "scene": scene_dir.name, "sequence": seq, "cameras": names, "masks_dir": str(masks_dir),
+        "normals_dir": None if normals_dir is None else str(normals_dir),
+        "flows_dir": None if flows_dir is None else str(flows_dir), "cue_source": cue_source, "rig": str(rig_npz),
+        "frames": T, "device": str(device), "wall_fit_s": wall_fit, "wall_total_s": time.perf_counter() - t_start,
+        "fps": T / wall_fit, "cpu_fit_s": cpu_fit, "load_average": list(os.getloadavg()),
+        "torch_threads": torch.get_num_threads(), "bad_cue_values": reader.bad_values, **plan.notes,
+        # what was done about bad cues (anidress_core.fit.FrameFit.notes: views dropped, frames kept at their
+        # start, NaN pixels, no flow), the nearest baseline's picks, the windows refined jointly
+        "frame_notes": {str(t): r.notes for t, r in enumerate(res) if r.notes},
     }
     save_garment_poses(
         out_npz, tf.float().cpu().numpy(), vs.float().cpu().numpy(), rig.faces.cpu().numpy().astype(np.int64),
         loss=np.array([r.loss for r in res]),
         terms={k: np.array([r.terms[k] for r in res]) for k in FIT.TERM_NAMES},
-        weights=dataclasses.asdict(cfg.weights),
+        weights=dataclasses.asdict(w),
         iterations=np.array([r.iterations for r in res], np.int64),
         converged=np.array([r.converged for r in res], bool),
         wall_s=np.array([r.terms["wall_s"] for r in res]),
         flow_targets=np.array([r.terms["flow_targets"] for r in res], np.int64), curve=curve,
         config=dict(params), meta=meta)
     log.info("fit %s/%s (%s): %d frames in %.1f s (%.2f frames/s), mean %.1f iterations, %d/%d converged",
-             scene_dir.name, seq, method, T, wall_fit, T / wall_fit, float(np.mean([r.iterations for r in res])),
+             scene_dir.name, seq, cfg.loss, T, wall_fit, T / wall_fit, float(np.mean([r.iterations for r in res])),
              sum(r.converged for r in res), T)
     return meta
 
 
-# --------------------------------------------------------------------------------------
-# evaluation against ground truth
-# --------------------------------------------------------------------------------------
-
-
-def gt_correspondence(rest: np.ndarray, gt_rest: np.ndarray, gt_faces: np.ndarray):
-    """Each template vertex's closest point on the ground-truth rest mesh: (face (V,), bary (V, 3), dist (V,))."""
-    from ..garment import closest_points
-
-    cp = closest_points(rest, gt_rest, gt_faces)
-    return cp.face, cp.bary, cp.distance
+def garment_texture(scene_dir: Path, info: Mapping, template_npz, faces: torch.Tensor):
+    """The template's face UVs (F, 3, 2) and the scene's garment texture (Ht, Wt, 3), float64 on the device of the
+    rig's ``faces`` (F, 3), and a line naming it: L_anchor's references with ``fit/anchor_reference: texture``."""
+    path = garment_texture_path(scene_dir, info)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: fit/anchor_reference is 'texture' but the garment has no texture "
+                                f"(set garment_texture in {scene_dir / 'scene.yaml'}, or anchor_reference: images)")
+    tpl = read_template(template_npz)
+    if tpl.face_uv is None or not np.array_equal(np.asarray(tpl.faces), faces.cpu().numpy()):
+        raise files.ArtifactError(f"{template_npz}: no UVs, or faces that are not the rig's")
+    tex = files.read_image(path)
+    return (torch.as_tensor(np.asarray(tpl.face_uv), device=faces.device).double(),
+            torch.as_tensor(tex, device=faces.device).double(), f"{path} ({tex.shape[1]}x{tex.shape[0]})")
 
 
 def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None, device) -> tuple[torch.Tensor, str]:
@@ -430,7 +366,7 @@ def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None,
         G = ENS.ensemble_transforms(art.model, s.frames, frames, device)
     except ValueError as e:
         raise files.ArtifactError(f"{path}: {e}") from e
-    return G, f"{path}: {ensemble_note(s.meta)}, rig transforms fitted to it"
+    return G, f"{path}: {ENS.ensemble_note(s.meta)}, rig transforms fitted to it"
 
 
 def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) -> torch.Tensor:
@@ -448,6 +384,20 @@ def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) ->
         return ENS.ensemble_prior_scales(spread, frames, floor)
     except ValueError as e:  # fewer frames, a non-finite or negative spread: named with its file
         raise files.ArtifactError(f"{path}: {e}") from e
+
+
+
+# --------------------------------------------------------------------------------------
+# evaluation against ground truth
+# --------------------------------------------------------------------------------------
+
+
+def gt_correspondence(rest: np.ndarray, gt_rest: np.ndarray, gt_faces: np.ndarray):
+    """Each template vertex's closest point on the ground-truth rest mesh: (face (V,), bary (V, 3), dist (V,))."""
+    from ..garment import closest_points
+
+    cp = closest_points(rest, gt_rest, gt_faces)
+    return cp.face, cp.bary, cp.distance
 
 
 def gt_template_vertices(scene_dir: str | os.PathLike, seq: str, rest: torch.Tensor, frames: int | None = None):

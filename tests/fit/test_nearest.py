@@ -111,13 +111,14 @@ def test_nearest_method_picks_the_database_pose_and_does_not_optimise():
     rig, views, frames, ref, Gs, wrong, g = textured_sequence(T)
     cands = {t: torch.stack([pose(rig, g, 0.4, 0.08, Gs[t]), Gs[t], pose(rig, g, 0.2, 0.05, Gs[t])]) for t in range(T)}
     cfg = fit.apply_variant(config(dict(PAPER, normal=300.0, anchor=1e5, flow=0.0)), "nearest")
-    res = fit.fit_sequence(rig, views, T, lambda t: frames[t][0], lambda t: None, wrong, cfg, progress=False,
-                           anchor_init=ref, candidates_of=lambda t: P.Candidates(cands[t], ["far", "true", "mid"]))
+    plan = fit.FitPlan(cfg, rig, views, T, wrong, anchor_init=ref,
+                       candidates_of=lambda t: P.Candidates(cands[t], ["far", "true", "mid"]))
+    res = fit.fit_sequence(plan, lambda t: frames[t][0], lambda t: None, progress=False)
     for t, r in enumerate(res):
         assert r.notes["nearest"] == {"kept": "true", "candidates": 3}
         assert r.iterations == 0 and torch.equal(r.transforms, Gs[t].double())
     with pytest.raises(ValueError, match="candidates_of"):
-        fit.fit_sequence(rig, views, 1, lambda t: frames[t][0], lambda t: None, wrong, cfg, progress=False)
+        fit.fit_sequence(plan._replace(candidates_of=None), lambda t: frames[t][0], lambda t: None, progress=False)
 
 
 def test_the_baseline_uses_the_settings_it_ran_with():

@@ -142,7 +142,7 @@ def test_frames_without_flow_and_nan_flow(caplog):
     cfg = config(PAPER, **CFG)
     start = pose(rig, g, 0.03, 0.01, Gs[0])
     with caplog.at_level(logging.WARNING, logger="anidress.test"):
-        res = fit.fit_sequence(rig, views, 4, lambda t: frames[t][0], flow_of, start, cfg, progress=False,
+        res = fit.fit_sequence(fit.FitPlan(cfg, rig, views, 4, start), lambda t: frames[t][0], flow_of, progress=False,
                                log=logging.getLogger("anidress.test"))
     assert all(finite(r) for r in res)
     assert [r.notes.get("no_flow", False) for r in res] == [False, True, True, False]
@@ -172,7 +172,8 @@ def test_a_sequence_through_a_blind_frame_recovers():
         c = frames[t][0]
         return c._replace(mask=torch.zeros_like(c.mask)) if t == 1 else c
 
-    res = fit.fit_sequence(rig, views, 3, cues_of, lambda t: None, Gs[0], config(PAPER, **CFG), progress=False)
+    res = fit.fit_sequence(fit.FitPlan(config(PAPER, **CFG), rig, views, 3, Gs[0]), cues_of, lambda t: None,
+                           progress=False)
     assert all(finite(r) for r in res)
     assert res[1].notes["no_mask"] and not res[1].converged and torch.equal(res[1].transforms, res[0].transforms)
     assert res[2].iterations > 0 and res[2].loss < res[2].curve[0] and res[2].notes == {"no_flow": True}

@@ -98,7 +98,7 @@ def test_anchor_sees_a_garment_sliding_about_its_axis():
     err = {}
     solver = dict(max_iters=20, smooth_passes=0, anchor_reference="images")
     for name, cfg in (("paper", config(PAPER, **solver)), ("anchor", config(dict(PAPER, anchor=1e5), **solver))):
-        res = fit.fit_sequence(rig, views, len(angles), lambda t: frames[t][0], lambda t: None, G0, cfg,
+        res = fit.fit_sequence(fit.FitPlan(cfg, rig, views, len(angles), G0), lambda t: frames[t][0], lambda t: None,
                                progress=False)
         err[name] = [rmse(r.verts, frames[t][1]) for t, r in enumerate(res)]
         assert all(torch.isfinite(r.transforms).all() for r in res)
@@ -131,7 +131,7 @@ def test_empty_masks_nan_cues_and_missing_flow_give_finite_poses(caplog):
     start = pose(rig, g, 0.03, 0.01, Gs[0])
     cfg = config(PAPER, max_iters=5, max_iters_first=5, smooth_passes=0)
     with caplog.at_level(logging.WARNING, logger="anidress.test"):
-        res = fit.fit_sequence(rig, views, 3, cues_of, flow_of, start, cfg, progress=False,
+        res = fit.fit_sequence(fit.FitPlan(cfg, rig, views, 3, start), cues_of, flow_of, progress=False,
                                log=logging.getLogger("anidress.test"))
     assert len(res) == 3
     assert "frame 1 has no flow" in caplog.text
@@ -139,12 +139,13 @@ def test_empty_masks_nan_cues_and_missing_flow_give_finite_poses(caplog):
     for r in res:
         assert torch.isfinite(r.transforms).all() and torch.isfinite(r.verts).all() and math.isfinite(r.loss)
     # the same frames refined as one window (the default's fit/window): finite too
-    win = fit.fit_sequence(rig, views, 3, cues_of, flow_of, start, cfg.replace(window=3), progress=False)
+    win = fit.fit_sequence(fit.FitPlan(cfg.replace(window=3), rig, views, 3, start), cues_of, flow_of, progress=False)
     assert win[2].notes["window"]["frames"] == 3 and win[1].notes.get("no_flow")
     for r in win:
         assert torch.isfinite(r.transforms).all() and torch.isfinite(r.verts).all() and math.isfinite(r.loss)
     # with the temporal filter on: the same per-frame fits, then smooth_transforms over the sequence
-    sm = fit.fit_sequence(rig, views, 3, cues_of, flow_of, start, cfg.replace(smooth_passes=1), progress=False)
+    sm = fit.fit_sequence(fit.FitPlan(cfg.replace(smooth_passes=1), rig, views, 3, start), cues_of, flow_of,
+                          progress=False)
     want = fit.smooth_transforms(torch.stack([r.transforms for r in res]), 1)
     torch.testing.assert_close(torch.stack([r.transforms for r in sm]), want)
     torch.testing.assert_close(sm[1].verts, lbs(rig.rest, rig.weights, want[1]))
@@ -172,6 +173,9 @@ def test_vertex_fit():
     r = fit.fit_frame(rig, views, cues, G0, cfg)
     assert torch.equal(r.transforms, G0)  # the vertex method does not move bones
     assert r.loss < r.curve[0] and torch.isfinite(r.verts).all() and r.iterations <= 10
+    # a sequence stores the rig's pose closest to the fitted vertices
+    s = fit.fit_sequence(fit.FitPlan(cfg, rig, views, 1, G0), lambda t: cues, lambda t: None, progress=False)[0]
+    assert torch.equal(s.transforms, rig.closest_pose(s.verts[None])[0]) and not torch.equal(s.transforms, G0)
 
 
 def test_collision_pushes_the_garment_out_of_the_body():
@@ -210,28 +214,25 @@ def test_given_starts_and_a_prior_towards_the_simulated_poses():
     cfg = config(dict(PAPER, normal=300.0, anchor=1e5, flow=0.0), max_iters=2, max_iters_first=2, smooth_passes=0)
     cues_of = lambda t: frames[t][0]  # noqa: E731
     err = lambda res: [rmse(r.verts, frames[t][1]) for t, r in enumerate(res)]  # noqa: E731
-    chain = err(fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, cfg, progress=False, anchor_init=ref))
+    run = lambda c, **kw: fit.fit_sequence(fit.FitPlan(c, rig, views, T, wrong, **kw), cues_of,  # noqa: E731
+                                           lambda t: None, progress=False)
+    chain = err(run(cfg, anchor_init=ref))
     truth = torch.stack(Gs)
-    given = err(fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, cfg, progress=False, anchor_init=ref,
-                                 starts=truth))
+    given = err(run(cfg, anchor_init=ref, starts=truth))
     assert max(given) < 0.2 * min(chain), (chain, given)
     sim_cfg = cfg.replace(prior_reference="sim", prior_tangential=False, weights={"prior": 1e5})
-    pulled = err(fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg, progress=False,
-                                  anchor_init=ref, sim_transforms=truth))
+    pulled = err(run(sim_cfg, anchor_init=ref, sim_transforms=truth))
     assert all(p < 0.5 * c for p, c in zip(pulled, chain)), (chain, pulled)
     # tangential only: the images alone undo the offset along the normals (measured 63 -> 24 mm)
-    slid = err(fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg.replace(prior_tangential=True),
-                                progress=False, anchor_init=ref, sim_transforms=truth))
+    slid = err(run(sim_cfg.replace(prior_tangential=True), anchor_init=ref, sim_transforms=truth))
     assert all(p < 0.8 * c for p, c in zip(slid, chain)), (chain, slid)
     # a factor per vertex (prior_scales, e.g. the ensemble's spread_scale): 0 everywhere pulls nowhere (the chain)
     V = rig.rest.shape[0]
-    free = err(fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg, progress=False,
-                                anchor_init=ref, sim_transforms=truth, prior_scales=torch.zeros(T, V)))
+    free = err(run(sim_cfg, anchor_init=ref, sim_transforms=truth, prior_scales=torch.zeros(T, V)))
     assert free == pytest.approx(chain, rel=1e-6), (chain, free)
     with pytest.raises(ValueError, match="prior_scales"):
-        fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg, progress=False,
-                         sim_transforms=truth, prior_scales=torch.ones(T - 1, V))
+        run(sim_cfg, sim_transforms=truth, prior_scales=torch.ones(T - 1, V))
     with pytest.raises(ValueError, match="simulated"):
-        fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, sim_cfg, progress=False)
+        run(sim_cfg)
     with pytest.raises(ValueError, match="starts"):
-        fit.fit_sequence(rig, views, T, cues_of, lambda t: None, wrong, cfg, progress=False, starts=truth[:2])
+        run(cfg, starts=truth[:2])

@@ -118,9 +118,9 @@ def test_fit_sequence_refines_windows_jointly():
     flow_of = lambda t: (torch.zeros(C, H, W, 2, dtype=torch.float64), None)  # noqa: E731
     cfg = config(dict(PAPER, normal=300.0), max_iters=3, max_iters_first=5, smooth_passes=0)
     start = pose(rig, g, 0.03, 0.01, Gs[0])
-    chain = fit.fit_sequence(rig, views, 5, lambda t: frames[t][0], flow_of, start, cfg.replace(window=0),
+    chain = fit.fit_sequence(fit.FitPlan(cfg.replace(window=0), rig, views, 5, start), lambda t: frames[t][0], flow_of,
                              progress=False)
-    res = fit.fit_sequence(rig, views, 5, lambda t: frames[t][0], flow_of, start, cfg.replace(window=3),
+    res = fit.fit_sequence(fit.FitPlan(cfg.replace(window=3), rig, views, 5, start), lambda t: frames[t][0], flow_of,
                            progress=False)
     assert all("window" not in r.notes and r.problem is None for r in chain)
     assert [("window" in r.notes) for r in res] == [False, False, True, False, True]
