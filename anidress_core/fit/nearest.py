@@ -31,8 +31,8 @@ from torch import Tensor
 
 from ..geometry import invert_transform, lbs
 from .config import FitConfig
-from .objective import evaluate, make_problem
-from .problem import FlowTargets, FrameCues, RigParts, Views, crop_frame, crop_window, cue_notes, occluder_or_inf
+from .objective import evaluate, windowed_problem
+from .problem import FlowTargets, FrameCues, RigParts, Views, cue_notes
 from .terms import collision
 from .terms.anchor import AnchorRef
 
@@ -172,13 +172,8 @@ def score_poses(rig: RigParts, views: Views, cues: FrameCues, candidates: Tensor
     cues, flow, _ = cue_notes(cues, flow)
     X = torch.stack([lbs(rig.rest, rig.weights, g) for g in G])  # (K, V, 3)
     body = cues.occluder_mesh
-    if cfg.crop_margin >= 0:
-        views, cues, flow = crop_frame(views, cues, flow, crop_window(views, cues.mask, X.reshape(-1, 3),
-                                                                      cfg.crop_margin))
-    if cues.occluder is None:
-        cues = cues._replace(occluder=occluder_or_inf(cues, views), occluder_mesh=None)
     cfg = cfg.replace(weights={"prior": 0.0})
-    pb = make_problem(rig, views, cues, cfg, flow=flow, anchor=anchor)
+    pb, _ = windowed_problem(rig, views, cues, cfg, X.reshape(-1, 3), flow, anchor=anchor)
     out = torch.empty(G.shape[0], dtype=torch.float64)
     for i, x in enumerate(X):
         p = pb

@@ -24,10 +24,12 @@ from torch import Tensor
 from .. import raster
 from .config import LossWeights
 from .jacobians import projection_jacobian, skin_jacobian
-from .problem import FrameCues, Linearisation, Problem, Rendered, RigParts, System, Views, check_cues, occluder_or_inf
+from .problem import (Crop, FrameCues, Linearisation, Problem, Rendered, RigParts, System, Views, check_cues,
+                      crop_frame, crop_window, occluder_or_inf)
 from .terms import TERM_NAMES, TERMS
 
-__all__ = ["SUM_GROUPS", "Evaluation", "make_problem", "evaluate", "gauss_newton_system", "total_loss", "loss_terms"]
+__all__ = ["SUM_GROUPS", "Evaluation", "make_problem", "windowed_problem", "evaluate", "gauss_newton_system",
+           "total_loss", "loss_terms"]
 
 #: The order of the weighted sum: the terms of each group summed left to right, then the groups (the optimiser's
 #: float order: Levenberg-Marquardt's acceptance compares these floats, and stored losses depend on it).
@@ -60,6 +62,17 @@ def make_problem(rig: RigParts, views: Views, cues: FrameCues, cfg, **given) -> 
     n_px = float(max(float(soft.sum()), 1.0))  # the paper's sums over pixels / targets, one common scale
     pb = Problem(rig, views, cfg, soft, n_px, occluder_or_inf(cues, views), {})
     return pb._replace(states={t.NAME: t.setup(pb, cues, given.get(t.NAME)) for t in TERMS})
+
+
+def windowed_problem(rig: RigParts, views: Views, cues: FrameCues, cfg, around: Tensor, flow=None,
+                     **given) -> tuple[Problem, Crop | None]:
+    """:func:`make_problem` in the render windows that hold the masks and the points ``around`` (N, 3) grown by
+    ``cfg.crop_margin`` (:func:`anidress_core.fit.problem.crop_window`; -1: whole images), and the windows."""
+    crop = None
+    if cfg.crop_margin >= 0:
+        crop = crop_window(views, cues.mask, around, cfg.crop_margin)
+        views, cues, flow = crop_frame(views, cues, flow, crop)
+    return make_problem(rig, views, cues, cfg, flow=flow, **given), crop
 
 
 def total_loss(weights: LossWeights, terms: dict):

@@ -173,11 +173,11 @@ def occluder_or_inf(cues: FrameCues, views: Views) -> Tensor:
     """(C, H, W) float64 occluder depth of the cues (rasterised from occluder_mesh if needed; +inf: none)."""
     if cues.occluder is not None:
         occ = cues.occluder.double()
-        return torch.where(torch.isnan(occ), torch.full_like(occ, float("inf")), occ)
-    if cues.occluder_mesh is not None:
-        v, f = cues.occluder_mesh
-        return occluder_depth(v.double(), f, views).double()
-    return torch.full(cues.mask.shape, float("inf"), dtype=torch.float64, device=cues.mask.device)
+    elif cues.occluder_mesh is not None:
+        occ = occluder_depth(cues.occluder_mesh[0].double(), cues.occluder_mesh[1], views).double()
+    else:
+        return torch.full(cues.mask.shape, float("inf"), dtype=torch.float64, device=cues.mask.device)
+    return torch.where(torch.isnan(occ), torch.full_like(occ, float("inf")), occ)
 
 
 def check_cues(views: Views, cues: FrameCues) -> None:
@@ -352,12 +352,13 @@ def crop_frame(views: Views, cues: FrameCues, flow: FlowTargets | None, c: Crop
 
 
 def uncrop_fragments(frags: raster.Fragments, c: Crop, height: int, width: int,
-                     occluder: Tensor) -> raster.Fragments:
-    """Paste windowed fragments back into full (C, H, W) images (outside: occluder depth, face -1)."""
+                     occluder: Tensor | None = None) -> raster.Fragments:
+    """Paste windowed fragments back into full (C, H, W) images (outside: face -1, the occluder's depth or +inf)."""
     C = frags.face_id.shape[0]
     dev = frags.face_id.device
     fid = torch.full((C, height, width), -1, dtype=frags.face_id.dtype, device=dev)
-    depth = occluder.to(frags.depth.dtype).clone()
+    depth = (torch.full((C, height, width), float("inf"), dtype=frags.depth.dtype, device=dev) if occluder is None
+             else occluder.to(frags.depth.dtype).clone())
     rr = c.y0[:, None] + torch.arange(c.height, device=dev)[None]
     cc = c.x0[:, None] + torch.arange(c.width, device=dev)[None]
     ci = torch.arange(C, device=dev)[:, None, None]

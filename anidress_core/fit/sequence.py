@@ -1,21 +1,16 @@
 """Fitting frames and sequences: flow alignment, Levenberg-Marquardt per frame, temporal filter.
 
-Per frame the unknowns are the bone increments (:mod:`.jacobians`), minimised by
-Levenberg-Marquardt (:func:`anidress_core.fit.lm.levenberg_marquardt`) over the loss terms
-(:mod:`.objective`). A frame stops when an accepted step lowers the loss by less than
-``rel_tol`` (relative), when the step is below ``step_tol``, or after ``max_iters`` evaluations
-(``max_iters_first`` at frame 0). Frames t > 0 start from frame t-1's pose moved by a few
-Gauss-Newton steps on L_flow alone (``flow_align_iters``, vertex projections only, no
-rasterisation), which keeps fast motion inside the one-pixel reach of the silhouette
-gradients. After the sequence, optionally, a temporal filter of the bone transforms
-(``smooth_passes``, ours). Ablation (a) of the paper, direct vertex fitting without the rig
-(``method: vertex``), optimises the V x 3 vertex positions with Adam on the same loss through
-autograd (Gauss-Newton on 3V unknowns is not practical). Shapes: T frames, V vertices,
-B bones, C cameras. Float64 for poses and geometry, float32 for the Jacobian products.
+Per frame the unknowns are the bone increments (:mod:`.jacobians`), minimised by Levenberg-Marquardt
+(:func:`anidress_core.fit.lm.levenberg_marquardt`) over the loss terms (:mod:`.objective`). Frames t > 0 start
+from frame t-1's pose moved by a few Gauss-Newton steps on L_flow alone (``flow_align_iters``, vertex projections
+only, no rasterisation), which keeps fast motion inside the one-pixel reach of the silhouette gradients. After
+the sequence, optionally, a temporal filter of the bone transforms (``smooth_passes``, ours). Ablation (a) of
+the paper, direct vertex fitting without the rig (``method: vertex``), optimises the V x 3 vertex positions with
+Adam on the same loss through autograd (Gauss-Newton on 3V unknowns is not practical). Shapes: T frames,
+V vertices, B bones, C cameras. Float64 for poses and geometry, float32 for the Jacobian products.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -30,10 +25,9 @@ from .config import FitConfig
 from .jacobians import JACOBIAN_DTYPE, apply_increment, projection_jacobian, skin_jacobian
 from .lm import levenberg_marquardt
 from .nearest import score_poses
-from .objective import evaluate, gauss_newton_system, loss_terms, make_problem
+from .objective import evaluate, gauss_newton_system, loss_terms, windowed_problem
 from .plan import FitPlan
-from .problem import (Crop, FlowTargets, FrameCues, Problem, RigParts, Views, check_cues, crop_frame, crop_window,
-                      cue_notes, occluder_or_inf, uncrop_fragments)
+from .problem import Crop, FlowTargets, FrameCues, Problem, RigParts, Views, check_cues, cue_notes, uncrop_fragments
 from .terms.anchor import AnchorRef, update_anchor
 from .terms.collision import body_contacts
 from .terms.flow import flow_targets
@@ -48,12 +42,12 @@ class FrameFit:
     """Result of :func:`fit_frame`."""
 
     transforms: Tensor
-    """(B, 4, 4) bone transforms rest -> world (for the vertex method: the start's, unchanged)."""
+    """(B, 4, 4) bone transforms rest -> world (:func:`fit_frame`'s vertex method: the start's, unchanged)."""
     verts: Tensor
     """(V, 3) fitted mesh."""
     terms: dict
-    """Unweighted loss terms at the result, every name of :data:`anidress_core.fit.terms.TERM_NAMES`
-    (float; 0 for an unused term); :func:`fit_sequence` adds wall_s and flow_targets."""
+    """Unweighted loss terms at the result, every name of :data:`anidress_core.fit.terms.TERM_NAMES` (float; 0 for
+    an unused term); :func:`fit_sequence` adds wall_s and flow_targets."""
     loss: float
     """Weighted total at the result."""
     iterations: int
@@ -65,32 +59,25 @@ class FrameFit:
     fragments: raster.Fragments | None = None
     """Occluded fragments of the result (for the next frame's flow targets)."""
     notes: dict = field(default_factory=dict)
-    """What the fit did about defective cues in this frame (empty: nothing), see
-    :func:`anidress_core.fit.problem.cue_notes`:
-    ``views_dropped`` (list of view indices whose mask had no garment pixel: left out of every
-    pixel term), ``no_mask`` (True: no view left, the start pose kept, not converged),
-    ``mask_unknown_px``, ``normals_nonfinite_px``, ``image_nonfinite_px`` (pixels left out),
-    ``flow_targets_nonfinite`` (targets dropped), ``no_flow`` (set by :func:`fit_sequence`: no
-    flow for the frame, L_flow off), ``window`` (set by :func:`fit_sequence` on the last frame of a window
-    refined jointly: its length ``frames`` and :func:`anidress_core.fit.window.refine_window`'s record)."""
+    """What the fit did about defective cues in this frame (:func:`anidress_core.fit.problem.cue_notes`; empty:
+    nothing), and from :func:`fit_sequence` ``no_flow`` (L_flow off), ``nearest`` (the baseline's pick) and, on
+    the last frame of a window refined jointly, ``window`` (:func:`anidress_core.fit.window.refine_window`)."""
     problem: Problem | None = None
-    """The problem the frame was fitted on (``fit_frame(keep_problem=True)``, method rig; for the window
-    refinement), else None."""
+    """The problem the frame was fitted on (``fit_frame(keep_problem=True)``, method rig), else None."""
     crop: Crop | None = None
     """Its render windows (None: whole images), kept with ``problem``."""
 
 
 def flow_align(rig: RigParts, views: Views, flow: FlowTargets, transforms: Tensor, iters: int) -> Tensor:
-    """Minimise L_flow alone over the bone increments by damped Gauss-Newton (no rasterisation).
+    """Minimise L_flow alone over the bone increments from ``transforms`` (B, 4, 4) by damped Gauss-Newton.
 
-    The flow residuals are vertex projections, nearly linear in the increments, so a few
-    steps move the previous frame's pose to where the flow says the visible vertices
-    went; the full loss then starts from there (frame t is still initialised from t-1).
-    Every step must lower L_flow, else the pose before it is kept.
+    The flow residuals are vertex projections, nearly linear in the increments, so a few steps move the previous
+    frame's pose to where the flow says the visible vertices went. Every step must lower L_flow, else the pose
+    before it is kept.
     """
     G = transforms.double().clone()
-    # only the U vertices with a target count: the rig restricted to them (skin_jacobian and
-    # lbs read rest, weights and centres only)
+    # only the U vertices with a target count: the rig restricted to them (skin_jacobian and lbs read rest,
+    # weights and centres only)
     used, slot = torch.unique(flow.vert, return_inverse=True)
     U = used.numel()
     sub = rig._replace(rest=rig.rest[used], weights=rig.weights[used])
@@ -176,24 +163,17 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
               flow: FlowTargets | None = None, first: bool = False, init_verts: Tensor | None = None,
               anchor: AnchorRef | None = None, prior_verts: Tensor | None = None, keep_problem: bool = False,
               prior_scale: Tensor | None = None) -> FrameFit:
-    """Fit one frame.
+    """Fit one frame from ``init`` (B, 4, 4), frame t-1's result or frame 0's start.
 
-    init: (B, 4, 4) starting bone transforms (frame t-1's result, or the first frame's
-    start); flow: targets from :func:`flow_targets` (None at the first frame or without
-    flow); first: use ``max_iters_first``. For ``cfg.method == 'vertex'`` the start mesh is
-    ``init_verts`` (V, 3) (default: LBS of ``init``) and ``init`` is returned unchanged.
-    anchor: L_anchor's references (:func:`update_anchor`; used when ``cfg.weights.anchor`` > 0 and the cues
-    carry images).
-    prior_verts: (V, 3) L_prior's reference at this frame (``cfg.prior_reference`` 'sim'); default: at
-    the first frame the start (LBS of ``init``), none after it.
-    prior_scale: (V,) L_prior's factor per vertex at this frame (e.g.
-    :func:`anidress_core.fit.terms.prior.spread_scale`); default 1 (method rig, with a reference).
-    keep_problem: the result keeps its problem and render windows (``problem``, ``crop``; method rig).
-    Never returns non-finite poses: steps with a non-finite loss are rejected, and defective
-    cues are handled as :func:`anidress_core.fit.problem.cue_notes` says (views with an empty mask
-    dropped; no view left: the start pose -- ``init`` moved by the flow alignment -- is kept, ``converged`` False;
-    NaN pixels and targets left out), recorded in the result's ``notes``. cfg: default
-    :meth:`FitConfig.from_config` of an empty section (the pipeline's).
+    flow: targets from :func:`flow_targets` (None at the first frame or without flow); first: ``max_iters_first``.
+    Method 'vertex': the start mesh is ``init_verts`` (V, 3) (default: LBS of ``init``), ``init`` is returned
+    unchanged. anchor: L_anchor's references (:func:`update_anchor`). prior_verts: (V, 3) L_prior's reference at
+    this frame (default: at the first frame the start, none after it), prior_scale: (V,) its factor per vertex
+    (:func:`anidress_core.fit.terms.prior.spread_scale`; default 1). keep_problem: the result keeps its problem
+    and render windows (method rig). Never returns non-finite poses: steps with a non-finite loss are rejected,
+    and defective cues are handled as :func:`anidress_core.fit.problem.cue_notes` says (no view left: the start
+    pose, ``init`` moved by the flow alignment, is kept, ``converged`` False), recorded in the result's ``notes``.
+    cfg: default the pipeline's (:meth:`FitConfig.from_config` of an empty section).
     """
     cfg = FitConfig.from_config({}) if cfg is None else cfg
     init = torch.as_tensor(init, device=rig.rest.device).double()
@@ -202,9 +182,7 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     if not bool(torch.isfinite(init).all()):
         raise ValueError("fit_frame: the starting transforms contain NaN or inf")
     check_cues(views, cues)
-    flow = None if first else flow
-    cues, flow, notes = cue_notes(cues, flow)
-    full_hw = (views.height, views.width)
+    cues, flow, notes = cue_notes(cues, None if first else flow)
     G = init
     if cfg.method == "vertex":
         x_start = lbs(rig.rest, rig.weights, init) if init_verts is None else init_verts.double()
@@ -217,22 +195,16 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
         prior = torch.as_tensor(prior_verts, device=rig.rest.device).double()
     else:
         prior = lbs(rig.rest, rig.weights, init) if first and cfg.method == "rig" else (x_start if first else None)
+    if prior is not None:  # L_prior's reference, its factor per vertex, its tangent planes
+        prior = Reference(prior, prior_scale if cfg.method == "rig" else None,
+                          x_start if cfg.prior_tangent_planes == "start" else None)
     contacts = None
     if cfg.weights.collision > 0 and cfg.method in ("rig", "nearest"):
         if cues.occluder_mesh is None:
             raise ValueError("fit: weights.collision > 0 needs the body mesh (FrameCues.occluder_mesh)")
         contacts = body_contacts(x_start, *cues.occluder_mesh, cfg.collision_radius)
-    window = None
-    if cfg.crop_margin >= 0:  # render only the windows that can hold the garment
-        window = crop_window(views, cues.mask, x_start, cfg.crop_margin)
-        views, cues, flow = crop_frame(views, cues, flow, window)
-    if cues.occluder is None:  # the body's depth, in the windows only
-        cues = cues._replace(occluder=occluder_or_inf(cues, views), occluder_mesh=None)
-    if prior is not None:  # L_prior's reference, its factor per vertex, its tangent planes
-        prior = Reference(prior, prior_scale if cfg.method == "rig" else None,
-                          x_start if cfg.prior_tangent_planes == "start" else None)
-    pb = make_problem(rig, views, cues, cfg, flow=flow, prior=prior, anchor=None if cfg.method == "vertex" else anchor,
-                      collision=contacts)
+    pb, window = windowed_problem(rig, views, cues, cfg, x_start, flow, prior=prior, collision=contacts,
+                                  anchor=None if cfg.method == "vertex" else anchor)
     if notes.get("no_mask") or cfg.method == "nearest":  # the start evaluated, not optimised
         ev = evaluate(pb, x_start)
         res = FrameFit(G.clone(), ev.verts, dict(ev.terms), ev.loss, 0, not notes.get("no_mask"), [ev.loss],
@@ -245,9 +217,7 @@ def fit_frame(rig: RigParts, views: Views, cues: FrameCues, init: Tensor, cfg: F
     if keep_problem and cfg.method == "rig":
         res.problem, res.crop = pb, window
     if window is not None:  # visibility in whole images (outside the windows: no garment)
-        res.fragments = uncrop_fragments(res.fragments, window, full_hw[0], full_hw[1],
-                                         torch.full((views.K.shape[0], *full_hw), float("inf"), dtype=torch.float64,
-                                                    device=views.K.device))
+        res.fragments = uncrop_fragments(res.fragments, window, views.height, views.width)
     return res
 
 
@@ -260,7 +230,7 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
     vertices are the same filter of the fitted vertices; the projection changes them only by
     the spread of the three rotations (second order). A rotation at constant angular velocity
     and a translation at constant velocity pass unchanged. Cuts the frame-to-frame jitter of
-    per-frame fits (benchmarks/fit_demo.md, variant anchor_smooth).
+    per-frame fits.
     """
     G = torch.as_tensor(transforms).clone()
     if G.ndim != 4 or G.shape[-2:] != (4, 4):
@@ -272,26 +242,6 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
         inner[..., :3, :3] = nearest_rotation(inner[..., :3, :3])
         G[1:-1] = inner
     return G
-
-
-def _refine_window(fits: list[FrameFit], pairs: list, views: Views, cfg: FitConfig, log) -> list[FrameFit]:
-    """The window's chained results refined jointly (:func:`anidress_core.fit.window.refine_window`; its record,
-    with the window's length ``frames``, in the last frame's ``notes['window']``), their problems dropped.
-    Unchanged when fewer than two frames, or when a frame was not optimised (no mask) and so has no problem.
-    The refinement's time is shared out over the frames' ``wall_s``; ``iterations`` stay the chain's."""
-    if len(fits) >= 2 and all(f.problem is not None and not f.notes.get("no_mask") for f in fits):
-        t0 = time.perf_counter()
-        refined, rec = refine_window([f.problem for f in fits], views, pairs, fits, [f.crop for f in fits],
-                                     cfg.window_iters)
-        share = (time.perf_counter() - t0) / len(fits)
-        for f in refined:
-            f.terms["wall_s"] = f.terms.get("wall_s", 0.0) + share
-        refined[-1].notes = {**refined[-1].notes, "window": {"frames": len(fits), **rec}}
-        if log is not None:
-            log.info("fit: window of %d frames refined jointly: loss %.6g -> %.6g (%d evaluations)", len(fits),
-                     rec["chain_loss"], rec["loss"], rec["iterations"])
-        fits = refined
-    return [dataclasses.replace(f, problem=None, crop=None) for f in fits]
 
 
 def fit_sequence(plan: FitPlan, cues_of: Callable[[int], FrameCues],
@@ -376,7 +326,7 @@ def fit_sequence(plan: FitPlan, cues_of: Callable[[int], FrameCues],
         out.append(res)
         if use_window and ((t + 1) % cfg.window == 0 or t == T - 1):
             first_of_window = t + 1 - len(pairs)
-            out[first_of_window:] = _refine_window(out[first_of_window:], pairs, views, cfg, log)
+            out[first_of_window:] = refine_window(out[first_of_window:], pairs, views, cfg.window_iters, log)
             pairs = []
         G = out[-1].transforms
         x_prev = res.verts if cfg.method == "vertex" else None

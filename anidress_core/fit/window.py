@@ -20,6 +20,7 @@ P = 6 B.
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import NamedTuple
 
 import torch
@@ -144,17 +145,22 @@ def window_system(problems: list[Problem], views: Views, pairs: list[PairFlow | 
     return H, g
 
 
-def refine_window(problems: list[Problem], views: Views, pairs: list[PairFlow | None], fits: list, crops: list,
-                  max_iters: int) -> tuple[list, dict]:
+def refine_window(fits: list, pairs: list[PairFlow | None], views: Views, max_iters: int, log=None) -> list:
     """Refine W chained frames jointly (module docstring) from their chained poses.
 
-    problems[i]: frame i's problem as the chain built it (its L_flow is dropped for i > 0); pairs[i]:
-    :func:`pair_flow` of frame i's chained targets (pairs[0] unused); fits: the chain's
-    :class:`anidress_core.fit.FrameFit` of the W frames; crops[i]: frame i's render window (None: whole
-    images). Returns the W refined results (the coupled L_flow as each frame's ``terms['flow']``, ``loss``
-    its own total with it) and a record ``{'loss': ..., 'chain_loss': ..., 'iterations': ...}``."""
-    cfg, rig = problems[0].cfg, problems[0].rig
-    pbs = [pb if i == 0 else pb._replace(states={**pb.states, "flow": None}) for i, pb in enumerate(problems)]
+    fits: the chain's :class:`anidress_core.fit.FrameFit` of the W frames with their problems and render windows
+    (``problem``, ``crop``; L_flow's state is dropped for i > 0); pairs[i]: :func:`pair_flow` of frame i's chained
+    targets (pairs[0] unused). Returns the W results refined (the coupled L_flow as each frame's
+    ``terms['flow']``, ``loss`` its own total with it, the refinement's time shared out over ``terms['wall_s']``;
+    ``iterations`` stay the chain's), the record ``{'frames', 'loss', 'chain_loss', 'iterations'}`` in the last
+    frame's ``notes['window']``, their problems dropped. Unchanged when fewer than two frames, or when a frame was
+    not optimised (no mask)."""
+    if len(fits) < 2 or any(f.problem is None or f.notes.get("no_mask") for f in fits):
+        return [dataclasses.replace(f, problem=None, crop=None) for f in fits]
+    t0 = time.perf_counter()
+    cfg, rig = fits[0].problem.cfg, fits[0].problem.rig
+    pbs = [f.problem if i == 0 else f.problem._replace(states={**f.problem.states, "flow": None})
+           for i, f in enumerate(fits)]
     X0 = torch.stack([f.transforms.double() for f in fits])
 
     def update(X: Tensor, delta: Tensor) -> Tensor:
@@ -165,16 +171,19 @@ def refine_window(problems: list[Problem], views: Views, pairs: list[PairFlow | 
                               lambda wev, X: window_system(pbs, views, pairs, wev, X, JACOBIAN_DTYPE),
                               update, X0, max_iters, cfg.damping, cfg.rel_tol, cfg.step_tol)
     wev: WindowEvaluation = res.evaluation
+    rec = {"frames": len(fits), "loss": wev.loss, "chain_loss": res.curve[0], "iterations": res.iterations}
+    if log is not None:
+        log.info("fit: window of %d frames refined jointly: loss %.6g -> %.6g (%d evaluations)", len(fits),
+                 rec["chain_loss"], rec["loss"], rec["iterations"])
+    share = (time.perf_counter() - t0) / len(fits)
     out = []
     for i, (f, ev) in enumerate(zip(fits, wev.frames)):
         terms = dict(ev.terms)
         if i > 0:
             terms["flow"] = wev.pair[i]
-        frags = ev.fragments
-        if crops[i] is not None:
-            frags = uncrop_fragments(frags, crops[i], views.height, views.width,
-                                     torch.full((views.K.shape[0], views.height, views.width), float("inf"),
-                                                dtype=torch.float64, device=views.K.device))
-        out.append(dataclasses.replace(f, transforms=res.x[i].clone(), verts=ev.verts, terms={**f.terms, **terms},
-                                       loss=total_loss(cfg.weights, terms), fragments=frags))
-    return out, {"loss": wev.loss, "chain_loss": res.curve[0], "iterations": res.iterations}
+        frags = ev.fragments if f.crop is None else uncrop_fragments(ev.fragments, f.crop, views.height, views.width)
+        out.append(dataclasses.replace(f, transforms=res.x[i].clone(), verts=ev.verts, fragments=frags,
+                                       terms={**f.terms, **terms, "wall_s": f.terms.get("wall_s", 0.0) + share},
+                                       loss=total_loss(cfg.weights, terms), problem=None, crop=None))
+    out[-1].notes = {**out[-1].notes, "window": rec}
+    return out

@@ -52,6 +52,7 @@ import torch
 from .. import fit as FIT
 from ..fit import ensemble as ENS
 from ..io import files
+from ..io.cue_files import read_flow
 from ..io.garment_poses import load_garment_poses, save_garment_poses
 from ..io.rig import read_rig
 from ..io.scene import (garment_texture_path, image_path, load_body, load_sequence_motion, read_scene, scene_cameras,
@@ -105,111 +106,95 @@ def select_views(train: Sequence[str], count: int) -> list[str]:
     return [train[i] for i in idx]
 
 
-def _frame_file(folder: Path, cam: str, t: int, ext: str) -> Path:
-    return Path(folder) / cam / f"{t:06d}.{ext}"
-
-
 class CueReader:
     """Reads one frame's cues for the selected cameras (the only file access of the fit).
 
-    cams: the selected cameras; masks_dir: label maps ``<cam>/<t:06d>.png``; normals_dir,
-    flows_dir: EXR folders of the same layout, or None (that term off); body_verts
-    (T, Vb, 3) and body_faces: the posed body, rasterised as the occluder; views:
-    :class:`anidress_core.fit.Views` of ``cams``; num_frames: the last frame read ahead;
-    seq_dir: the sequence folder whose images L_anchor reads (None: not read).
-    ``cues(t)`` -> :class:`anidress_core.fit.FrameCues`, ``flow(t)`` -> (flow, valid) of
-    t-1 -> t or None; ``close()`` stops the helper thread. The files of frame t + 1 are read by that
-    thread while frame t is fitted. Used by :func:`run_fit` and the benchmarks.
+    cams: the selected cameras; masks_dir: label maps ``<cam>/<t:06d>.png``; normals_dir, flows_dir: EXR folders
+    of the same layout, or None (that term off); body_verts (T, Vb, 3) and body_faces: the posed body, rasterised
+    as the occluder; views: :class:`anidress_core.fit.Views` of ``cams``; num_frames: the last frame read ahead;
+    seq_dir: the sequence folder whose images L_anchor reads (None: not read). ``cues(t)`` ->
+    :class:`anidress_core.fit.FrameCues`, ``flow(t)`` -> (flow, valid) of t-1 -> t or None; ``close()`` stops the
+    helper thread, which reads the files of frame t + 1 while frame t is fitted. Non-finite normals and flow
+    vectors are left out (counted in ``bad_values``).
     """
 
     def __init__(self, cams, masks_dir, normals_dir, flows_dir, body_verts, body_faces, views, device,
                  num_frames: int | None = None, seq_dir: Path | None = None):
         from concurrent.futures import ThreadPoolExecutor
 
-        self.cams, self.views, self.device = cams, views, device
-        self.masks_dir, self.normals_dir, self.flows_dir = Path(masks_dir), normals_dir, flows_dir
-        self.seq_dir = seq_dir  # images for L_anchor (None: not read)
+        self.cams, self.views, self.device, self.num_frames = cams, views, device, num_frames
+        self.dirs = {"masks": masks_dir, "normals": normals_dir, "flows": flows_dir, "images": seq_dir}
         self.body_verts, self.body_faces = body_verts, body_faces
-        self.H, self.W = cams.height, cams.width
         self.bad_values = 0
-        self.num_frames = num_frames
         self._pool = ThreadPoolExecutor(max_workers=1)
-        self._ahead_cues: dict = {}
-        self._ahead_flow: dict = {}
-
-    def _prefetch(self, t: int):
-        if self.num_frames is not None and 0 <= t < self.num_frames and t not in self._ahead_cues:
-            self._ahead_cues[t] = self._pool.submit(self._read_cues, t)
-            self._ahead_flow[t] = self._pool.submit(self._read_flow, t)
+        self._ahead: dict = {}  # frame -> the future of its files
 
     def close(self):
         self._pool.shutdown(wait=True)
 
-    def _check(self, path: Path, arr: np.ndarray, channels: int | None) -> np.ndarray:
-        if arr.shape[:2] != (self.H, self.W) or (channels is not None and (arr.ndim != 3 or arr.shape[2] < channels)):
-            shape = f"({self.H}, {self.W}{'' if channels is None else f', {channels}'})"
-            raise files.ArtifactError(f"{path}: expected {shape} for camera image size {self.H}x{self.W}, got "
-                                      f"{arr.shape}")
-        return arr
+    def _files(self, t: int) -> tuple:
+        """:meth:`_read` of frame t, with frame t + 1 read ahead."""
+        for s in (t, t + 1):
+            if s not in self._ahead and (s == t or s < (self.num_frames or 0)):
+                self._ahead[s] = self._pool.submit(self._read, s)
+        for s in [s for s in self._ahead if s < t]:
+            del self._ahead[s]
+        return self._ahead[t].result()
 
     def cues(self, t: int) -> FIT.FrameCues:
-        job = self._ahead_cues.pop(t, None)
-        masks, nrm, img = job.result() if job is not None else self._read_cues(t)
-        self._prefetch(t + 1)
+        masks, nrm, img, _ = self._files(t)
         dev = self.device
-        return FIT.FrameCues(torch.as_tensor(masks, device=dev), None if nrm is None else
-                             torch.as_tensor(nrm, device=dev).double(), None,
+        return FIT.FrameCues(torch.as_tensor(masks, device=dev),
+                             None if nrm is None else torch.as_tensor(nrm, device=dev).double(), None,
                              (self.body_verts[t].to(dev), self.body_faces.to(dev)),
                              None if img is None else torch.as_tensor(img, device=dev))
 
     def flow(self, t: int):
-        job = self._ahead_flow.pop(t, None)
-        res = job.result() if job is not None else self._read_flow(t)
-        if res is None:
-            return None
-        dev = self.device
-        return torch.as_tensor(res[0], device=dev).double(), torch.as_tensor(res[1], device=dev)
+        fl = self._files(t)[3]
+        return None if fl is None else (torch.as_tensor(fl[0], device=self.device).double(),
+                                        torch.as_tensor(fl[1], device=self.device))
 
-    def _read_cues(self, t: int):
-        masks, normals, images = [], [], []
+    def _path(self, kind: str, cam: str, t: int) -> Path:
+        if kind == "images":
+            return image_path(self.dirs[kind], cam, t)
+        return Path(self.dirs[kind]) / cam / f"{t:06d}.{'png' if kind == 'masks' else 'exr'}"
+
+    def _checked(self, path: Path, arr: np.ndarray, channels: int = 0, what: str = "") -> np.ndarray:
+        """``arr`` checked to be (H, W[, >= channels]); with ``what``, its non-finite pixels counted and logged."""
+        H, W = self.cams.height, self.cams.width
+        if arr.shape[:2] != (H, W) or (channels and (arr.ndim != 3 or arr.shape[2] < channels)):
+            raise files.ArtifactError(f"{path}: expected ({H}, {W}{f', {channels}' if channels else ''}) for "
+                                      f"camera image size {H}x{W}, got {arr.shape}")
+        bad = int((~np.isfinite(arr[..., :channels]).all(-1)).sum()) if what else 0
+        if bad:
+            self.bad_values += bad
+            log.warning("%s: %d pixels with NaN/inf %s ignored", path, bad, what)
+        return arr
+
+    def _read(self, t: int) -> tuple:
+        """Frame t's masks (C, H, W) bool, normals (C, H, W, 3) or None, images (C, H, W, 3) or None and flow
+        t-1 -> t: (flow (C, H, W, 2), valid (C, H, W) bool) or None."""
+        masks, normals, images, flow = [], [], [], None
         for cam in self.cams.names:
-            p = _frame_file(self.masks_dir, cam, t, "png")
-            masks.append(self._check(p, files.read_mask(p), None) == LABEL_GARMENT)
-            if self.normals_dir is not None:
-                p = _frame_file(self.normals_dir, cam, t, "exr")
-                n = self._check(p, files.read_exr(p), 3)[..., :3]
-                bad = ~np.isfinite(n).all(-1)
-                if bad.any():
-                    self.bad_values += int(bad.sum())
-                    log.warning("%s: %d pixels with NaN/inf normals ignored", p, int(bad.sum()))
-                normals.append(n)
-            if self.seq_dir is not None:
-                p = image_path(self.seq_dir, cam, t)
-                images.append(self._check(p, files.read_image(p), 3))
-        return (np.stack(masks), (np.stack(normals) if normals else None),
-                (np.stack(images) if images else None))
-
-    def _read_flow(self, t: int):
-        if self.flows_dir is None or t == 0:
-            return None
-        paths = [_frame_file(Path(self.flows_dir), cam, t, "exr") for cam in self.cams.names]
-        missing = [str(p) for p in paths if not p.is_file()]
-        if missing:
-            log.warning("fit: frame %d: no flow file %s", t, missing[0])
-            return None
-        fl, va = [], []
-        for p in paths:
-            a = self._check(p, files.read_exr(p), 2)
-            f = a[..., :2]
-            v = a[..., 2] > 0.5 if a.shape[-1] >= 3 else np.ones(a.shape[:2], bool)
-            bad = ~np.isfinite(f).all(-1)
-            if bad.any():
-                self.bad_values += int(bad.sum())
-                log.warning("%s: %d pixels with NaN/inf flow ignored", p, int(bad.sum()))
-                v = v & ~bad
-            fl.append(f)
-            va.append(v)
-        return np.stack(fl), np.stack(va)
+            p = self._path("masks", cam, t)
+            masks.append(self._checked(p, files.read_mask(p)) == LABEL_GARMENT)
+            if self.dirs["normals"] is not None:
+                p = self._path("normals", cam, t)
+                normals.append(self._checked(p, files.read_exr(p), 3, "normals")[..., :3])
+            if self.dirs["images"] is not None:
+                p = self._path("images", cam, t)
+                images.append(self._checked(p, files.read_image(p), 3))
+        if self.dirs["flows"] is not None and t > 0:
+            paths = [self._path("flows", cam, t) for cam in self.cams.names]
+            missing = [str(p) for p in paths if not p.is_file()]
+            if missing:
+                log.warning("fit: frame %d: no flow file %s", t, missing[0])
+            else:
+                fv = [read_flow(p) for p in paths]
+                flow = (np.stack([self._checked(p, f, 2, "flow") for p, (f, _) in zip(paths, fv)]),
+                        np.stack([v & np.isfinite(f).all(-1) for f, v in fv]))
+        return (np.stack(masks), np.stack(normals) if normals else None, np.stack(images) if images else None,
+                flow)
 
 
 def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, template_npz: str | os.PathLike,
@@ -246,8 +231,8 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
         raise files.ArtifactError(f"{scene_dir / 'scene.yaml'}: no cameras/train list")
     names = select_views(train, int(params.get("views", 0)))
     for cam in names:  # fail early, naming the file
-        if not _frame_file(masks_dir, cam, 0, "png").is_file():
-            raise FileNotFoundError(f"{_frame_file(masks_dir, cam, 0, 'png')}: mask of camera {cam} frame 0 not found")
+        if not (Path(masks_dir) / cam / "000000.png").is_file():
+            raise FileNotFoundError(f"{Path(masks_dir) / cam / '000000.png'}: mask of camera {cam} frame 0 not found")
     src = sequence_source(scene_dir, seq, undistorted_dir, info)
     cams = scene_cameras(scene_dir, seq, names, info, seq_dir=src).to(device=device)
     # 2. rig, body (the occluder) per frame
