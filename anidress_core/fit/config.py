@@ -1,20 +1,20 @@
 """Settings of the garment fit: one frozen dataclass, field names = the keys of config section ``fit``.
 
-The defaults are the schema's (workflow/schemas/config.schema.yaml, section ``fit``), which are
-the pipeline's; :meth:`FitConfig.from_config` fills a (partial) section from them and applies
-the loss variant it names (``fit/loss``, :mod:`anidress_core.fit.variants`). Weights are stored
-as they are used: ``weights.<term>`` multiplies the unweighted term ``L_<term>``
-(:mod:`anidress_core.fit.terms`). Stage-level keys of the section (views, cues,
-first_frame_init, ablations, device, threads, eval) are read by :mod:`anidress_core.stages.fit`.
+The defaults and the allowed values are the schema's (workflow/schemas/config.schema.yaml, section ``fit``; the
+defaults are the pipeline's); :meth:`FitConfig.from_config` fills a (partial) section from them, checks it
+against the schema and applies the loss variant it names (``fit/loss``, :mod:`anidress_core.fit.variants`).
+Weights are stored as they are used: ``weights.<term>`` multiplies the unweighted term ``L_<term>``
+(:mod:`anidress_core.fit.terms`). The stage-level keys of the section (:data:`STAGE_KEYS`) are read by
+:mod:`anidress_core.stages.fit`.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
+import functools
 from dataclasses import dataclass
 from typing import Mapping
 
-from ..config import section_defaults
+from ..config import default_schema_path, section_defaults
 from .variants import VARIANTS, apply_variant
 
 __all__ = ["LossWeights", "VertexSettings", "FitConfig", "STAGE_KEYS"]
@@ -40,8 +40,7 @@ class LossWeights:
     prior: float
     """L_prior, mean squared vertex offset from the reference pose (``FitConfig.prior_reference``), m^2 (ours)."""
     stretch: float
-    """L_stretch, mean squared relative stretch of the template's edges from their rest lengths (ours; the choice
-    of the pipeline's weight: studies/fit/README.md section 14)."""
+    """L_stretch, mean squared relative stretch of the template's edges from their rest lengths (ours)."""
 
 
 @dataclass(frozen=True)
@@ -62,12 +61,10 @@ class FitConfig:
     but the schema's)."""
 
     loss: str
-    """The loss variant these settings are of (:data:`anidress_core.fit.variants.VARIANTS`):
-    ``pipeline`` (the section as written), ``paper``, or a variant of either."""
+    """The loss variant these settings are of (:data:`anidress_core.fit.variants.VARIANTS`)."""
     method: str
-    """'rig' (bone transforms, Levenberg-Marquardt), 'vertex' (ablation a, Adam on vertices) or
-    'nearest' (a baseline, no optimisation: per frame the simulated pose of the simulation
-    database with the lowest loss, :mod:`anidress_core.fit.nearest`)."""
+    """'rig' (bone transforms, Levenberg-Marquardt), 'vertex' (ablation a, Adam on vertices) or 'nearest' (a
+    baseline, no optimisation: per frame the simulated pose with the lowest loss, :mod:`anidress_core.fit.nearest`)."""
     weights: LossWeights
     """Weight of each loss term, as used (dimensionless multipliers of the unweighted terms)."""
     max_iters: int
@@ -87,94 +84,48 @@ class FitConfig:
     flow_align_iters: int
     """Frames t > 0: Gauss-Newton steps on L_flow alone before the full loss (no rasterisation); 0 = off."""
     crop_margin: int
-    """Render only a window per view around the mask and the start pose, grown by this many pixels
-    (the same loss while the garment stays inside; faster); -1 = whole images."""
+    """Render only a window per view around the mask and the start pose, grown by this many pixels; -1 = whole
+    images."""
     image_blur: float
     """Gaussian blur (pixels, standard deviation) of the images for L_anchor."""
     anchor_scale: float
     """Cauchy scale of L_anchor (chromaticity difference; rgb / (r + g + b), each in [0, 1])."""
     anchor_reference: str
-    """L_anchor's references: 'texture' (the garment texture at the template's UVs) or 'images'
-    (each vertex's chromaticity in the first frame it is seen)."""
+    """L_anchor's references: 'texture' (the garment texture at the template's UVs) or 'images' (each vertex's
+    chromaticity in the first frame it is seen)."""
     collision_clearance: float
     """L_collision: clearance (metres) the garment keeps from the body skin."""
     collision_radius: float
     """L_collision: only vertices within this distance (metres) of the body at the frame's start get a plane."""
     smooth_passes: int
     """After the whole sequence: passes of the temporal filter (1, 2, 1) / 4 over the bone transforms
-    (:func:`anidress_core.fit.smooth_transforms`; ours; 0 = off). The per-frame loss terms stay
-    those of the unfiltered fit."""
+    (:func:`anidress_core.fit.smooth_transforms`; ours; 0 = off)."""
     vertex: VertexSettings
     """Ablation (a): Adam settings."""
     window: int
-    """Frames refined jointly after the chain (:mod:`anidress_core.fit.window`: L_flow couples the window's
-    poses instead of carrying targets from the previous result); 0 or 1 = off. Its gain and cost:
-    benchmarks/fit.md, studies/fit/README.md section 13."""
+    """Frames refined jointly after the chain (:mod:`anidress_core.fit.window`); 0 or 1 = off."""
     window_iters: int
     """Most loss evaluations of one window's joint Levenberg-Marquardt (each evaluates all its frames)."""
     start: str
-    """Start of frame t > 0: ``previous``, frame t-1's result (the only value; studies/fit/README.md section 9)."""
-
+    """Start of frame t > 0: ``previous``, frame t-1's result (the only value)."""
     prior_reference: str
-    """L_prior's reference: ``start`` (frame 0 only: its start pose), ``sim`` (every frame: the rig's
-    simulated pose of the observed motion at that frame, :mod:`anidress_core.fit.terms.prior`) or
-    ``sim_ensemble`` (every frame: the mean of the simulations of the observed motion at several bending
-    stiffnesses, rule simulate_ensemble, carried into the rig: :mod:`anidress_core.fit.ensemble`). ``sim`` and
-    ``sim_ensemble`` also give frame 0's start (``first_frame_init`` auto / sim)."""
+    """L_prior's reference: ``start`` (frame 0 only: its start pose), ``sim`` (every frame: the rig's simulated
+    pose of the observed motion) or ``sim_ensemble`` (every frame: the stiffness ensemble's mean,
+    :mod:`anidress_core.fit.ensemble`); ``sim`` and ``sim_ensemble`` also give frame 0's start."""
     prior_tangential: bool
-    """L_prior counts only the offset along the surface (its tangent plane at each vertex, from
-    ``prior_tangent_planes``); the images alone place the surface along its normals."""
+    """L_prior counts only the offset along the surface (the tangent planes of ``prior_tangent_planes``)."""
     prior_tangent_planes: str
-    """Whose vertex normals give the tangent planes of the tangential L_prior: ``start`` (the frame's
-    start mesh, the previous result moved by the flow alignment: near the surface the images place) or
-    ``reference`` (L_prior's reference mesh; the ensemble's mean is smoother than the cloth, and its
-    planes let L_prior pull the surface; studies/fit/README.md section 16)."""
+    """Whose vertex normals give the tangent planes: ``start`` (the frame's start mesh) or ``reference``."""
     prior_spread_floor: float | None
-    """L_prior's weight per vertex from the stiffness ensemble's spread (used with ``prior_reference``
-    sim_ensemble only, and stored as None otherwise; :func:`anidress_core.fit.terms.prior.spread_scale`):
-    the factor 1 / (sigma^2 + sigma_0^2), mean 1 over each frame's vertices, sigma the members' RMS
-    distance from their mean, sigma_0 this value times its median over the sequence; None = one weight
-    for every vertex (studies/fit/README.md section 17)."""
+    """L_prior's weight per vertex from the stiffness ensemble's spread (:func:`anidress_core.fit.terms.prior.
+    spread_scale`; with ``prior_reference`` sim_ensemble only, else stored as None); None = one weight."""
 
     def __post_init__(self):
         if self.loss not in VARIANTS:
             raise ValueError(f"FitConfig.loss must be one of {sorted(VARIANTS)}, got {self.loss!r}")
-        if self.method not in ("rig", "vertex", "nearest"):
-            raise ValueError(f"FitConfig.method must be 'rig', 'vertex' or 'nearest', got {self.method!r}")
-        if self.start != "previous":
-            raise ValueError(f"FitConfig.start must be 'previous', got {self.start!r}")
-        if self.prior_reference not in ("start", "sim", "sim_ensemble"):
-            raise ValueError(f"FitConfig.prior_reference must be 'start', 'sim' or 'sim_ensemble', got "
-                             f"{self.prior_reference!r}")
-        if self.prior_tangent_planes not in ("start", "reference"):
-            raise ValueError(f"FitConfig.prior_tangent_planes must be 'start' or 'reference', got "
-                             f"{self.prior_tangent_planes!r}")
-        if self.prior_spread_floor is not None and not (math.isfinite(self.prior_spread_floor)
-                                                        and self.prior_spread_floor > 0):
-            raise ValueError(f"FitConfig.prior_spread_floor must be None or finite and > 0, got "
-                             f"{self.prior_spread_floor}")
         if self.prior_spread_floor is not None and not (self.prior_reference == "sim_ensemble"
                                                         and self.prior_follows_simulation):
             object.__setattr__(self, "prior_spread_floor", None)  # unused: recorded as None, as it ran
-        if self.anchor_reference not in ("images", "texture"):
-            raise ValueError(f"FitConfig.anchor_reference must be 'images' or 'texture', got {self.anchor_reference!r}")
-        for k, v in dataclasses.asdict(self.weights).items():
-            if not (v >= 0 and math.isfinite(v)):
-                raise ValueError(f"FitConfig.weights.{k} must be finite and >= 0, got {v}")
-        if not (self.image_blur >= 0 and self.anchor_scale > 0):
-            raise ValueError(f"FitConfig: image_blur must be >= 0 and anchor_scale > 0, got "
-                             f"{self.image_blur}, {self.anchor_scale}")
-        if not (self.collision_clearance >= 0 and self.collision_radius > 0):
-            raise ValueError(f"FitConfig: collision_clearance must be >= 0 and collision_radius > 0, got "
-                             f"{self.collision_clearance}, {self.collision_radius}")
-        if int(self.smooth_passes) != self.smooth_passes or self.smooth_passes < 0:
-            raise ValueError(f"FitConfig.smooth_passes must be an integer >= 0, got {self.smooth_passes}")
-        for k in ("window", "window_iters"):
-            v = getattr(self, k)
-            if int(v) != v or v < 0:
-                raise ValueError(f"FitConfig.{k} must be an integer >= 0, got {v}")
-        if self.max_iters < 1 or self.max_iters_first < 1 or self.vertex.max_iters < 1 or self.window_iters < 1:
-            raise ValueError("FitConfig: iteration limits must be >= 1")
 
     @property
     def prior_follows_simulation(self) -> bool:
@@ -185,11 +136,21 @@ class FitConfig:
 
     @classmethod
     def from_config(cls, section: Mapping | None = None, loss: str | None = None) -> "FitConfig":
-        """The settings of config section ``fit`` (keys left out: the schema's defaults), as the
-        loss variant ``loss`` (default: the section's ``loss``) uses them. No key is renamed;
-        the stage-level keys (:data:`STAGE_KEYS`) are ignored, any other unknown key is an error."""
+        """The settings of config section ``fit`` (keys left out: the schema's defaults), as the loss variant
+        ``loss`` (default: the section's ``loss``) uses them. No key is renamed; the stage-level keys
+        (:data:`STAGE_KEYS`) are ignored; any other unknown key, or a value the schema does not allow, is a
+        ValueError."""
         p = section_defaults("fit", dict(section or {}))
-        return apply_variant(_typed(cls, {**p, "loss": "pipeline"}, STAGE_KEYS), loss or p["loss"])
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(p) - fields - set(STAGE_KEYS))
+        if unknown:
+            raise ValueError(f"config section fit: unknown keys {unknown}")
+        bad = [f"{'/'.join(map(str, e.absolute_path))}: {e.message}"
+               for e in _validator().iter_errors({k: v for k, v in p.items() if k != "frames"})]
+        if bad:
+            raise ValueError(f"config section fit: {'; '.join(bad)}")
+        return apply_variant(_typed(cls, {**{k: v for k, v in p.items() if k in fields}, "loss": "pipeline"}),
+                             loss or p["loss"])
 
     def replace(self, **changes) -> "FitConfig":
         """A copy with fields changed; ``weights`` may be a mapping of the weights to change."""
@@ -202,14 +163,19 @@ class FitConfig:
         return dataclasses.replace(self, **changes)
 
 
-def _typed(cls, values: Mapping, ignore=()):
+@functools.lru_cache(maxsize=1)
+def _validator():
+    """The schema of section ``fit`` (jsonschema)."""
+    import jsonschema
+    import yaml
+
+    return jsonschema.Draft202012Validator(yaml.safe_load(default_schema_path().read_text())["properties"]["fit"])
+
+
+def _typed(cls, values: Mapping):
     """``cls`` (a dataclass of this module) from the config's ``values``, each field cast to its type (nested: its
-    dataclass); keys other than the fields and ``ignore``: ValueError."""
-    fields = dataclasses.fields(cls)
-    unknown = sorted(set(values) - {f.name for f in fields} - set(ignore))
-    if unknown:
-        raise ValueError(f"config section fit: unknown keys {unknown}")
+    dataclass)."""
     cast = {"int": int, "float": float, "bool": bool, "str": str,
             "float | None": lambda v: None if v is None else float(v),
             "LossWeights": lambda v: _typed(LossWeights, v), "VertexSettings": lambda v: _typed(VertexSettings, v)}
-    return cls(**{f.name: cast[f.type](values[f.name]) for f in fields if f.name in values})
+    return cls(**{f.name: cast[f.type](values[f.name]) for f in dataclasses.fields(cls)})

@@ -1,9 +1,8 @@
 """The ``nearest`` baseline: per frame, the simulated garment pose that the loss scores lowest.
 
-A baseline that fits nothing (variant ``nearest``, method 'nearest' of :func:`anidress_core.fit.fit_sequence`):
-it measures how far the simulation database alone gets. The database is the rig's bone transforms of
-every simulated frame (``rig.npz``: the library motions, the simulation of the observed motion), each
-with the body state it was simulated on. For a frame t of the observed sequence:
+A baseline that fits nothing (variant ``nearest``): it measures how far the simulation database alone gets. The
+database is the rig's bone transforms of every simulated frame (``rig.npz``: the library motions, the simulation
+of the observed motion), each with the body state it was simulated on. For a frame t of the observed sequence:
 
 1. the ``NEAREST`` nearest simulated frames (other motions than the observed one) by the body's pose
    relative to its root and the root's velocity in its own frame (:func:`body_features`,
@@ -14,13 +13,9 @@ with the body state it was simulated on. For a frame t of the observed sequence:
 3. every candidate scored by the loss (:func:`score_poses`: the frame's cues, flow targets and references,
    L_prior left out); the lowest is the frame's pose.
 
-The same database once gave the chained fit proposals at keyframes; they did not help and left the
-package (studies/fit/README.md section 8, runnable at git d6e895a).
-
-Shapes: N database frames, K candidates, B bones, J body joints (root = joint 0), T frames.
-Transforms are rest -> world (column vectors), float64. Units: metres, seconds; the velocity
-weight is in s^2 (a velocity difference of 1 m/s costs as much as a pose feature distance of
-sqrt(weight)).
+Shapes: N database frames, K candidates, B bones, J body joints (root = joint 0), T frames. Transforms are rest ->
+world (column vectors), float64. Units: metres, seconds; the velocity weight is in s^2 (a velocity difference of
+1 m/s costs as much as a pose feature distance of sqrt(weight)).
 """
 from __future__ import annotations
 

@@ -1,17 +1,12 @@
 """What one frame's fit holds fixed: rig, views, cues, render windows (AniDress §3.2, DESIGN.md §8).
 
-Per frame t the B bone transforms G^t (B, 4, 4) of the garment rig (rest (V, 3), weights
-(V, B), :mod:`anidress_core.rig`) are estimated so that the skinned mesh
-``x = LBS(rest, W, G^t)`` explains the 2D cues of C training views (:class:`FrameCues`).
-:func:`anidress_core.fit.make_problem` gathers what stays fixed while one frame is optimised
-(:class:`Problem`): the masks, the body occluder's depth, and each loss term's state (its normal maps, flow
-targets, references, planes: :mod:`anidress_core.fit.terms`). As in the paper every term is a sum (over views and pixels
-or targets); all of them are divided by one common constant, the number of garment pixels
-in the masks (``Problem.n_px``), so that their ratios are the paper's whatever the image
-size and number of views. The renders are cut to a window per view around the mask and the
-start pose (``FitConfig.crop_margin``, :func:`crop_window`), the body occluder rasterised
-there. Shapes: T frames, V vertices, F faces, B bones, C cameras, H, W image size, N
-residuals. Float64 for poses and geometry; CPU or CUDA (whatever device the inputs are on).
+:func:`anidress_core.fit.make_problem` gathers what stays fixed while one frame is optimised (:class:`Problem`):
+the masks, the body occluder's depth, and each loss term's state (:mod:`anidress_core.fit.terms`). As in the paper
+every term is a sum (over views and pixels or targets); all of them are divided by one common constant, the number
+of garment pixels in the masks (``Problem.n_px``), so that their ratios are the paper's whatever the image size and
+number of views. The renders are cut to a window per view around the mask and the start pose
+(``FitConfig.crop_margin``, :func:`crop_window`). Shapes: V vertices, F faces, B bones, C cameras, H, W image size,
+N residuals. Float64 for poses and geometry; CPU or CUDA (whatever device the inputs are on).
 """
 from __future__ import annotations
 
@@ -308,40 +303,39 @@ def crop_window(views: Views, mask: Tensor, verts: Tensor, margin: int) -> Crop:
     lo = torch.where(ok[..., None], uv, big).amin(1).floor()  # (C, 2)
     hi = torch.where(ok[..., None], uv, -big).amax(1).ceil()
     m = mask.bool() if not mask.is_floating_point() else mask > 0
-    rows, cols = m.any(2), m.any(1)  # (C, H), (C, W)
-    ar_h = torch.arange(H, device=mask.device, dtype=uv.dtype)
-    ar_w = torch.arange(W, device=mask.device, dtype=uv.dtype)
-    lo_x = torch.minimum(lo[:, 0], torch.where(cols, ar_w, big).amin(1))
-    hi_x = torch.maximum(hi[:, 0], torch.where(cols, ar_w, -big).amax(1))
-    lo_y = torch.minimum(lo[:, 1], torch.where(rows, ar_h, big).amin(1))
-    hi_y = torch.maximum(hi[:, 1], torch.where(rows, ar_h, -big).amax(1))
-    lo_x, lo_y = (lo_x - margin).clamp(0, W - 1), (lo_y - margin).clamp(0, H - 1)
-    hi_x, hi_y = (hi_x + margin).clamp(0, W - 1), (hi_y + margin).clamp(0, H - 1)
-    empty = hi_x < lo_x
-    lo_x, hi_x = torch.where(empty, torch.zeros_like(lo_x), lo_x), torch.where(empty, torch.zeros_like(hi_x), hi_x)
-    empty = hi_y < lo_y
-    lo_y, hi_y = torch.where(empty, torch.zeros_like(lo_y), lo_y), torch.where(empty, torch.zeros_like(hi_y), hi_y)
-    cw = int((hi_x - lo_x).max()) + 1
-    ch = int((hi_y - lo_y).max()) + 1
-    x0 = lo_x.long().clamp(max=W - cw)
-    y0 = lo_y.long().clamp(max=H - ch)
+
+    def span(lo: Tensor, hi: Tensor, lines: Tensor, size: int) -> tuple[Tensor, int]:
+        """(C,) window starts and the common length along one axis; lines (C, size): garment columns or rows."""
+        ar = torch.arange(size, device=mask.device, dtype=uv.dtype)
+        lo = (torch.minimum(lo, torch.where(lines, ar, big).amin(1)) - margin).clamp(0, size - 1)
+        hi = (torch.maximum(hi, torch.where(lines, ar, -big).amax(1)) + margin).clamp(0, size - 1)
+        empty = hi < lo
+        lo, hi = torch.where(empty, torch.zeros_like(lo), lo), torch.where(empty, torch.zeros_like(hi), hi)
+        n = int((hi - lo).max()) + 1
+        return lo.long().clamp(max=size - n), n
+
+    (x0, cw), (y0, ch) = span(lo[:, 0], hi[:, 0], m.any(1), W), span(lo[:, 1], hi[:, 1], m.any(2), H)
     return Crop(x0, y0, ch, cw)
+
+
+def _window_pixels(c: Crop) -> tuple[Tensor, Tensor, Tensor]:
+    """Index tensors (C, 1, 1), (C, h, 1), (C, 1, w) of the windows' pixels in whole (C, H, W) images."""
+    dev = c.x0.device
+    return (torch.arange(c.x0.shape[0], device=dev)[:, None, None],
+            (c.y0[:, None] + torch.arange(c.height, device=dev)[None])[:, :, None],
+            (c.x0[:, None] + torch.arange(c.width, device=dev)[None])[:, None, :])
 
 
 def crop_frame(views: Views, cues: FrameCues, flow: FlowTargets | None, c: Crop
                ) -> tuple[Views, FrameCues, FlowTargets | None]:
     """The frame seen through the windows ``c``: principal points shifted, cue maps cut out."""
-    C = cues.mask.shape[0]
     K = views.K.clone()
     K[:, 0, 2] -= c.x0.to(K.dtype)
     K[:, 1, 2] -= c.y0.to(K.dtype)
-    dev = cues.mask.device
-    rr = c.y0[:, None] + torch.arange(c.height, device=dev)[None]  # (C, h)
-    cc = c.x0[:, None] + torch.arange(c.width, device=dev)[None]  # (C, w)
-    ci = torch.arange(C, device=dev)[:, None, None]
+    px = _window_pixels(c)
 
     def cut(x):
-        return None if x is None else x[ci, rr[:, :, None], cc[:, None, :]]
+        return None if x is None else x[px]
 
     fl = None
     if flow is not None:
@@ -354,14 +348,10 @@ def crop_frame(views: Views, cues: FrameCues, flow: FlowTargets | None, c: Crop
 def uncrop_fragments(frags: raster.Fragments, c: Crop, height: int, width: int,
                      occluder: Tensor | None = None) -> raster.Fragments:
     """Paste windowed fragments back into full (C, H, W) images (outside: face -1, the occluder's depth or +inf)."""
-    C = frags.face_id.shape[0]
-    dev = frags.face_id.device
+    C, dev = frags.face_id.shape[0], frags.face_id.device
     fid = torch.full((C, height, width), -1, dtype=frags.face_id.dtype, device=dev)
     depth = (torch.full((C, height, width), float("inf"), dtype=frags.depth.dtype, device=dev) if occluder is None
              else occluder.to(frags.depth.dtype).clone())
-    rr = c.y0[:, None] + torch.arange(c.height, device=dev)[None]
-    cc = c.x0[:, None] + torch.arange(c.width, device=dev)[None]
-    ci = torch.arange(C, device=dev)[:, None, None]
-    fid[ci, rr[:, :, None], cc[:, None, :]] = frags.face_id
-    depth[ci, rr[:, :, None], cc[:, None, :]] = frags.depth
+    px = _window_pixels(c)
+    fid[px], depth[px] = frags.face_id, frags.depth
     return raster.Fragments(fid, None, depth)  # type: ignore[arg-type]

@@ -77,8 +77,10 @@ def test_the_variants_kept():
         with pytest.raises(ValueError, match="unknown keys"):
             fit.FitConfig.from_config({key: 0})
     assert fit_schema["properties"]["start"]["enum"] == ["previous"]
-    with pytest.raises(ValueError, match="start"):
-        fit.FitConfig.from_config({}).replace(start="other")
+    with pytest.raises(ValueError, match="start: 'other' is not one of"):
+        fit.FitConfig.from_config({"start": "other"})
+    with pytest.raises(ValueError, match="weights/prior: -1 is less than the minimum of 0"):
+        fit.FitConfig.from_config({"weights": {"prior": -1}})
 
 
 def test_which_settings_read_the_simulation_of_the_observed_motion():
