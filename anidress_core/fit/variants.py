@@ -1,22 +1,8 @@
-"""The loss variants of the garment fit, in one place (config ``fit/loss``, ``fit/ablations``,
-rules ``fit`` and ``fit_ablation``, the CLI).
-
-* ``pipeline``: config section ``fit`` as written (its defaults are the schema's).
-* ``pipeline_no_<part>``: leave-one-out ablations of the pipeline (that term's weight 0, no temporal
-  filter, no window refinement, no simulation prior); ``pipeline_uniform_prior``: without L_prior's weight
-  per vertex from the ensemble's spread; ``pipeline_texture_anchor``: L_anchor's references from the
-  synthetic garment's texture at the template's UVs, not the images (a capture has no such texture).
-* ``nearest``: a baseline that fits nothing: per frame, the simulation-database pose with the
-  lowest pipeline loss (:mod:`anidress_core.fit.nearest`).
-* ``paper``: the paper's loss, L = 2.0 L_silhouette + 0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress,
-  supplementary), none of our terms, no temporal filter and no window refinement; the solver settings are the
-  section's.
-* ``paper_vertex``, ``paper_no_normal_flow``, ``paper_no_flow``: the paper's ablations (Fig. 9)
-  (a) direct vertex fitting without the rig (Adam on the vertex positions), (b) no normal and
-  no flow losses, (c) no flow loss, on the paper's loss.
-
-The variants that switched on the experiments left off by default, or replayed earlier defaults, left with
-that code (their findings: studies/fit/README.md; runnable at git d6e895a).
+"""The loss variants of the garment fit, in one place (config ``fit/loss``, ``fit/ablations``, rules ``fit`` and
+``fit_ablation``, the CLI): ``pipeline`` (config section ``fit`` as written) and its leave-one-out ablations, the
+``nearest`` baseline (:mod:`anidress_core.fit.nearest`), and ``paper``, the paper's loss L = 2.0 L_silhouette +
+0.1 L_normal + 3.0 L_flow (L_M, L_N, L_of in AniDress, supplementary) with its ablations of Fig. 9: (a) direct
+vertex fitting, (b) no normal and no flow losses, (c) no flow loss. Each variant's description says what it changes.
 """
 from __future__ import annotations
 
@@ -34,21 +20,19 @@ class Variant(NamedTuple):
     apply: Callable  # FitConfig -> FitConfig (:meth:`anidress_core.fit.FitConfig.replace`; config imports this module)
 
 
+def _without(term: str) -> Callable:
+    return lambda c: c.replace(weights={term: 0.0})
+
+
 def _paper(c):
     return c.replace(weights=PAPER_WEIGHTS, smooth_passes=0, window=0, method="rig")
 
 
 VARIANTS: dict[str, Variant] = {
     "pipeline": Variant("the pipeline's loss (config section fit as written)", lambda c: c),
-    "pipeline_no_normal": Variant("the pipeline's loss without L_normal", lambda c: c.replace(weights={"normal": 0.0})),
-    "pipeline_no_flow": Variant("the pipeline's loss without L_flow", lambda c: c.replace(weights={"flow": 0.0})),
-    "pipeline_no_anchor": Variant("the pipeline's loss without L_anchor", lambda c: c.replace(weights={"anchor": 0.0})),
-    "pipeline_no_collision": Variant("the pipeline's loss without L_collision",
-                                     lambda c: c.replace(weights={"collision": 0.0})),
-    "pipeline_no_stretch": Variant("the pipeline's loss without L_stretch",
-                                   lambda c: c.replace(weights={"stretch": 0.0})),
-    "pipeline_no_prior": Variant("the pipeline's loss without L_prior (frame 0)",
-                                 lambda c: c.replace(weights={"prior": 0.0})),
+    **{f"pipeline_no_{k}": Variant(f"the pipeline's loss without L_{k}", _without(k))
+       for k in ("normal", "flow", "anchor", "collision", "stretch")},
+    "pipeline_no_prior": Variant("the pipeline's loss without L_prior (frame 0)", _without("prior")),
     "pipeline_no_smooth": Variant("the pipeline's loss without the temporal filter of the bone transforms",
                                   lambda c: c.replace(smooth_passes=0)),
     "pipeline_no_window": Variant("the pipeline without the joint refinement of windows of frames (fit/window 0): the "

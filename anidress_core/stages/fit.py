@@ -2,44 +2,38 @@
 
 ``fit`` (paper §3.2, DESIGN.md §8) reads, for one sequence ``<seq>`` of ``data/<scene>``:
 
-* ``results/<scene>/rig.npz`` (:func:`anidress_core.io.rig.read_rig`): rest (V, 3),
-  weights (V, B), bone centres, faces and the simulated sequences' transforms;
-* the cues of the training cameras (``scene.yaml`` ``cameras.train``, optionally an
-  evenly spread subset): ``<masks_dir>/<cam>/<frame:06d>.png`` (labels 0/1/2, garment = 2),
-  ``<normals_dir>/<cam>/<frame:06d>.exr`` (camera-space unit normals; no folder = normal
-  loss off), ``<flows_dir>/<cam>/<frame:06d>.exr`` (channels X, Y, valid: forward flow
-  frame-1 -> frame on frame-1's grid; none for frame 0);
-* with the chromaticity anchor on (``weights/anchor`` > 0) the training images
-  ``<seq>/images/<cam>/<frame:06d>.{png,jpg}``, and with ``anchor_reference: texture`` the
-  scene's garment texture;
-* the cameras and images of ``<seq>``, or of its copy undistorted to pinhole working cameras
-  (``undistorted_dir``, rule undistort) when the cameras have lens distortion
-  (:func:`anidress_core.io.scene.sequence_source` decides);
+* ``results/<scene>/rig.npz`` (:func:`anidress_core.io.rig.read_rig`): rest (V, 3), weights (V, B), bone
+  centres, faces and the simulated sequences' transforms;
+* the cues of the training cameras (``scene.yaml`` ``cameras.train``, optionally an evenly spread subset):
+  ``<masks_dir>/<cam>/<frame:06d>.png`` (labels 0/1/2, garment = 2), ``<normals_dir>/<cam>/<frame:06d>.exr``
+  (camera-space unit normals; no folder: L_normal off), ``<flows_dir>/<cam>/<frame:06d>.exr`` (channels X, Y,
+  valid: forward flow frame-1 -> frame on frame-1's grid; none for frame 0);
+* with L_anchor on the training images ``<seq>/images/<cam>/<frame:06d>.{png,jpg}``, and with
+  ``anchor_reference: texture`` the scene's garment texture;
+* the cameras and images of ``<seq>``, or of its copy undistorted to pinhole working cameras (``undistorted_dir``,
+  rule undistort; :func:`anidress_core.io.scene.sequence_source` decides);
 * the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
 * ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start;
-* for the ``nearest`` baseline the body motions of the rig's simulated sequences
-  (``motions_dir``: ``results/<scene>/motions/<name>.npz``, rule motions), its database;
-* with ``prior_reference: sim_ensemble`` (the default) ``results/<scene>/sim_ensemble/seq-<seq>.npz``
-  (rule simulate_ensemble), the mean of the observed motion simulated at several bending stiffnesses:
-  L_prior's reference and frame 0's start, carried into the rig (:func:`ensemble_transforms`), and with
-  ``prior_spread_floor`` its members' spread, L_prior's weight per vertex (:func:`ensemble_prior_scales`);
+* for the ``nearest`` baseline the body motions of the rig's simulated sequences (``motions_dir``, rule motions);
+* with ``prior_reference: sim_ensemble`` ``results/<scene>/sim_ensemble/seq-<seq>.npz`` (rule
+  simulate_ensemble): L_prior's reference and frame 0's start (:func:`ensemble_transforms`) and L_prior's weight
+  per vertex (:func:`ensemble_prior_scales`);
 
-and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts,
-the weighted loss and every unweighted term ``loss_<term>`` per frame, with the loss variant
-that ran and every weight as used in the header; the header's ``meta['frame_notes']`` says per
-frame what the fit did about defective cues (views dropped, a frame kept at its start, NaN pixels,
-no flow: :attr:`anidress_core.fit.FrameFit.notes`), which simulated pose the ``nearest`` baseline kept,
-and on the last frame of each window refined jointly its loss before and after.
+and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts, the weighted loss and
+every unweighted term ``loss_<term>`` per frame, with the loss variant that ran, every weight as used and the
+plan's notes in the header; ``meta['frame_notes']`` says per frame what the fit did about defective cues
+(:attr:`anidress_core.fit.FrameFit.notes`), which pose the ``nearest`` baseline kept, and on the last frame of
+each window refined jointly its loss before and after.
 
-``fit_eval`` writes ``fit_metrics.csv``: per method and frame, vertex RMSE against the
-ground-truth garment carried onto the template's vertices, the rig's floor on that
-frame, Chamfer distance and normal consistency against the ground-truth mesh, temporal
-jitter and acceleration error (see :mod:`anidress_core.metrics.mesh`).
+``fit_eval`` writes ``fit_metrics.csv``: per method and frame, vertex RMSE against the ground-truth garment carried
+onto the template's vertices, the rig's floor on that frame, Chamfer distance and normal consistency against the
+ground-truth mesh, temporal jitter and acceleration error (see :mod:`anidress_core.metrics.mesh`).
 """
 from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import logging
 import os
 import time
@@ -206,16 +200,12 @@ def run_fit(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathLike, 
             sim_ensemble_npz: str | os.PathLike | None = None) -> dict:
     """Fit the garment poses of sequence ``seq`` and write ``out_npz`` (see the module docstring).
 
-    params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation:
-    None (the section's ``loss``) or a loss variant (:data:`anidress_core.fit.VARIANTS`) to
-    run instead. motions_dir: the simulated body motions (``results/<scene>/motions``, rule motions),
-    read by the ``nearest`` baseline (its database, :func:`simulation_database`).
-    body_dir: the sequence's body poses refined by rule refine_body, read instead of its smpl/.
-    starts: (T, B, 4, 4) a start for every frame (an oracle for benchmarks, e.g. the rig floor:
-    :class:`anidress_core.fit.FitPlan`), recorded in the header's ``starts``.
-    sim_ensemble_npz: the ensemble's mean simulation of ``seq`` (``results/<scene>/sim_ensemble/seq-<seq>.npz``,
-    rule simulate_ensemble), read with ``fit/prior_reference: sim_ensemble`` (:func:`ensemble_transforms`).
-    Returns the header metadata written.
+    params: the config section ``fit`` (:meth:`anidress_core.fit.FitConfig.from_config`); ablation: None (the
+    section's ``loss``) or a loss variant (:data:`anidress_core.fit.VARIANTS`) to run instead. motions_dir: the
+    ``nearest`` baseline's body motions (:func:`simulation_database`). body_dir: the sequence's body poses refined
+    by rule refine_body, read instead of its smpl/. starts: (T, B, 4, 4) a start for every frame (an oracle for
+    benchmarks, e.g. the rig floor). sim_ensemble_npz: the ensemble's mean simulation of ``seq``
+    (:func:`ensemble_transforms`). Returns the header metadata written.
     """
     t_start = time.perf_counter()
     scene_dir = Path(scene_dir)
@@ -336,10 +326,9 @@ def garment_texture(scene_dir: Path, info: Mapping, template_npz, faces: torch.T
             torch.as_tensor(tex, device=faces.device).double(), f"{path} ({tex.shape[1]}x{tex.shape[0]})")
 
 
-def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None, device) -> tuple[torch.Tensor, str]:
-    """:func:`anidress_core.fit.ensemble.ensemble_transforms` of the ensemble's mean simulation at ``path``
-    (:func:`anidress_core.stages.simulate.run_simulate_ensemble`) for the rig ``art``, and a line saying what it is.
-    Raises, naming the file, when it is missing or does not fit the rig."""
+def _ensemble(path: str | os.PathLike | None, use):
+    """``use`` of the ensemble's mean simulation at ``path`` (:func:`anidress_core.io.sim.read_sim`, rule
+    simulate_ensemble), its ValueError an ArtifactError naming the file."""
     from ..io.sim import read_sim
 
     if path is None or not Path(path).is_file():
@@ -348,28 +337,29 @@ def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None,
                                 "results/<scene>/sim_ensemble/seq-<seq>.npz); or set fit/prior_reference: sim")
     s = read_sim(path, members=False)
     try:
-        G = ENS.ensemble_transforms(art.model, s.frames, frames, device)
+        return use(s)
     except ValueError as e:
         raise files.ArtifactError(f"{path}: {e}") from e
-    return G, f"{path}: {ENS.ensemble_note(s.meta)}, rig transforms fitted to it"
+
+
+def ensemble_transforms(path: str | os.PathLike | None, art, frames: int | None, device) -> tuple[torch.Tensor, str]:
+    """:func:`anidress_core.fit.ensemble.ensemble_transforms` of the ensemble's mean at ``path`` for the rig ``art``,
+    and a line saying what it is."""
+    return _ensemble(path, lambda s: (ENS.ensemble_transforms(art.model, s.frames, frames, device),
+                                      f"{path}: {ENS.ensemble_note(s.meta)}, rig transforms fitted to it"))
 
 
 def ensemble_prior_scales(path: str | os.PathLike, frames: int, floor: float) -> torch.Tensor:
     """:func:`anidress_core.fit.ensemble.ensemble_prior_scales` of the spread stored with the ensemble's mean at
-    ``path``. Raises, naming the file, when it has no spread (written before the spread was stored: rerun rule
-    simulate_ensemble, or set fit/prior_spread_floor: null), fewer frames or a bad one."""
-    from ..io.sim import read_sim
+    ``path`` (none: rerun rule simulate_ensemble, or set fit/prior_spread_floor: null)."""
 
-    spread = read_sim(path, members=False).spread
-    if spread is None:
-        raise files.ArtifactError(f"{path}: no 'spread' (the members' spread about their mean; written by rule "
-                                  "simulate_ensemble since fit/prior_spread_floor exists: rerun it), or set "
-                                  "fit/prior_spread_floor: null")
-    try:
-        return ENS.ensemble_prior_scales(spread, frames, floor)
-    except ValueError as e:  # fewer frames, a non-finite or negative spread: named with its file
-        raise files.ArtifactError(f"{path}: {e}") from e
+    def scales(s):
+        if s.spread is None:
+            raise ValueError("no 'spread' (the members' spread about their mean; written by rule simulate_ensemble "
+                             "since fit/prior_spread_floor exists: rerun it), or set fit/prior_spread_floor: null")
+        return ENS.ensemble_prior_scales(s.spread, frames, floor)
 
+    return _ensemble(path, scales)
 
 
 # --------------------------------------------------------------------------------------
@@ -404,8 +394,7 @@ def gt_template_vertices(scene_dir: str | os.PathLike, seq: str, rest: torch.Ten
     gt_faces = torch.as_tensor(a["garment_faces"].astype(np.int64))
     obj = scene_dir / "garment" / "template.obj"
     rest_v, rest_f, _ = read_mesh(obj)
-    if rest_v.shape[0] != gt.shape[1] or rest_f.shape != tuple(gt_faces.shape) or \
-            not np.array_equal(rest_f, gt_faces.numpy()):
+    if rest_v.shape[0] != gt.shape[1] or not np.array_equal(rest_f, gt_faces.numpy()):
         raise files.ArtifactError(f"{obj}: its topology ({rest_v.shape[0]} vertices, {rest_f.shape[0]} faces) differs "
                                   f"from {gt_path} ({gt.shape[1]} vertices, {gt_faces.shape[0]} faces)")
     face, bary, dist = gt_correspondence(torch.as_tensor(rest).double().cpu().numpy(), rest_v, rest_f)
@@ -444,20 +433,16 @@ def run_fit_eval(scene_dir: str | os.PathLike, seq: str, rig_npz: str | os.PathL
     cams = scene_cameras(scene_dir, seq, list(info["cameras"]["train"]), info)
     floor_px = MM.reprojection_error(floor_X, Y, cams)
     tpl_faces = torch.as_tensor(np.asarray(art.faces))
-    gt_cache: dict[int, MM.SurfaceSamples] = {}
-    floor_cache: dict[int, float] = {}
 
+    @functools.cache
     def gt_samples(t: int) -> MM.SurfaceSamples:  # seeded per frame: the same for every method and run
-        if t not in gt_cache:
-            gt_cache[t] = MM.surface_samples(gt[t], gt_faces, samples, torch.Generator().manual_seed(seed + t))
-        return gt_cache[t]
+        return MM.surface_samples(gt[t], gt_faces, samples, torch.Generator().manual_seed(seed + t))
 
+    @functools.cache
     def floor_chamfer(t: int) -> float:  # the rig floor's surface error, the reference for the Chamfer column
-        if t not in floor_cache:
-            floor_cache[t] = MM.chamfer_normal(MM.surface_samples(floor_X[t], tpl_faces, samples,
-                                                                  torch.Generator().manual_seed(seed + 200003 + t)),
-                                               gt_samples(t)).chamfer
-        return floor_cache[t]
+        return MM.chamfer_normal(MM.surface_samples(floor_X[t], tpl_faces, samples,
+                                                    torch.Generator().manual_seed(seed + 200003 + t)),
+                                 gt_samples(t)).chamfer
 
     rows, summary = [], {"correspondence_mean_m": float(dist.mean()), "correspondence_max_m": float(dist.max()),
                          "rig_floor_rmse_m": float(floor.mean()), "methods": {}}

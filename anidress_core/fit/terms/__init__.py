@@ -1,9 +1,5 @@
 """The loss terms of the garment fit, one module each, with one protocol (AniDress §3.2 and ours).
 
-    L = w_silhouette L_silhouette + w_normal L_normal + w_flow L_flow        (the paper's, supp.)
-      + w_anchor L_anchor + w_prior L_prior + w_collision L_collision
-      + w_stretch L_stretch                                                  (ours)
-
 Every module has ``NAME`` (its config key ``fit/weights/<NAME>``) and four functions:
 
 * ``setup(pb, cues, given) -> state | None``: the term's state for one frame from the problem's common
