@@ -250,21 +250,15 @@ def fit_sequence(plan: FitPlan, cues_of: Callable[[int], FrameCues],
     """Fit frames 0..T-1 of ``plan`` (:class:`anidress_core.fit.FitPlan`) in order, frame t starting from frame
     t-1's result (or from ``plan.starts[t]``, the oracle, with the flow alignment and the rest as usual).
 
-    cues_of(t) -> :class:`FrameCues` (with ``image`` for L_anchor); flow_of(t) -> (flow (C, H, W, 2), valid
-    (C, H, W) or None) of t-1 -> t, or None (no flow for that frame: L_flow off there, logged,
-    ``notes['no_flow']``). Returns one :class:`FrameFit` per frame (with the wall time of each in
-    ``terms['wall_s']``; each frame's ``notes`` are logged as a warning). L_anchor's references are taken from
-    each frame's result (:func:`update_anchor`) and used from the next frame on; ``plan.anchor_init`` gives
-    references from frame 0 on (vertices it covers keep them).
-
-    ``cfg.window`` > 1 (method rig): after every ``window`` chained frames (and at the last frame) those frames
-    are refined jointly, L_flow coupling their poses (:mod:`anidress_core.fit.window`); the next frame is
-    chained from the refined last one. The temporal filter comes last. L_prior following the simulation
-    (:attr:`FitConfig.prior_follows_simulation`): at every frame t towards the skinned ``plan.sim_transforms[t]``,
-    its weight per vertex times ``plan.prior_scales[t]``. Method 'nearest' (a baseline, not optimised): frame t's
-    pose is the candidate of ``plan.candidates_of(t)`` with the lowest loss (:func:`score_poses`;
-    ``notes['nearest']``: its label). Method 'vertex': the stored transforms are the rig's closest to the fitted
-    vertices (:func:`anidress_core.rig.fit_transforms`).
+    cues_of(t) -> :class:`FrameCues`; flow_of(t) -> (flow (C, H, W, 2), valid (C, H, W) or None) of t-1 -> t, or
+    None (L_flow off there, ``notes['no_flow']``). Returns one :class:`FrameFit` per frame (its wall time in
+    ``terms['wall_s']``; its ``notes`` logged as a warning). L_anchor's references are taken from each frame's
+    result (:func:`update_anchor`) and used from the next frame on, the vertices of ``plan.anchor_init`` keeping
+    theirs. ``cfg.window`` > 1 (method rig): after every ``window`` chained frames (and at the last frame) those
+    frames are refined jointly (:mod:`anidress_core.fit.window`), the next frame chained from the refined last one.
+    The temporal filter comes last. Method 'nearest': frame t's pose is the candidate of ``plan.candidates_of(t)``
+    with the lowest loss (:func:`score_poses`; ``notes['nearest']``). Method 'vertex': the stored transforms are the
+    rig's closest to the fitted vertices (:meth:`RigParts.closest_pose`).
     """
     from tqdm import tqdm
 

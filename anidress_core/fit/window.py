@@ -20,6 +20,7 @@ P = 6 B.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import NamedTuple
 
@@ -105,12 +106,9 @@ def window_system(problems: list[Problem], views: Views, pairs: list[PairFlow | 
         sl = slice(i * P, (i + 1) * P)
         H[sl, sl] += Hi
         g[sl] += gi
-    Pfull: dict = {}  # frame -> (C, V, 2, 3) d uv / d x in the whole-image views, once per frame
-
-    def proj_jacobian(i: int) -> Tensor:
-        if i not in Pfull:
-            Pfull[i] = projection_jacobian(wev.frames[i].verts, views)[1]
-        return Pfull[i]
+    @functools.cache
+    def proj_jacobian(i: int) -> Tensor:  # (C, V, 2, 3) d uv / d x of frame i in the whole-image views
+        return projection_jacobian(wev.frames[i].verts, views)[1]
 
     for i in range(1, Wn):
         p = pairs[i]

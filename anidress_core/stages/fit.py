@@ -1,27 +1,19 @@
 """Stages `fit` and `fit_eval`: garment poses from 2D cues, measured against ground truth.
 
-``fit`` (paper §3.2, DESIGN.md §8) reads, for one sequence ``<seq>`` of ``data/<scene>``:
-
-* ``results/<scene>/rig.npz`` (:func:`anidress_core.io.rig.read_rig`): rest (V, 3), weights (V, B), bone
-  centres, faces and the simulated sequences' transforms;
-* the cues of the training cameras (``scene.yaml`` ``cameras.train``, optionally an evenly spread subset):
-  ``<masks_dir>/<cam>/<frame:06d>.png`` (labels 0/1/2, garment = 2), ``<normals_dir>/<cam>/<frame:06d>.exr``
-  (camera-space unit normals; no folder: L_normal off), ``<flows_dir>/<cam>/<frame:06d>.exr`` (channels X, Y,
-  valid: forward flow frame-1 -> frame on frame-1's grid; none for frame 0);
-* with L_anchor on the training images ``<seq>/images/<cam>/<frame:06d>.{png,jpg}``, and with
-  ``anchor_reference: texture`` the scene's garment texture;
-* the cameras and images of ``<seq>``, or of its copy undistorted to pinhole working cameras (``undistorted_dir``,
-  rule undistort; :func:`anidress_core.io.scene.sequence_source` decides);
-* the body (``smpl/`` + the scene's body model), posed per frame as the occluder;
-* ``results/<scene>/template.npz`` (body skinning weights) for the ``body`` start;
-* for the ``nearest`` baseline the body motions of the rig's simulated sequences (``motions_dir``, rule motions);
-* with ``prior_reference: sim_ensemble`` ``results/<scene>/sim_ensemble/seq-<seq>.npz`` (rule
-  simulate_ensemble): L_prior's reference and frame 0's start (:func:`ensemble_transforms`) and L_prior's weight
-  per vertex (:func:`ensemble_prior_scales`);
-
-and writes ``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts, the weighted loss and
-every unweighted term ``loss_<term>`` per frame, with the loss variant that ran, every weight as used and the
-plan's notes in the header; ``meta['frame_notes']`` says per frame what the fit did about defective cues
+``fit`` (paper §3.2, DESIGN.md §8) reads, for one sequence ``<seq>`` of ``data/<scene>``, the rig
+(``results/<scene>/rig.npz``, :func:`anidress_core.io.rig.read_rig`), the cameras of ``<seq>`` (or of its copy
+undistorted to pinholes by rule undistort: :func:`anidress_core.io.scene.sequence_source`), the body posed per frame
+(the occluder), and per training camera (``scene.yaml`` ``cameras.train``, optionally an evenly spread subset) and
+frame the cues (:class:`CueReader`): ``<masks_dir>/<cam>/<frame:06d>.png`` (labels, garment = 2),
+``<normals_dir>/<cam>/<frame:06d>.exr`` (camera-space unit normals), ``<flows_dir>/<cam>/<frame:06d>.exr``
+(channels X, Y, valid: forward flow frame-1 -> frame on frame-1's grid) and, with L_anchor on, the images. Where
+the settings need them (:func:`anidress_core.fit.plan_fit`) it also reads the template (``template.npz``: the
+``body`` start, the UVs), the garment texture, the stiffness ensemble (``results/<scene>/sim_ensemble/seq-<seq>.npz``,
+rule simulate_ensemble: :func:`ensemble_transforms`, :func:`ensemble_prior_scales`) and the body motions of the
+rig's simulated sequences (``motions_dir``, rule motions: the ``nearest`` baseline's database). It writes
+``garment_poses.npz`` (:mod:`anidress_core.io.garment_poses`): transforms, verts, the weighted loss and every
+unweighted term ``loss_<term>`` per frame, with the loss variant that ran, every weight as used and the plan's
+notes in the header; ``meta['frame_notes']`` says per frame what the fit did about defective cues
 (:attr:`anidress_core.fit.FrameFit.notes`), which pose the ``nearest`` baseline kept, and on the last frame of
 each window refined jointly its loss before and after.
 

@@ -4,17 +4,14 @@ Every vertex keeps the chromaticity rgb / (r + g + b) of its reference (:class:`
 every frame each (view, visible vertex) pays a robust Cauchy loss s^2 log(1 + |r|^2 / s^2) of its
 chromaticity there (blurred image, bilinear) against that reference, summed and divided by the
 problem's garment pixel count. Weight ``fit/weights/anchor``, Cauchy scale ``fit/anchor_scale``.
-Chromaticity does not change with Lambertian shading under white light, which the colour
-itself does as the garment turns; a reference that follows the material point is what L_flow's
-chained targets lack (studies/fit/fit_drift.md), so L_anchor is what holds a vertex on its
-material point over many frames -- it sees sliding.
+Chromaticity does not change with Lambertian shading under white light, which the colour itself does as the
+garment turns; a reference that follows the material point holds a vertex on it over many frames, which L_flow's
+chained targets do not (studies/fit/fit_drift.md).
 
-References (``fit/anchor_reference``): ``images``, each vertex's chromaticity in the first
-frame it is seen (:func:`update_anchor`; a start error stays), or ``texture``, the garment's
-texture at the template's UVs (:func:`texture_anchor`): then L_anchor sees where each material
-point is from frame 0 on, which masks, normals and flow cannot (skirt, floral print: frame-0
-tangential error 18 -> 6 mm; on a repeating, nearly one-hue plaid only together with a larger
-normal weight, studies/fit/fit_normal_weight.md).
+References (``fit/anchor_reference``): ``images``, each vertex's chromaticity in the first frame it is seen
+(:func:`update_anchor`; a start error stays), or ``texture``, the garment's texture at the template's UVs
+(:func:`texture_anchor`): then L_anchor sees where each material point is from frame 0 on, which masks, normals
+and flow cannot (studies/fit/fit_normal_weight.md).
 
 Gauss-Newton: IRLS, residual sqrt(weight) (colour - reference), d colour / d x = dI/duv duv/dx
 with dI/duv the central differences of the blurred image (:func:`anidress_core.fit.images.image_features`).
@@ -92,12 +89,10 @@ def texture_anchor(faces: Tensor, face_uv: Tensor, texture: Tensor, blur_texels:
 
     faces (F, 3), face_uv (F, 3, 2) the template's UVs (OBJ convention, :func:`raster.sample_texture`);
     a vertex on a UV seam takes the UV of its first face. texture (Ht, Wt, 3) colours in [0, 1].
-    Each vertex's reference is the chromaticity of the texture blurred by a Gaussian of
-    ``blur_texels`` texels (what one image pixel, blurred like the images, covers:
-    :func:`texture_blur_texels`), at its UV. Every vertex gets one (``seen`` all True), so L_anchor
-    holds each vertex on its own material point from frame 0 on: the material placement that
-    no mask, normal or flow observes (studies/fit/fit_frame0.md) is then seen in the images.
-    num_vertices: V (default: the largest index in ``faces`` + 1); every vertex must be in a face.
+    Each vertex's reference (every vertex gets one: ``seen`` all True) is the chromaticity at its UV of the
+    texture blurred by a Gaussian of ``blur_texels`` texels (what one image pixel, blurred like the images,
+    covers: :func:`texture_blur_texels`). num_vertices: V (default: the largest index in ``faces`` + 1); every
+    vertex must be in a face (studies/fit/fit_frame0.md).
     """
     V = num_vertices if num_vertices is not None else (int(faces.max()) + 1 if faces.numel() else 0)
     if face_uv.shape != (*faces.shape, 2) or texture.ndim != 3 or texture.shape[-1] != 3:

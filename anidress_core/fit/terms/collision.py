@@ -4,10 +4,8 @@ The mean over the garment vertices of max(0, eps - d_v)^2 (metres^2), d_v the ve
 distance to the body along the outward normal of its closest body point, point and normal taken
 at the frame's start (:func:`body_contacts`, a point-to-plane linearisation like ICP's);
 eps = ``fit/collision_clearance``, planes for vertices within ``fit/collision_radius`` of the
-body. Weight ``fit/weights/collision``. The rig's bones at the hem are seen in few views, and a
-part that has slipped inside a leg is hidden by the body from every cue; without this the fit
-leaves tens of vertices per frame up to 6 cm inside the body (studies/fit/fit_collision.md).
-Residual sqrt(w / V) max(0, eps - (x - p).n), Jacobian -n^T where active.
+body. Weight ``fit/weights/collision``: a part that has slipped inside a leg is hidden by the body from every cue
+(studies/fit/fit_collision.md). Residual sqrt(w / V) max(0, eps - (x - p).n), Jacobian -n^T where active.
 """
 from __future__ import annotations
 

@@ -1,14 +1,12 @@
 """L_normal (the paper's L_N): camera-space normals of the visible faces against the normal maps.
 
-Squared difference of unit vectors (:func:`anidress_core.raster.face_normals_cam`) summed over
-pixels that are garment in both the render and the mask (and have a finite normal), divided by
-the problem's garment pixel count. Weight ``fit/weights/normal`` (paper: lambda_N = 0.1; the
-pipeline's 300 goes with L_anchor on texture references, where L_anchor is ~99 % of the loss
-and the paper's weight leaves the normals barely counting: studies/fit/fit_normal_weight.md).
-A camera normal is n_cam = s R n (n the world unit normal, R the camera's rotation, s = +-1
-turning it towards the camera), so |n_cam - t|^2 = |n - s R^T t|^2: every pixel's target is
-taken to world space and the residuals are grouped per face over all cameras (a face seen by k
-cameras is one residual, not k); its derivative lives on the face's three corners.
+Squared difference of unit vectors (:func:`anidress_core.raster.face_normals_cam`) summed over pixels that are
+garment in both the render and the mask (and have a finite normal), divided by the problem's garment pixel count.
+Weight ``fit/weights/normal`` (paper: lambda_N = 0.1; the pipeline's: studies/fit/fit_normal_weight.md). A camera
+normal is n_cam = s R n (n the world unit normal, R the camera's rotation, s = +-1 turning it towards the camera),
+so |n_cam - t|^2 = |n - s R^T t|^2: every pixel's target is taken to world space and the residuals are grouped per
+face over all cameras (a face seen by k cameras is one residual, not k); its derivative lives on the face's three
+corners.
 """
 from __future__ import annotations
 

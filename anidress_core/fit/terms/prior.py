@@ -1,17 +1,14 @@
 """L_prior (ours, not in the paper): a proximal term towards a reference pose.
 
-mean_v |P_v (x_v - x_v(ref))|^2 (metres^2), P_v = I, or with ``fit/prior_tangential`` the
-projection I - n_v n_v^T onto the surface's tangent plane at v (only the material's slide along the
-surface counts; the images place the surface), n_v the vertex normal of the frame's start mesh
-(``fit/prior_tangent_planes: start``) or of the reference (``reference``). The reference
-(``fit/prior_reference``): ``start``, frame 0 only, its start pose (masks and normals cannot
-observe a nearly rotationally symmetric garment sliding about the body, and at frame 0 there is
-no flow); ``sim``, every frame, the rig's simulated pose of the observed motion at that frame;
-``sim_ensemble``, every frame, the mean of the simulations at several bending stiffnesses.
-Weight ``fit/weights/prior`` (0 = off, the paper's loss), times a factor s_v per vertex: with
-``fit/prior_spread_floor`` the ensemble's (:func:`spread_scale`, mean 1), 1 without. Residual
-sqrt(w s_v / V) P (x - x_ref); P is symmetric and idempotent, so its Gauss-Newton block on each vertex
-is w s_v / V P.
+mean_v |P_v (x_v - x_v(ref))|^2 (metres^2), P_v = I, or with ``fit/prior_tangential`` the projection I - n_v n_v^T
+onto the surface's tangent plane at v (only the material's slide along the surface counts; the images place the
+surface), n_v the vertex normal of the frame's start mesh (``fit/prior_tangent_planes: start``) or of the reference
+(``reference``). The reference (``fit/prior_reference``): ``start``, frame 0 only, its start pose; ``sim``, every
+frame, the rig's simulated pose of the observed motion at that frame; ``sim_ensemble``, every frame, the mean of
+the simulations at several bending stiffnesses. Weight ``fit/weights/prior`` (0 = off, the paper's loss), times a
+factor s_v per vertex: with ``fit/prior_spread_floor`` the ensemble's (:func:`spread_scale`, mean 1), 1 without.
+Residual sqrt(w s_v / V) P (x - x_ref); P is symmetric and idempotent, so its Gauss-Newton block on each vertex is
+w s_v / V P.
 """
 from __future__ import annotations
 
@@ -76,9 +73,8 @@ def _scale(st: Pull, like: Tensor) -> Tensor | float:
 
 
 def value(pb: Problem, st: Pull, r: Rendered) -> tuple[float, None]:
-    """L_prior at the render ``r``."""
-    off = _offset(st, r.verts)
-    return float((_scale(st, off) * off ** 2).sum()) / r.verts.shape[0], None
+    """L_prior at the render ``r`` (:func:`reference`'s value)."""
+    return float(reference(pb, st, r.verts, r.fragments)), None
 
 
 def gauss_newton(pb: Problem, st: Pull, data: None, lin: Linearisation, out: System) -> bool:
@@ -105,9 +101,8 @@ def spread_scale(spread: Tensor, floor: float) -> Tensor:
     spread: (T, V) the members' RMS distance from their mean (metres; rule simulate_ensemble).
     s_tv = 1 / (sigma_tv^2 + sigma_0^2), scaled to a mean of 1 over each frame's vertices, sigma_0 =
     ``floor`` times the median of sigma over the sequence: where the members agree their mean pulls
-    harder, where they disagree less, and each frame's total weight is that of a uniform L_prior (the
-    spread predicts the mean's error: Spearman 0.48-0.77 per tuning scene, studies/fit/README.md
-    section 17). A sequence whose members all agree (median 0) gets 1 everywhere.
+    harder, where they disagree less, and each frame's total weight is that of a uniform L_prior
+    (studies/fit/README.md section 17). A sequence whose members all agree (median 0) gets 1 everywhere.
     """
     if spread.ndim != 2:
         raise ValueError(f"spread_scale: spread must be (T, V), got {tuple(spread.shape)}")

@@ -1,12 +1,10 @@
 """L_stretch (ours, not in the paper): the fitted garment keeps its rest edge lengths.
 
-The mean over the template's edges of the squared relative stretch ((|x_a - x_b| - l_ab) / l_ab)^2,
-l_ab the rest length (dimensionless). Cloth is nearly inextensible, and the rig's bones can slide
-the material along the surface only by stretching the edges between them, which no image sees on
-a plain fabric; with the waist band held by the body, this carries its placement down the garment.
-Weight ``fit/weights/stretch``. Residual sqrt(w / E) r_ab, Jacobian u^T / l_ab on x_a and -u^T / l_ab
-on x_b (u the unit edge direction); its Gauss-Newton blocks fill the (a, a), (b, b), (a, b), (b, a)
-pairs of the vertex-space pattern (every edge lies on a face).
+The mean over the template's edges of the squared relative stretch ((|x_a - x_b| - l_ab) / l_ab)^2, l_ab the rest
+length (dimensionless): the rig's bones can slide the material along the surface only by stretching the edges
+between them, which no image sees on a plain fabric. Weight ``fit/weights/stretch``. Residual sqrt(w / E) r_ab,
+Jacobian u^T / l_ab on x_a and -u^T / l_ab on x_b (u the unit edge direction); its Gauss-Newton blocks fill the
+(a, a), (b, b), (a, b), (b, a) pairs of the vertex-space pattern (every edge lies on a face).
 """
 from __future__ import annotations
 
