@@ -11,6 +11,7 @@ V vertices, B bones, C cameras. Float64 for poses and geometry, float32 for the 
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -246,7 +247,7 @@ def smooth_transforms(transforms: Tensor, passes: int = 1) -> Tensor:
 
 def fit_sequence(plan: FitPlan, cues_of: Callable[[int], FrameCues],
                  flow_of: Callable[[int], tuple[Tensor, Tensor | None] | None], progress: bool = True,
-                 log=None) -> list[FrameFit]:
+                 log: logging.Logger = logging.getLogger("anidress.fit")) -> list[FrameFit]:
     """Fit frames 0..T-1 of ``plan`` (:class:`anidress_core.fit.FitPlan`) in order, frame t starting from frame
     t-1's result (or from ``plan.starts[t]``, the oracle, with the flow alignment and the rest as usual).
 
@@ -285,8 +286,7 @@ def fit_sequence(plan: FitPlan, cues_of: Callable[[int], FrameCues],
         if t > 0 and cfg.weights.flow > 0:
             fl = flow_of(t)
             if fl is None:
-                if log is not None:
-                    log.warning("fit: frame %d has no flow; L_flow is off for it", t)
+                log.warning("fit: frame %d has no flow; L_flow is off for it", t)
             else:
                 prev = out[-1]
                 targets = flow_targets(prev.verts, views, prev.fragments, fl[0], fl[1], prev_mask,
@@ -309,7 +309,7 @@ def fit_sequence(plan: FitPlan, cues_of: Callable[[int], FrameCues],
                         prior_scale=plan.prior_scales[t] if follows and plan.prior_scales is not None else None)
         if t > 0 and cfg.weights.flow > 0 and (targets is None or targets.cam.numel() == 0):
             res.notes["no_flow"] = True
-        if res.notes and log is not None:
+        if res.notes:
             log.warning("fit: frame %d: %s", t, res.notes)
         if picked is not None:  # the baseline's pick: a record, not a defect
             res.notes = {**res.notes, "nearest": picked}

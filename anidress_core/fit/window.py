@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import time
 from typing import NamedTuple
 
@@ -143,7 +144,8 @@ def window_system(problems: list[Problem], views: Views, pairs: list[PairFlow | 
     return H, g
 
 
-def refine_window(fits: list, pairs: list[PairFlow | None], views: Views, max_iters: int, log=None) -> list:
+def refine_window(fits: list, pairs: list[PairFlow | None], views: Views, max_iters: int,
+                  log: logging.Logger = logging.getLogger("anidress.fit")) -> list:
     """Refine W chained frames jointly (module docstring) from their chained poses.
 
     fits: the chain's :class:`anidress_core.fit.FrameFit` of the W frames with their problems and render windows
@@ -170,9 +172,8 @@ def refine_window(fits: list, pairs: list[PairFlow | None], views: Views, max_it
                               update, X0, max_iters, cfg.damping, cfg.rel_tol, cfg.step_tol)
     wev: WindowEvaluation = res.evaluation
     rec = {"frames": len(fits), "loss": wev.loss, "chain_loss": res.curve[0], "iterations": res.iterations}
-    if log is not None:
-        log.info("fit: window of %d frames refined jointly: loss %.6g -> %.6g (%d evaluations)", len(fits),
-                 rec["chain_loss"], rec["loss"], rec["iterations"])
+    log.info("fit: window of %d frames refined jointly: loss %.6g -> %.6g (%d evaluations)", len(fits),
+             rec["chain_loss"], rec["loss"], rec["iterations"])
     share = (time.perf_counter() - t0) / len(fits)
     out = []
     for i, (f, ev) in enumerate(zip(fits, wev.frames)):
