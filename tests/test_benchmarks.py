@@ -197,8 +197,8 @@ def test_fit_reuse_needs_the_same_ensemble_members(tmp_path, monkeypatch):
 
     import benchmarks.bench_fit as bf
     from anidress_core.fit import FitConfig
+    from anidress_core.fit.ensemble import ensemble_note
     from anidress_core.io.sim import SimSequence, write_sim
-    from anidress_core.stages.fit import ensemble_note
 
     def members(settles):
         return {"members": [{"bend_stiffness": k, "settle_frames": n} for k in (1e-4, 1e-3) for n in settles]}
