@@ -1,4 +1,6 @@
-"""Probe: the pipeline with frame 0 started on the rig floor (the ground truth's best rig pose) and every later frame
+"""Runnable only at git 4491214: it calls fit_sequence with the plan's parts, which now takes the FitPlan (issue 48).
+
+Probe: the pipeline with frame 0 started on the rig floor (the ground truth's best rig pose) and every later frame
 chained as usual: how much of the fit's error is frame 0's start? Runs bench_fit with its ``optimum`` row changed so
 that only frame 0 takes the oracle's start (``anidress_core.fit.fit_sequence`` is called with ``init`` = the rig
 floor of frame 0 and no per-frame starts); the rows' descriptions still name the every-frame oracle. E.g.
