@@ -157,7 +157,7 @@ def _cmd_fit(args: argparse.Namespace) -> None:
 
 
 def _cmd_fit_eval(args: argparse.Namespace) -> None:
-    from .stages.fit import run_fit_eval
+    from .stages.fit_eval import run_fit_eval
 
     fits = {}
     for item in args.fits:

@@ -29,7 +29,7 @@ Variants (``--variants``, in order; each a separate Snakemake run in ``WORK/<var
   distortion and 4:3 images (the flow vectors remapped by rule undistort).
 
 Scores (held-back truth, the pipeline's own scorers): the fit of walk by
-:func:`anidress_core.stages.fit.run_fit_eval` (vertex RMSE and its ratio to the run's rig floor), the
+:func:`anidress_core.stages.fit_eval.run_fit_eval` (vertex RMSE and its ratio to the run's rig floor), the
 novel-pose renders of dance by :func:`anidress_core.stages.evaluate.run_evaluate` (PSNR, IoU), in the
 working cameras of rule undistort for a distorted variant (truth masks undistorted with the images).
 
@@ -175,7 +175,7 @@ def _mask_iou(pred_dir: Path, truth_dir: Path) -> dict:
 def _score(work: Path, scene_name: str, scene: Path, truth: Path | None) -> dict:
     from anidress_core.io.scene import distorted_cameras
     from anidress_core.stages.evaluate import run_evaluate
-    from anidress_core.stages.fit import run_fit_eval
+    from anidress_core.stages.fit_eval import run_fit_eval
     from anidress_core.stages.undistort import run_undistort
 
     res = work / "results" / scene_name
@@ -335,7 +335,7 @@ def write_outputs(rows: list[dict], args, argv: list[str], started: str) -> None
         "the workflow to the walk fit, the rig and the novel-pose renders; exported scenes with "
         "cues/masks/background: temporal_median (no plates) and fit/anchor_reference: images (no texture).",
         "- scores: the pipeline's scorers against the held-back truth (OUT.truth of export-capture): "
-        "`stages.fit.run_fit_eval` on walk (vertex RMSE, ratio to the rig floor of the same run), "
+        "`stages.fit_eval.run_fit_eval` on walk (vertex RMSE, ratio to the rig floor of the same run), "
         "`stages.evaluate.run_evaluate` on the dance renders (PSNR in the subject box, IoU of the rendered alpha; "
         "distorted variants in the working cameras of rule undistort, truth masks undistorted with the images)",
         "- jobs wall / CPU: summed over the last run of each job of the variant's workflow (Snakemake's benchmark "

@@ -5,7 +5,7 @@ For each scene, sequence and number of training views, fits every loss variant n
 paper's loss ``paper``, the pipeline's ``pipeline`` and the paper's ablations ``paper_vertex``,
 ``paper_no_normal_flow``, ``paper_no_flow``) with the same cues and the config's settings of
 the scene (config section ``fit`` with ``scenes/<scene>/fit`` on top), then measures every
-frame against the ground-truth garment (stages.fit.run_fit_eval): vertex RMSE (mean, 95th
+frame against the ground-truth garment (stages.fit_eval.run_fit_eval): vertex RMSE (mean, 95th
 percentile, worst frame), Chamfer distance, normal consistency, temporal jitter and
 acceleration error, frames per second; and the rig's floor on the same motion (RMSE of
 rig.fit_transforms on the ground-truth meshes in template topology). A reference, ``sim``, is
@@ -42,7 +42,8 @@ from anidress_core.fit import VARIANTS, FitConfig
 from anidress_core.io.garment_poses import load_garment_poses
 from anidress_core.io.scene import read_scene
 from anidress_core.stages import setup_logging
-from anidress_core.stages.fit import run_fit, run_fit_eval
+from anidress_core.stages.fit import run_fit
+from anidress_core.stages.fit_eval import run_fit_eval
 from benchmarks.benchutil import git_rev
 
 REPO = Path(__file__).resolve().parents[1]
@@ -50,7 +51,8 @@ REPO = Path(__file__).resolve().parents[1]
 PROG = ".venv/bin/python -m benchmarks.bench_fit"
 
 # the code whose uncommitted changes the git revision of a run's table flags
-CODE_PATHS = ("anidress_core/fit", "anidress_core/raster.py", "anidress_core/stages/fit.py")
+CODE_PATHS = ("anidress_core/fit", "anidress_core/raster.py", "anidress_core/stages/fit.py",
+              "anidress_core/stages/fit_eval.py")
 
 #: the loss variants fitted by default: the paper's loss, the pipeline's, the paper's ablations (Fig. 9)
 DEFAULT_METHODS = ("paper", "pipeline", "paper_vertex", "paper_no_normal_flow", "paper_no_flow")
@@ -280,7 +282,7 @@ def floor_transforms(scene: str, seq: str, rig_npz: str, frames: int) -> torch.T
     """(T, B, 4, 4) the rig floor's poses: ``rig.fit_transforms`` on the ground truth in template topology."""
     from anidress_core.io.rig import read_rig
     from anidress_core.rig import fit_transforms
-    from anidress_core.stages.fit import gt_template_vertices
+    from anidress_core.stages.fit_eval import gt_template_vertices
 
     art = read_rig(rig_npz, dtype=torch.float64)
     Y = gt_template_vertices(f"data/{scene}", seq, art.model.rest, frames or None)[0]

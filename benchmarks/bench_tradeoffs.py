@@ -93,7 +93,8 @@ def _fit_rmse(cfg, data, seq, rig, tpl, masks, flows, normals, fit_over: dict, o
 
     The default setting (pipeline rig and cues, no override but the frame count) is run once
     and reused by every sweep that includes it."""
-    from anidress_core.stages.fit import run_fit, run_fit_eval
+    from anidress_core.stages.fit import run_fit
+    from anidress_core.stages.fit_eval import run_fit_eval
 
     key = (str(data), str(rig), str(masks), tuple(sorted(fit_over.items())))
     if key in _DEFAULT_FIT:

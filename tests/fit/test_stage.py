@@ -1,8 +1,7 @@
-"""Stages fit and fit_eval on a tiny synthetic skirt scene (rig from its own ground truth), and the
+"""Stage fit on a tiny synthetic skirt scene (rig from its own ground truth, tests/fit/conftest.py), and the
 garment_poses.npz reader/writer (anidress_core.io.garment_poses)."""
 from __future__ import annotations
 
-import csv
 import dataclasses
 
 import numpy as np
@@ -10,66 +9,9 @@ import pytest
 import torch
 
 from anidress_core import fit
+from tests.fit.conftest import ensemble, tiny_cloth
 
 torch.set_num_threads(1)
-
-
-@pytest.fixture(scope="module")
-def tiny_skirt(tmp_path_factory):
-    import yaml
-
-    from anidress_core import rig as R
-    from anidress_core.config import default_schema_path, validate_config
-    from anidress_core.io import files
-    from anidress_core.io.mesh import read_mesh
-    from anidress_core.io.scene import load_body, read_scene
-    from anidress_core.metrics.mesh import barycentric_transfer
-    from anidress_core.stages.fit import gt_correspondence
-    from anidress_core.stages.synth import run_synth
-    from anidress_core.stages.template import run_template
-
-    root = tmp_path_factory.mktemp("fitscene")
-    scene = {"kind": "skirt", "image_size": [64, 64], "cameras": {"count": 6, "train": 4},
-             "sequences": [{"name": "walk", "motion": "walk", "frames": 4}],
-             "garment": {"vertices": 500, "cloth": {"settle_frames": 4}},
-             "render": {"texture_size": 64, "noise_std": 0.0, "supersample": 1}}
-    cfg = validate_config({"run_scenes": ["s"], "scenes": {"s": scene}},
-                          yaml.safe_load(default_schema_path().read_text()))
-    data = run_synth(cfg["scenes"]["s"], "s", root / "data" / "s", threads=1, progress=False)
-    info = read_scene(data)
-    res = root / "results"
-    tpl = run_template(data / "garment" / "template.obj", "skirt", load_body(data, info), 500, res / "template.ply",
-                       res / "template.npz")
-    # a 6-bone rig decomposed from the ground truth carried onto the template (stands in for rule rig)
-    a, _ = files.load_npz(data / "walk" / "gt" / "meshes.npz")
-    rv, rf, _ = read_mesh(data / "garment" / "template.obj")
-    face, bary, _ = gt_correspondence(tpl.verts, rv, rf)
-    Y = barycentric_transfer(torch.as_tensor(a["garment_vertices"]).double(), torch.as_tensor(rf),
-                             torch.as_tensor(face), torch.as_tensor(bary))
-    model = R.ssdr(torch.as_tensor(tpl.verts).double(), Y, torch.as_tensor(tpl.faces), num_bones=6, iters=5, nnz=4)
-    files.save_npz(res / "rig.npz", {
-        "rest": tpl.verts.astype(np.float32), "faces": tpl.faces.astype(np.int64),
-        "weights": model.weights.float().numpy(), "bone_centres": model.bone_centres.float().numpy(),
-        "transforms": model.transforms.float().numpy(), "sequences": np.asarray(["seq-walk"]),
-        "offsets": np.asarray([0, Y.shape[0]], np.int64), "rmse_per_sequence": np.asarray([model.rmse]),
-        "rmse": np.float64(model.rmse)})
-    # the observed motion simulated at two bending stiffnesses, their mean (rule simulate_ensemble): L_prior's reference
-    from anidress_core.stages.simulate import run_motion, run_simulate_ensemble
-
-    run_motion("seq-walk", data, cfg["simulate"], res / "motions" / "seq-walk.npz")
-    run_simulate_ensemble(res / "template.npz", res / "motions" / "seq-walk.npz", data, tiny_cloth(cfg), [1e-4, 1e-3],
-                          ensemble(res), progress=False)
-    return data, res
-
-
-def tiny_cloth(cfg: dict) -> dict:
-    """The pipeline's cloth settings with a short settling (a fast simulation of the tiny scene)."""
-    return {**cfg["simulate"]["cloth"], "settle_frames": 4}
-
-
-def ensemble(res) -> "Path":
-    """The tiny scene's ensemble mean simulation of walk."""
-    return res / "sim_ensemble" / "seq-walk.npz"
 
 
 def stored_loss_is_the_weighted_sum(gp) -> None:
@@ -78,12 +20,12 @@ def stored_loss_is_the_weighted_sum(gp) -> None:
     np.testing.assert_allclose(gp.loss, total, rtol=1e-12, atol=0)
 
 
-def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
+def test_stage_fit_on_a_tiny_scene(tiny_skirt):
     pytest.importorskip("warp")  # L_collision's body planes
     from anidress_core.geometry import lbs
     from anidress_core.io.garment_poses import load_garment_poses, read_garment_poses
     from anidress_core.io.rig import read_rig
-    from anidress_core.stages.fit import FIT_METRIC_COLUMNS, run_fit, run_fit_eval
+    from anidress_core.stages.fit import run_fit
 
     data, res = tiny_skirt
     seq = data / "walk"
@@ -156,26 +98,6 @@ def test_stage_fit_and_eval_on_a_tiny_scene(tiny_skirt):
     run_fit(*args, None, params, res / "walk" / "no_flow.npz", ablation="paper_no_flow", progress=False, **ens)
     gp = read_garment_poses(res / "walk" / "no_flow.npz")
     assert gp.weights["normal"] == 0 and gp.weights["flow"] == 0
-    summ = run_fit_eval(data, "walk", res / "rig.npz", {"full": res / "walk" / "garment_poses.npz",
-                                                         "no_flow": res / "walk" / "no_flow.npz"},
-                        res / "walk" / "fit_metrics.csv", samples=500)
-    with open(res / "walk" / "fit_metrics.csv") as fh:
-        rows = list(csv.DictReader(fh))
-    assert tuple(rows[0].keys()) == FIT_METRIC_COLUMNS and len(rows) == 8
-    assert all(f"loss_{k}" in FIT_METRIC_COLUMNS for k in fit.TERM_NAMES)
-    assert summ["correspondence_max_m"] < 0.01
-    for r in rows:
-        assert 0 <= float(r["vertex_rmse_m"]) < 0.1 and 0 < float(r["normal_consistency"]) <= 1
-        assert float(r["rig_floor_rmse_m"]) < 0.05
-        assert 0 <= float(r["rig_floor_chamfer_m"]) < 0.1
-        assert 0 <= float(r["reprojection_px"]) < 50 and 0 <= float(r["rig_floor_reprojection_px"]) < 50
-    # the floor's Chamfer (with its sampling bias) and reprojection error are one reference per frame,
-    # the same for every method
-    for col in ("rig_floor_chamfer_m", "rig_floor_reprojection_px"):
-        per_frame = {}
-        for r in rows:
-            per_frame.setdefault(r["frame"], set()).add(r[col])
-        assert all(len(v) == 1 for v in per_frame.values())
     # a missing mask is named in the error
     with pytest.raises(FileNotFoundError, match="mask"):
         run_fit(data, "walk", res / "rig.npz", res / "template.npz", seq / "nope", None, None, params,

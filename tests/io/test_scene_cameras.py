@@ -34,7 +34,7 @@ def build_tiny_skirt(root):
     from anidress_core.io.mesh import read_mesh
     from anidress_core.io.scene import load_body, read_scene
     from anidress_core.metrics.mesh import barycentric_transfer
-    from anidress_core.stages.fit import gt_correspondence
+    from anidress_core.stages.fit_eval import gt_correspondence
     from anidress_core.stages.synth import run_synth
     from anidress_core.stages.template import run_template
 

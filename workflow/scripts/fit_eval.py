@@ -3,7 +3,7 @@
 # rule fit's by the variant in its garment_poses.npz header (meta 'loss'), the ablations by theirs.
 from anidress_core.io.garment_poses import load_garment_poses
 from anidress_core.stages import setup_logging
-from anidress_core.stages.fit import run_fit_eval
+from anidress_core.stages.fit_eval import run_fit_eval
 
 log = setup_logging(snakemake.log[0])
 try:
