@@ -52,7 +52,7 @@ PROG = ".venv/bin/python -m benchmarks.bench_fit"
 
 # the code whose uncommitted changes the git revision of a run's table flags
 CODE_PATHS = ("anidress_core/fit", "anidress_core/raster.py", "anidress_core/stages/fit.py",
-              "anidress_core/stages/fit_eval.py")
+              "anidress_core/stages/fit_eval.py", "anidress_core/io/fit_cues.py")
 
 #: the loss variants fitted by default: the paper's loss, the pipeline's, the paper's ablations (Fig. 9)
 DEFAULT_METHODS = ("paper", "pipeline", "paper_vertex", "paper_no_normal_flow", "paper_no_flow")
