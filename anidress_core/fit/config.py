@@ -1,11 +1,7 @@
-"""Settings of the garment fit: one frozen dataclass, field names = the keys of config section ``fit``.
-
-The defaults and the allowed values are the schema's (workflow/schemas/config.schema.yaml, section ``fit``; the
-defaults are the pipeline's); :meth:`FitConfig.from_config` fills a (partial) section from them, checks it
-against the schema and applies the loss variant it names (``fit/loss``, :mod:`anidress_core.fit.variants`).
-Weights are stored as they are used: ``weights.<term>`` multiplies the unweighted term ``L_<term>``
-(:mod:`anidress_core.fit.terms`). The stage-level keys of the section (:data:`STAGE_KEYS`) are read by
-:mod:`anidress_core.stages.fit`.
+"""Settings of the garment fit: one frozen dataclass, field names = the keys of config section ``fit``, the defaults
+and allowed values the schema's (workflow/schemas/config.schema.yaml; :meth:`FitConfig.from_config`). Weights are
+stored as they are used: ``weights.<term>`` multiplies the unweighted term ``L_<term>``
+(:mod:`anidress_core.fit.terms`).
 """
 from __future__ import annotations
 
@@ -19,7 +15,7 @@ from .variants import VARIANTS, apply_variant
 
 __all__ = ["LossWeights", "VertexSettings", "FitConfig", "STAGE_KEYS"]
 
-#: Keys of config section ``fit`` that the stage reads, not the fit itself.
+#: Keys of config section ``fit`` that the stage (:mod:`anidress_core.stages.fit`) reads, not the fit itself.
 STAGE_KEYS = ("views", "cues", "first_frame_init", "ablations", "device", "threads", "eval", "frames")
 
 
@@ -63,8 +59,7 @@ class FitConfig:
     loss: str
     """The loss variant these settings are of (:data:`anidress_core.fit.variants.VARIANTS`)."""
     method: str
-    """'rig' (bone transforms, Levenberg-Marquardt), 'vertex' (ablation a, Adam on vertices) or 'nearest' (a
-    baseline, no optimisation: per frame the simulated pose with the lowest loss, :mod:`anidress_core.fit.nearest`)."""
+    """'rig' (bone transforms, Levenberg-Marquardt), 'vertex' (ablation a: Adam on vertices) or 'nearest' (baseline)."""
     weights: LossWeights
     """Weight of each loss term, as used (dimensionless multipliers of the unweighted terms)."""
     max_iters: int
@@ -84,22 +79,19 @@ class FitConfig:
     flow_align_iters: int
     """Frames t > 0: Gauss-Newton steps on L_flow alone before the full loss (no rasterisation); 0 = off."""
     crop_margin: int
-    """Render only a window per view around the mask and the start pose, grown by this many pixels; -1 = whole
-    images."""
+    """Render a window per view around the mask and the start pose, grown by this many pixels; -1 = whole images."""
     image_blur: float
     """Gaussian blur (pixels, standard deviation) of the images for L_anchor."""
     anchor_scale: float
     """Cauchy scale of L_anchor (chromaticity difference; rgb / (r + g + b), each in [0, 1])."""
     anchor_reference: str
-    """L_anchor's references: 'texture' (the garment texture at the template's UVs) or 'images' (each vertex's
-    chromaticity in the first frame it is seen)."""
+    """L_anchor's references: 'texture' (the garment texture) or 'images' (:mod:`anidress_core.fit.terms.anchor`)."""
     collision_clearance: float
     """L_collision: clearance (metres) the garment keeps from the body skin."""
     collision_radius: float
     """L_collision: only vertices within this distance (metres) of the body at the frame's start get a plane."""
     smooth_passes: int
-    """After the whole sequence: passes of the temporal filter (1, 2, 1) / 4 over the bone transforms
-    (:func:`anidress_core.fit.smooth_transforms`; ours; 0 = off)."""
+    """Passes of the temporal filter of the bone transforms (:func:`anidress_core.fit.smooth_transforms`); 0 = off."""
     vertex: VertexSettings
     """Ablation (a): Adam settings."""
     window: int
@@ -109,16 +101,14 @@ class FitConfig:
     start: str
     """Start of frame t > 0: ``previous``, frame t-1's result (the only value)."""
     prior_reference: str
-    """L_prior's reference: ``start`` (frame 0 only: its start pose), ``sim`` (every frame: the rig's simulated
-    pose of the observed motion) or ``sim_ensemble`` (every frame: the stiffness ensemble's mean,
-    :mod:`anidress_core.fit.ensemble`); ``sim`` and ``sim_ensemble`` also give frame 0's start."""
+    """L_prior's reference: ``start``, ``sim`` or ``sim_ensemble`` (:mod:`anidress_core.fit.terms.prior`); ``sim``
+    and ``sim_ensemble`` also give frame 0's start."""
     prior_tangential: bool
     """L_prior counts only the offset along the surface (the tangent planes of ``prior_tangent_planes``)."""
     prior_tangent_planes: str
     """Whose vertex normals give the tangent planes: ``start`` (the frame's start mesh) or ``reference``."""
     prior_spread_floor: float | None
-    """L_prior's weight per vertex from the stiffness ensemble's spread (:func:`anidress_core.fit.terms.prior.
-    spread_scale`; with ``prior_reference`` sim_ensemble only, else stored as None); None = one weight."""
+    """L_prior's weight per vertex from the ensemble's spread (:func:`.terms.prior.spread_scale`); None = one weight."""
 
     def __post_init__(self):
         if self.loss not in VARIANTS:
@@ -136,10 +126,10 @@ class FitConfig:
 
     @classmethod
     def from_config(cls, section: Mapping | None = None, loss: str | None = None) -> "FitConfig":
-        """The settings of config section ``fit`` (keys left out: the schema's defaults), as the loss variant
-        ``loss`` (default: the section's ``loss``) uses them. No key is renamed; the stage-level keys
-        (:data:`STAGE_KEYS`) are ignored; any other unknown key, or a value the schema does not allow, is a
-        ValueError."""
+        """The settings of config section ``fit`` (keys left out: the schema's defaults, the pipeline's), as the loss
+        variant ``loss`` (default: the section's ``loss``, :mod:`anidress_core.fit.variants`) uses them. No key is
+        renamed; the stage-level keys (:data:`STAGE_KEYS`) are ignored; any other unknown key, or a value the schema
+        does not allow, is a ValueError."""
         p = section_defaults("fit", dict(section or {}))
         fields = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(p) - fields - set(STAGE_KEYS))

@@ -1,10 +1,8 @@
-"""One sequence's fit as it will run: the settings plus what the loaded artifacts give them (one immutable plan).
+"""One sequence's fit as it will run: the settings plus what the loaded artifacts give them (:class:`FitPlan`).
 
-:func:`plan_fit` decides, from :class:`FitConfig` and the stage-level ``first_frame_init``, frame 0's start, the
-simulation L_prior follows and its weight per vertex, L_anchor's references, the ``nearest`` baseline's candidates
-and the settings as used (L_normal off without normal maps), each with a note for the fit's header. The artifacts
-come as loaders, called only where the settings need them, so that a fit reads no file it does not use
-(:mod:`anidress_core.stages.fit` reads the files and names them in errors). Shapes: T frames, V vertices, B bones.
+:func:`plan_fit` takes the artifacts as loaders, called only where the settings need them, so that a fit reads no
+file it does not use (:mod:`anidress_core.stages.fit` reads the files and names them in errors). Shapes: T frames,
+V vertices, B bones.
 """
 from __future__ import annotations
 
@@ -63,7 +61,8 @@ def plan_fit(cfg: FitConfig, rig: RigParts, views: Views, frames: int, first_fra
              spread: Callable[[], Tensor], texture: Callable[[], tuple[Tensor, Tensor, str]] | None = None,
              database: Callable[[], tuple[SimDatabase, Tensor, float]] | None = None, own: str | None = None,
              starts: Tensor | None = None, normals: bool = True, rig_name: str = "the rig") -> FitPlan:
-    """The plan of the fit of ``frames`` frames of ``rig`` in ``views``.
+    """The plan of the fit of ``frames`` frames of ``rig`` in ``views``: each choice of :class:`FitPlan` with a note
+    for the fit's header.
 
     first_frame_init: ``auto`` (the followed simulation's frame 0 where there is one, else the body-skinned
     template), ``sim`` (the followed simulation's, an error without one) or ``body``. The followed simulation is

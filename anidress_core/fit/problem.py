@@ -176,13 +176,12 @@ def occluder_or_inf(cues: FrameCues, views: Views) -> Tensor:
 
 
 def check_cues(views: Views, cues: FrameCues) -> None:
+    """ValueError naming the cue whose shape is not the views' (C, H, W) (normals: (C, H, W, 3))."""
     C, H, W = views.K.shape[0], views.height, views.width
-    if cues.mask.shape != (C, H, W):
-        raise ValueError(f"fit: mask must be ({C}, {H}, {W}), got {tuple(cues.mask.shape)}")
-    if cues.occluder is not None and cues.occluder.shape != (C, H, W):
-        raise ValueError(f"fit: occluder depth must be ({C}, {H}, {W}), got {tuple(cues.occluder.shape)}")
-    if cues.normals is not None and cues.normals.shape != (C, H, W, 3):
-        raise ValueError(f"fit: normals must be ({C}, {H}, {W}, 3), got {tuple(cues.normals.shape)}")
+    for name, x, shape in (("mask", cues.mask, (C, H, W)), ("occluder depth", cues.occluder, (C, H, W)),
+                           ("normals", cues.normals, (C, H, W, 3))):
+        if x is not None and tuple(x.shape) != shape:
+            raise ValueError(f"fit: {name} must be {shape}, got {tuple(x.shape)}")
 
 
 def cue_notes(cues: FrameCues, flow: FlowTargets | None) -> tuple[FrameCues, FlowTargets | None, dict]:

@@ -63,6 +63,8 @@ def value(pb: Problem, st: Target, r: Rendered) -> tuple[float, SilhouetteData]:
     if st.known is not None:  # unknown mask pixels: no residual
         res = res * st.known
     return float((res * res).sum()) / pb.n_px, SilhouetteData(cr.inside_xy, cr.outside_xy, cr.cam, cr.edge, pix, res)
+
+
 def crossing_rows(s: SilhouetteData, uv: Tensor, Puv: Tensor, Jx: Tensor, jdtype) -> Tensor:
     """(N, P) derivative of each crossing's fraction t w.r.t. the parameters: dt/dq by autograd on the
     gathered edge end points, chained through Puv (C, V, 2, 3) and Jx (3V, P), in ``jdtype``."""
