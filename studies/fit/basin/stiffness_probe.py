@@ -9,7 +9,7 @@ import numpy as np
 import torch
 import yaml
 
-from anidress_core.stages.fit import gt_template_vertices
+from anidress_core.stages.fit_eval import gt_template_vertices
 from anidress_core.stages.simulate import run_simulate
 
 cloth = yaml.safe_load(open("config/config.yaml"))["simulate"]["cloth"]

@@ -6,7 +6,7 @@ the best rotation in [-30, 30] deg by 0.5 deg about the true garment's centroid)
 import glob, sys
 
 import numpy as np, torch, yaml
-from anidress_core.stages.fit import gt_template_vertices
+from anidress_core.stages.fit_eval import gt_template_vertices
 from anidress_core.io.garment_poses import load_garment_poses
 suite = yaml.safe_load(open("config/fit_suite.yaml"))["scenes"]
 for scene in ["suite_00", "suite_03", "suite_06", "suite_09", "suite_01", "suite_02"]:

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 from anidress_core.geometry import lbs  # noqa: E402
 from anidress_core.io.rig import read_rig  # noqa: E402
 from anidress_core.rig import fit_transforms  # noqa: E402
-from anidress_core.stages.fit import gt_template_vertices  # noqa: E402
+from anidress_core.stages.fit_eval import gt_template_vertices  # noqa: E402
 from anidress_core.stages.simulate import run_simulate  # noqa: E402
 
 

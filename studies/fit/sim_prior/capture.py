@@ -13,7 +13,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[3]))
 
 from anidress_core.io.garment_poses import load_garment_poses  # noqa: E402
-from anidress_core.stages.fit import run_fit, run_fit_eval  # noqa: E402
+from anidress_core.stages.fit import run_fit
+from anidress_core.stages.fit_eval import run_fit_eval  # noqa: E402
 
 VARIANTS = ("pipeline_no_sim_prior", "pipeline")
 

@@ -17,7 +17,7 @@ from anidress_core import raster
 from anidress_core.geometry import lbs
 from anidress_core.io.rig import read_rig
 from anidress_core.rig import fit_transforms
-from anidress_core.stages.fit import gt_template_vertices
+from anidress_core.stages.fit_eval import gt_template_vertices
 
 runs, methods = sys.argv[1], sys.argv[2].split(",")
 print("scene/seq | method | edge stretch rms | vertex RMSE (mm)")
