@@ -98,8 +98,6 @@ class FitConfig:
     """Frames refined jointly after the chain (:mod:`anidress_core.fit.window`); 0 or 1 = off."""
     window_iters: int
     """Most loss evaluations of one window's joint Levenberg-Marquardt (each evaluates all its frames)."""
-    start: str
-    """Start of frame t > 0: ``previous``, frame t-1's result (the only value)."""
     prior_reference: str
     """L_prior's reference: ``start``, ``sim`` or ``sim_ensemble`` (:mod:`anidress_core.fit.terms.prior`); ``sim``
     and ``sim_ensemble`` also give frame 0's start."""

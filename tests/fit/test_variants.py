@@ -72,13 +72,12 @@ def test_the_variants_kept():
     fit_schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]["fit"]
     for key in ("proposal_every", "proposal_nearest", "proposal_offsets", "proposal_refine",
                 "proposal_velocity_weight", "backward", "prior_member_temperature", "prior_member_window",
-                "prior_information"):
+                "prior_information", "start"):
         assert key not in fit_schema["properties"], key
         with pytest.raises(ValueError, match="unknown keys"):
             fit.FitConfig.from_config({key: 0})
-    assert fit_schema["properties"]["start"]["enum"] == ["previous"]
-    with pytest.raises(ValueError, match="start: 'other' is not one of"):
-        fit.FitConfig.from_config({"start": "other"})
+    with pytest.raises(ValueError, match="prior_reference: 'other' is not one of"):
+        fit.FitConfig.from_config({"prior_reference": "other"})
     with pytest.raises(ValueError, match="weights/prior: -1 is less than the minimum of 0"):
         fit.FitConfig.from_config({"weights": {"prior": -1}})
 
