@@ -29,14 +29,11 @@ def _strip_image_size(seq_dir) -> None:
 def build_tiny_skirt(root):
     """(data, results) of a synthetic 4-camera (3 train), 3-frame skirt scene at H x W whose intri.yml has no
     H_/W_, with results/template.npz and a 4-bone results/rig.npz (shared with tests/test_undistort_stage.py)."""
-    from anidress_core import rig as R
     from anidress_core.config import default_schema_path, validate_config
-    from anidress_core.io.mesh import read_mesh
     from anidress_core.io.scene import load_body, read_scene
-    from anidress_core.metrics.mesh import barycentric_transfer
-    from anidress_core.stages.fit_eval import gt_correspondence
     from anidress_core.stages.synth import run_synth
     from anidress_core.stages.template import run_template
+    from tests.fit.conftest import write_gt_rig
 
     sc = {"kind": "skirt", "image_size": [H, W], "cameras": {"count": 4, "train": 3}, "body": {"vertices": 1500},
           "sequences": [{"name": "walk", "motion": "walk", "frames": 3}],
@@ -49,19 +46,7 @@ def build_tiny_skirt(root):
     res = root / "results"
     tpl = run_template(data / "garment" / "template.obj", "skirt", load_body(data, info), 300, res / "template.ply",
                        res / "template.npz")
-    # a 4-bone rig from the ground truth carried onto the template (stands in for rule rig, as tests/fit)
-    a, _ = files.load_npz(data / "walk" / "gt" / "meshes.npz")
-    rv, rf, _ = read_mesh(data / "garment" / "template.obj")
-    face, bary, _ = gt_correspondence(tpl.verts, rv, rf)
-    Y = barycentric_transfer(torch.as_tensor(a["garment_vertices"]).double(), torch.as_tensor(rf),
-                             torch.as_tensor(face), torch.as_tensor(bary))
-    model = R.ssdr(torch.as_tensor(tpl.verts).double(), Y, torch.as_tensor(tpl.faces), num_bones=4, iters=3, nnz=4)
-    files.save_npz(res / "rig.npz", {
-        "rest": tpl.verts.astype(np.float32), "faces": tpl.faces.astype(np.int64),
-        "weights": model.weights.float().numpy(), "bone_centres": model.bone_centres.float().numpy(),
-        "transforms": model.transforms.float().numpy(), "sequences": np.asarray(["seq-walk"]),
-        "offsets": np.asarray([0, Y.shape[0]], np.int64), "rmse_per_sequence": np.asarray([model.rmse]),
-        "rmse": np.float64(model.rmse)})
+    write_gt_rig(data, tpl, res / "rig.npz", num_bones=4, iters=3)  # stands in for rule rig
     return data, res
 
 
