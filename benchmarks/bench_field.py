@@ -35,8 +35,8 @@ import yaml
 
 from benchmarks.benchutil import cpu_model, git_rev
 from benchmarks.fit_suite import FIELD_SUITE, FIELD_TUNING
-from benchmarks.field_runs import (REFERENCE, Job, code_dir, load, noisy_bodies, rig_floor_poses, run_jobs,
-                                   scene_sequences)
+from benchmarks.field_runs import (REFERENCE, Job, code_dir, fit_anchor, load, noisy_bodies, rig_floor_poses,
+                                   run_jobs, scene_sequences)
 
 ROOT = Path(__file__).resolve().parents[1]
 WORK = ROOT / "benchmarks" / "runs" / "field"
@@ -81,7 +81,7 @@ def read(kind: str) -> dict | None:
 
 def run_demo(args) -> None:
     """skirt (full, body_only) and tight (full) with both codes, their default settings."""
-    meta = {**machine(), "load_start": load(), "command": "demo"}
+    meta = {**machine(), "load_start": load(), "command": "demo", "fit_anchor": fit_anchor(["skirt"])}
     jobs = []
     for code in (REFERENCE, "."):
         label = REFERENCE if code != "." else "this code"
@@ -138,6 +138,7 @@ def run_suite(args) -> None:
     tuning, held = suite_scenes()
     steps = int(config()["field"]["train"]["steps"])
     meta = {**machine(), "load_start": load(), "command": "suite", "tuning": tuning, "held_out": held,
+            "fit_anchor": fit_anchor(tuning + held),
             "steps": steps}
     rows = run_jobs(_budget_jobs("suite", held, BUDGETS), args.workers)
     meta["load_end"] = load()
@@ -149,6 +150,7 @@ def run_convergence(args) -> None:
     tuning, held = suite_scenes()
     steps = int(config()["field"]["train"]["steps"])
     meta = {**machine(), "load_start": load(), "command": "convergence", "tuning": tuning, "held_out": held,
+            "fit_anchor": fit_anchor(tuning + held),
             "steps": steps}
     rows = run_jobs(_budget_jobs("convergence", tuning, CURVE), args.workers)
     meta["load_end"] = load()
@@ -230,7 +232,8 @@ def texture_jobs(scene: str) -> list[Job]:
 
 def run_attribution(args) -> None:
     tuning, _ = suite_scenes()
-    meta = {**machine(), "load_start": load(), "command": "attribution", "scenes": tuning}
+    meta = {**machine(), "load_start": load(), "command": "attribution", "scenes": tuning,
+            "fit_anchor": fit_anchor(tuning)}
     jobs = [j for s in tuning for j in attribution_jobs(s)] + texture_jobs(tuning[0])
     rows = run_jobs(jobs, args.workers)
     meta["load_end"] = load()
@@ -248,7 +251,8 @@ OPTIONS = (("this code, its defaults", "default", {}),
 def run_options(args) -> None:
     """The held-out scenes, variant `full`: this code's defaults beside the paper's warp and the pose refinement."""
     tuning, held = suite_scenes()
-    meta = {**machine(), "load_start": load(), "command": "options", "tuning": tuning, "held_out": held}
+    meta = {**machine(), "load_start": load(), "command": "options", "tuning": tuning, "held_out": held,
+            "fit_anchor": fit_anchor(held)}
     jobs = [Job(label, scene, "full", WORK / "options" / scene / name, overlay=overlay)
             for scene in held for label, name, overlay in OPTIONS]
     rows = run_jobs(jobs, args.workers)
@@ -270,13 +274,30 @@ def bound_jobs(scene: str) -> list[Job]:
 def run_bound(args) -> None:
     """The held-out scenes with exact garment inputs: how far any garment-pose or deformation fix could go."""
     tuning, held = suite_scenes()
-    meta = {**machine(), "load_start": load(), "command": "bound", "tuning": tuning, "held_out": held}
+    meta = {**machine(), "load_start": load(), "command": "bound", "tuning": tuning, "held_out": held,
+            "fit_anchor": fit_anchor(held)}
     rows = run_jobs([j for s in held for j in bound_jobs(s)], args.workers)
     meta["load_end"] = load()
     save("bound", rows, meta)
 
 
 # --------------------------------------------------------------------------- tables
+
+
+def _fits_line(m: dict) -> str:
+    """Which L_anchor references the pipeline's fits of a run had (:func:`benchmarks.field_runs.fit_anchor`); a run
+    from before that was recorded: the default at its commit (schema ``fit/anchor_reference``)."""
+    if "fit_anchor" in m:
+        return f"- the pipeline's fits: L_anchor references from {m['fit_anchor']} (fit/anchor_reference)"
+    rev = str(m.get("git", "")).split()[0]
+    try:
+        schema = yaml.safe_load(subprocess.run(["git", "show", f"{rev}:workflow/schemas/config.schema.yaml"], cwd=ROOT,
+                                               capture_output=True, text=True, check=True).stdout)
+        default = schema["properties"]["fit"]["properties"]["anchor_reference"]["default"]
+    except (subprocess.CalledProcessError, KeyError, TypeError, yaml.YAMLError):
+        return "- the pipeline's fits: L_anchor references not recorded"
+    return (f"- the pipeline's fits: L_anchor references not recorded by this run; the default at git {rev} was "
+            f"{default}")
 
 
 def _f(x, nd: int = 2) -> str:
@@ -308,6 +329,7 @@ def demo_table(d: dict) -> list[str]:
     L = ["## The demo scenes", "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field demo` (git {m['git']}, {m['date']}); {m['cpu']}, "
          f"{m['cpus']} logical CPUs; load {m['load_start']} at the start, {m['load_end']} at the end",
+         _fits_line(m),
          "- each field trained, rendered and scored as rules train_field / render_* / evaluate_field do (the pipeline's "
          "masks, rig and fits of `make demo`), one torch thread, two jobs side by side; each code with its own "
          "default settings. Novel view: the 4 test cameras on every 12th training frame; novel pose: all 12 "
@@ -405,7 +427,7 @@ def _change_summary(ref: list[dict], new: list[dict], scenes: list[str], k: str)
 
 def _suite_head(m: dict, what: str, budgets: tuple[float, ...]) -> list[str]:
     return [f"- command: `.venv/bin/python -m benchmarks.bench_field {what}` (git {m['git']}, {m['date']}); {m['cpu']}; "
-            f"load {m['load_start']} at the start, {m['load_end']} at the end",
+            f"load {m['load_start']} at the start, {m['load_end']} at the end", _fits_line(m),
             "- scenes: config/field_suite.yaml (`benchmarks/fit_suite.py --seed 26 --prefix fsuite --count 6 "
             "--novel-pose`), each through the pipeline (`snakemake` with the suite overlay) for its masks, rig and "
             f"fits. Tuning subset (the field's settings were chosen on it): {', '.join(m['tuning'])}; held out: "
@@ -486,6 +508,7 @@ def attribution_table(d: dict) -> list[str]:
     L = ["## What blurs the garment: attribution on the tuning scenes", "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field attribution` (git {m['git']}, {m['date']}); "
          f"{m['cpu']}; load {m['load_start']} at the start, {m['load_end']} at the end",
+         _fits_line(m),
          "- one row per cause, the same training budget (this code's default steps and rays) unless the row is the "
          "budget; `full` unless named. Rig floor: the rig's bone transforms fitted to the ground-truth garment "
          "meshes. Dense ground-truth deformation (benchmarks/field_oracle.py): each garment sample carried to the "
@@ -507,6 +530,7 @@ def options_table(d: dict) -> list[str]:
     L = ["## The paper's warp and the pose refinement on the held-out scenes", "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field options` (git {m['git']}, {m['date']}); "
          f"{m['cpu']}; load {m['load_start']} at the start, {m['load_end']} at the end",
+         _fits_line(m),
          f"- held-out scenes {', '.join(m['held_out'])} (tuning: {', '.join(m['tuning'])}), variant `full`, the "
          "pipeline's fits, this code's default budget; each row changes one setting", "",
          f"| scene | row | train wall s | {FIG_HEAD[0]} | {FIG_HEAD[1]} |", "| --- | --- | --- | --- | --- |"]
@@ -534,7 +558,7 @@ def bound_table(d: dict) -> list[str]:
     now = [r for r in (options or {}).get("rows", []) if r["method"] == OPTIONS[0][0]]
     L = ["## The bound: exact garment inputs on the held-out scenes", "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field bound` (git {m['git']}, {m['date']}); {m['cpu']}; "
-         f"load {m['load_start']} at the start, {m['load_end']} at the end",
+         f"load {m['load_start']} at the start, {m['load_end']} at the end", _fits_line(m),
          f"- held-out scenes {', '.join(held)}, variant `full`, this code's default budget. Rig floor: the rig's bone "
          "transforms fitted to the ground-truth garment meshes in place of the fits (training and novel-pose "
          "sequences); dense ground-truth deformation: every garment sample carried to the template through the "

@@ -273,6 +273,24 @@ def noisy_bodies(scene: str, seq: str, cm: float, out: Path, seed: int = 0) -> P
     return out
 
 
+def fit_anchor(scenes) -> str:
+    """What L_anchor's references were in the pipeline's fits of ``scenes`` (results/<scene>/<seq>/garment_poses.npz,
+    both sequences; the header's ``config``): ``images`` or ``texture``, per scene where they differ."""
+    from anidress_core.io.garment_poses import load_garment_poses
+
+    found = {}
+    for scene in scenes:
+        for seq in scene_sequences(scene):
+            path = ROOT / "results" / scene / seq / "garment_poses.npz"
+            if path.is_file():
+                meta = load_garment_poses(path)[1].get("meta") or {}
+                found[f"{scene}/{seq}"] = (meta.get("config") or {}).get("anchor_reference", "not recorded")
+    kinds = sorted(set(found.values()))
+    if len(kinds) == 1:
+        return kinds[0]
+    return "; ".join(f"{k} {v}" for k, v in found.items()) or "no fits"
+
+
 def load() -> str:
     """The machine's load average (1 / 5 / 15 min)."""
     try:
