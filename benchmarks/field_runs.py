@@ -19,6 +19,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -71,15 +72,19 @@ class Job:
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+_WORKTREE_LOCK = threading.Lock()
+
+
 def code_dir(rev: str) -> Path | None:
     """None for this checkout; else the worktree of ``rev`` (made when absent)."""
     if rev == ".":
         return None
     d = CODE_ROOT / rev
-    if not (d / "anidress_core").is_dir():
-        CODE_ROOT.mkdir(parents=True, exist_ok=True)
-        subprocess.run(["git", "worktree", "add", "--detach", "-f", str(d), rev], cwd=ROOT, check=True,
-                       capture_output=True)
+    with _WORKTREE_LOCK:  # the jobs of one run start side by side
+        if not (d / "anidress_core").is_dir():
+            CODE_ROOT.mkdir(parents=True, exist_ok=True)
+            subprocess.run(["git", "worktree", "add", "--detach", "-f", str(d), rev], cwd=ROOT, check=True,
+                           capture_output=True)
     return d
 
 
