@@ -289,8 +289,10 @@ def _fits_line(m: dict) -> str:
     from before that was recorded: the default at its commit (schema ``fit/anchor_reference``)."""
     if "fit_anchor" in m:
         return f"- the pipeline's fits: L_anchor references from {m['fit_anchor']} (fit/anchor_reference)"
-    rev = str(m.get("git", "")).split()[0]
+    rev = (str(m.get("git", "")).split() or [""])[0]
     try:
+        if not rev:
+            raise KeyError("git")
         schema = yaml.safe_load(subprocess.run(["git", "show", f"{rev}:workflow/schemas/config.schema.yaml"], cwd=ROOT,
                                                capture_output=True, text=True, check=True).stdout)
         default = schema["properties"]["fit"]["properties"]["anchor_reference"]["default"]
