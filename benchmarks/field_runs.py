@@ -280,7 +280,7 @@ def noisy_bodies(scene: str, seq: str, cm: float, out: Path, seed: int = 0) -> P
 
 def fit_anchor(scenes) -> str:
     """What L_anchor's references were in the pipeline's fits of ``scenes`` (results/<scene>/<seq>/garment_poses.npz,
-    both sequences; the header's ``config``): ``images`` or ``texture``, per scene where they differ."""
+    both sequences; the header's ``config``): ``images`` or ``texture``, or each scene/sequence's where they differ."""
     from anidress_core.io.garment_poses import load_garment_poses
 
     found = {}
