@@ -471,7 +471,7 @@ def test_snakemake_stops_at_validate_scene(scene):
                                                   "sequences": [{"name": "walk", "motion": "walk", "frames": 3}]}}}
     (wd / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     # two jobs side by side on the 2 cores of `make test`, each on one thread as with --cores 1: the scene_files
-    # listings (one Snakemake subprocess per part of the scene) before validate_scene
+    # listings (one job per part of the scene) before validate_scene
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(wd),
            "--configfile", str(wd / "cfg.yaml"), "--cores", "2", "--max-threads", "1", "results/t/scene_check.json"]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONUNBUFFERED": "1"})

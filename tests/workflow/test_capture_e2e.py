@@ -52,7 +52,7 @@ SETTINGS = {"template": {"vertices": 300},
                          "ensemble_bend_stiffness": [1.0e-4, 1.0e-3], "ensemble_settle_frames": []},
             "rig": {"bones": 4, "iters": 3}, "fit": {"max_iters": 2, "max_iters_first": 3},
             "field": {"train": {"steps": 20, "rays_per_step": 256, "images_per_step": 4, "checkpoint_every": 10},
-                      "render": {"frame_stride": 2, "library": ["sway"], "library_frame_stride": 2}}}
+                      "render": {"frame_stride": 2, "library": ["sway"], "library_frame_stride": 2, "skip_res": 32}}}
 
 
 def _snakemake(wd: Path, *args: str) -> subprocess.CompletedProcess:

@@ -61,7 +61,7 @@ def test_validate_names_the_missing_texture_and_the_setting(capture, tmp_path):
 def _snakemake(wd: Path, cfg: dict, *args: str, importtime: bool = False) -> subprocess.CompletedProcess:
     (wd / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     # two jobs side by side on the 2 cores of `make test`, each on one thread as with --cores 1: the scene_files
-    # listings (one Snakemake subprocess per part of the scene) before validate_scene
+    # listings (one job per part of the scene) before validate_scene
     cmd = [sys.executable, *(["-X", "importtime"] if importtime else []), "-m", "snakemake", *args, "-s",
            str(REPO / "Snakefile"), "--directory", str(wd), "--configfile", str(wd / "cfg.yaml"), "--cores", "2",
            "--max-threads", "1"]

@@ -112,8 +112,7 @@ def _log_has(workdir: Path, log: str, text: str):
     return lambda: (workdir / log).is_file() and text in (workdir / log).read_text()
 
 
-CASES = [  # (target, script, victim, signal)
-    ("simulate", "run", signal.SIGTERM),
+CASES = [  # (target, victim, signal): both ways to stop the run on the training, the kill of the job on simulate too
     ("simulate", "job", signal.SIGKILL),
     ("train_field", "run", signal.SIGTERM),
     ("train_field", "job", signal.SIGKILL),

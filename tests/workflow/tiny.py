@@ -41,7 +41,7 @@ TINY = {
     "fit": {"max_iters": 5, "max_iters_first": 10},
     "field": {
         "train": {"steps": 20, "rays_per_step": 256, "images_per_step": 4, "checkpoint_every": 10},
-        "render": {"frame_stride": 2, "library": ["sway"], "library_frame_stride": 2},
+        "render": {"frame_stride": 2, "library": ["sway"], "library_frame_stride": 2, "skip_res": 32},
     },
 }
 

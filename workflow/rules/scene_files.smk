@@ -38,5 +38,7 @@ rule scene_files:
     wildcard_constraints:
         scene="|".join(s for s, c in config["scenes"].items() if not c["synthetic"]) or "^$",
         part=_PART_NAMES,
-    run:
-        write_manifest(list(input), output[0], log[0])
+    conda:
+        "../../envs/anidress.yaml"
+    script:
+        "../scripts/scene_files.py"

@@ -113,19 +113,6 @@ def scene_inputs_fn(parts, seqs=None):
     return fn
 
 
-def write_manifest(paths, out, log):
-    """{"files": [[path, size in bytes, mtime in ns], ...]} of ``paths`` to ``out`` (JSON); their count to ``log``."""
-    import json
-
-    rows = [[p, os.stat(p).st_size, os.stat(p).st_mtime_ns] for p in paths]
-    for path in (out, log):
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(out, "w") as fh:
-        json.dump({"files": rows}, fh, indent=0)
-    with open(log, "w") as fh:
-        fh.write(f"{out}: {len(rows)} files, {sum(r[1] for r in rows)} bytes\n")
-
-
 _CAPTURED_SEQUENCES = sorted({q for s, c in config["scenes"].items() if not c["synthetic"] for q in scene_sequences(s)})
 _PART_NAMES = "|".join(SCENE_PARTS) + "|(" + ("|".join(re.escape(q) for q in _CAPTURED_SEQUENCES) or "^$") + \
     ")/(" + "|".join(SEQUENCE_PARTS) + ")"
