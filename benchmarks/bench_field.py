@@ -9,6 +9,7 @@ issue 45), measured in one run on one machine. Not a test.
     .venv/bin/python -m benchmarks.bench_field options       # the paper's warp and the pose refinement, held out
     .venv/bin/python -m benchmarks.bench_field bound         # exact garment inputs (rig floor, dense truth), held out
     .venv/bin/python -m benchmarks.bench_field write         # benchmarks/field.{md,csv} from the runs on disk
+                                                             # (a section without one: kept as field.md has it)
 
 Every field is trained, rendered and scored through the ``anidress`` command line (:mod:`benchmarks.field_runs`):
 the reference from a git worktree of 6aee398 with that commit's config, this code with config/config.yaml;
@@ -46,6 +47,12 @@ CODE_PATHS = ("anidress_core", "benchmarks/bench_field.py", "benchmarks/field_ru
 BUDGETS = (0.25, 0.5, 1.0)
 #: budgets of the convergence curve on the tuning scenes
 CURVE = (0.25, 0.5, 1.0, 2.0)
+#: the heading of each section of field.md
+TITLES = {"demo": "The demo scenes", "profile": "Where the time goes", "suite": "The held-out scenes of the field suite",
+          "convergence": "Convergence on the tuning scenes (the budget was chosen here)",
+          "attribution": "What blurs the garment: attribution on the tuning scenes",
+          "options": "The paper's warp and the pose refinement on the held-out scenes",
+          "bound": "The bound: exact garment inputs on the held-out scenes"}
 #: the reference's figures that define "today's quality" (both kinds: novel view and novel pose)
 QUALITY = ("psnr_subject_db", "psnr_garment_db")
 
@@ -328,7 +335,7 @@ def _figs(r: dict, k: str) -> str:
 
 def demo_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
-    L = ["## The demo scenes", "",
+    L = ["## " + TITLES["demo"], "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field demo` (git {m['git']}, {m['date']}); {m['cpu']}, "
          f"{m['cpus']} logical CPUs; load {m['load_start']} at the start, {m['load_end']} at the end",
          _fits_line(m),
@@ -363,7 +370,7 @@ def demo_table(d: dict) -> list[str]:
 
 def profile_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
-    L = ["## Where the time goes", "",
+    L = ["## " + TITLES["profile"], "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field profile` (git {m['git']}, {m['date']}); {m['cpu']}; "
          f"load {m['load_start']} at the start, {m['load_end']} at the end",
          "- benchmarks/field_profile.py on the demo skirt's `full` field (the pipeline's inputs), each code with its "
@@ -463,7 +470,7 @@ def _time_to_quality_lines(rows: list[dict], label: str) -> list[str]:
 def suite_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
     held, steps = m["held_out"], m["steps"]
-    L = ["## The held-out scenes of the field suite", ""] + _suite_head(m, "suite", BUDGETS) + [""]
+    L = ["## " + TITLES["suite"], ""] + _suite_head(m, "suite", BUDGETS) + [""]
     dflt = [r for r in rows if r["code"] != "." or r["steps"] == steps]
     L += [f"| scene | variant | code | train wall s | {FIG_HEAD[0]} | {FIG_HEAD[1]} |",
           "| --- | --- | --- | --- | --- | --- |"]
@@ -494,7 +501,7 @@ def suite_table(d: dict) -> list[str]:
 
 def convergence_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
-    L = ["## Convergence on the tuning scenes (the budget was chosen here)", ""] + _suite_head(m, "convergence", CURVE)
+    L = ["## " + TITLES["convergence"], ""] + _suite_head(m, "convergence", CURVE)
     L += ["", "| scene | variant | code | steps | train wall s (CPU s) | novel view subject / garment PSNR | "
           "novel pose subject / garment PSNR |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in sorted(rows, key=lambda r: (r["scene"], r["variant"], r["code"] == ".", r["steps"])):
@@ -507,7 +514,7 @@ def convergence_table(d: dict) -> list[str]:
 
 def attribution_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
-    L = ["## What blurs the garment: attribution on the tuning scenes", "",
+    L = ["## " + TITLES["attribution"], "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field attribution` (git {m['git']}, {m['date']}); "
          f"{m['cpu']}; load {m['load_start']} at the start, {m['load_end']} at the end",
          _fits_line(m),
@@ -529,7 +536,7 @@ def attribution_table(d: dict) -> list[str]:
 def options_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
     base = OPTIONS[0][0]
-    L = ["## The paper's warp and the pose refinement on the held-out scenes", "",
+    L = ["## " + TITLES["options"], "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field options` (git {m['git']}, {m['date']}); "
          f"{m['cpu']}; load {m['load_start']} at the start, {m['load_end']} at the end",
          _fits_line(m),
@@ -558,7 +565,7 @@ def bound_table(d: dict) -> list[str]:
     suite, options = read("suite"), read("options")
     ref = [r for r in (suite or {}).get("rows", []) if r["code"] != "." and r["variant"] == "full"]
     now = [r for r in (options or {}).get("rows", []) if r["method"] == OPTIONS[0][0]]
-    L = ["## The bound: exact garment inputs on the held-out scenes", "",
+    L = ["## " + TITLES["bound"], "",
          f"- command: `.venv/bin/python -m benchmarks.bench_field bound` (git {m['git']}, {m['date']}); {m['cpu']}; "
          f"load {m['load_start']} at the start, {m['load_end']} at the end", _fits_line(m),
          f"- held-out scenes {', '.join(held)}, variant `full`, this code's default budget. Rig floor: the rig's bone "
@@ -600,12 +607,19 @@ def write(args) -> None:
          "ground-truth subject mask and its garment and body labels (evaluate_field). LPIPS / DISTS: not available "
          "on this machine (no pretrained weights), not replaced.", ""]
     rows_csv = []
+    md, csv_path = ROOT / "benchmarks" / "field.md", ROOT / "benchmarks" / "field.csv"
+    kept_md = _sections(md.read_text()) if md.is_file() else {}
+    kept_csv = list(csv.DictReader(open(csv_path))) if csv_path.is_file() else []
     for kind, table in (("demo", demo_table), ("profile", profile_table), ("suite", suite_table),
                         ("convergence", convergence_table), ("attribution", attribution_table),
                         ("options", options_table), ("bound", bound_table)):
         d = read(kind)
-        if d is None:
-            L += [f"## {kind}", "", f"not run (`python -m benchmarks.bench_field {kind}`)", ""]
+        if d is None:  # no run on disk (a fresh clone): the section as field.md has it, else "not run"
+            if TITLES[kind] in kept_md:
+                L += kept_md[TITLES[kind]] + [""]
+                rows_csv += [{k: v for k, v in r.items() if v != ""} for r in kept_csv if r["section"] == kind]
+            else:
+                L += [f"## {TITLES[kind]}", "", f"not run (`python -m benchmarks.bench_field {kind}`)", ""]
             continue
         failed = [r for r in d["rows"] if "failed" in r]
         d["rows"] = [r for r in d["rows"] if "failed" not in r]
@@ -623,16 +637,33 @@ def write(args) -> None:
                 flat = {"section": kind, **{k: v for k, v in r.items() if k != "spec"}}
             flat["reference"] = "" if r.get("method") == REFERENCE else REFERENCE
             rows_csv.append(flat)
-    (ROOT / "benchmarks" / "field.md").write_text("\n".join(L).rstrip() + "\n")
+    md.write_text("\n".join(L).rstrip() + "\n")
     cols = []
     for r in rows_csv:
         cols += [k for k in r if k not in cols]
-    with open(ROOT / "benchmarks" / "field.csv", "w", newline="") as fh:
+    with open(csv_path, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=cols, lineterminator="\n")
         w.writeheader()
         for r in rows_csv:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
     print(ROOT / "benchmarks" / "field.md")
+
+
+def _sections(text: str) -> dict[str, list[str]]:
+    """{heading: its lines, the heading included, trailing blank lines left out} of the ``## `` sections of a
+    field.md."""
+    out: dict[str, list[str]] = {}
+    cur = None
+    for line in text.splitlines():
+        if line.startswith("## "):
+            cur = line[3:]
+            out[cur] = []
+        if cur is not None:
+            out[cur].append(line)
+    for lines in out.values():
+        while lines and not lines[-1].strip():
+            lines.pop()
+    return out
 
 
 def main() -> None:
