@@ -40,6 +40,7 @@ import torch
 
 from .. import __version__
 from ..camera import pixel_rays, project
+from ..config import section_defaults
 from ..field.deform import channel_last
 from ..field.encoding import HashGridConfig
 from ..field.model import AnimatableField, FieldConfig, canonical_occupancy
@@ -438,7 +439,8 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     variant = meta["variant"]
     info = read_scene(scene_dir)
     sp = sampler_params(params)
-    bg = torch.tensor(params.get("render", {}).get("background", [0.0, 0.0, 0.0]), dtype=torch.float32, device=dev)
+    rp = section_defaults("field", params)["render"]  # the schema's defaults where params leave a key out
+    bg = torch.tensor(rp["background"], dtype=torch.float32, device=dev)
     cam_seq = seq if library_motion_npz is None else meta["sequence"]
     if library_motion_npz is not None:
         motion = read_motion(library_motion_npz)
@@ -484,15 +486,14 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     cams = all_cams.select(names)
     rays = pixel_rays(cams)
     origins, dirs = rays.origins[:, 0, 0].to(dev), rays.directions.to(dev)
-    chunk = int(params.get("render", {}).get("chunk", 8192))
+    chunk = int(rp["chunk"])
     with torch.no_grad():
         volume = model.weights()
         volume_last = channel_last(volume) if model.cfg.warp_iterations > 0 else None
-    rp = params.get("render", {})
     skip = None
-    if float(rp.get("skip_density", 0.0)) > 0:
+    if float(rp["skip_density"]) > 0:
         t0 = time.perf_counter()
-        skip = canonical_occupancy(model, int(rp.get("skip_res", 128)), float(rp["skip_density"]))
+        skip = canonical_occupancy(model, int(rp["skip_res"]), float(rp["skip_density"]))
         log.info("canonical occupancy %d^3: %.1f%% of the cells have density above %g/m (%.1f s)", skip.occupied.shape[0],
                  100 * float(skip.occupied.float().mean()), float(rp["skip_density"]), time.perf_counter() - t0)
     per_image = []
@@ -501,7 +502,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     if progress:
         from tqdm import tqdm
         bar = tqdm(total=len(todo), desc=f"render {out_dir.name}", unit="img")
-    early = float(params.get("render", {}).get("early_stop", 1e-3))
+    early = float(rp["early_stop"])
     for i, f in enumerate(frames):
         lo, hi = grid.box(torch.tensor([i], device=dev))
         boxes = _projected_box(lo[0].cpu(), hi[0].cpu(), cams, 2)
@@ -537,7 +538,7 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
         "samples_per_ray": float(sum(p["samples"] for p in per_image) / max(1, sum(p["rays"] for p in per_image))),
         "considered_per_ray": float(sum(p["considered"] for p in per_image) / max(1, sum(p["rays"] for p in per_image))),
         "background": bg.cpu().tolist(), "use_occupancy": use_occupancy, "cull_joints": cull_joints,
-        "early_stop": early,
+        "early_stop": early, "skip_density": float(rp["skip_density"]),
         "per_image": per_image,
         "wall_s": time.perf_counter() - t_start, "code_version": __version__,
     }
