@@ -155,12 +155,13 @@ def read_views(seq_dir: Path, cams: Sequence[str], frames: Sequence[int], masks_
 
 
 def sampler_params(p: dict) -> dict:
-    """The ray sampler's settings of the config's ``field`` section (``sampler``), typed."""
-    s = p.get("sampler", {})
-    return {"res": int(s.get("occupancy_res", 64)), "dilate_m": float(s.get("dilate_m", 0.03)),
-            "body_only_garment_dilate_m": float(s.get("body_only_garment_dilate_m", 0.12)),
-            "max_joints": int(s.get("max_joints", 8)), "min_weight": float(s.get("min_joint_weight", 0.01)),
-            "mask_dilate_px": int(s.get("mask_dilate_px", 8)), "step_m": float(s.get("step_m", TrainConfig.step_m))}
+    """The ray sampler's settings of the config's ``field`` section (``sampler``; the schema's defaults where ``p``
+    leaves a key out), typed."""
+    s = section_defaults("field", p)["sampler"]
+    return {"res": int(s["occupancy_res"]), "dilate_m": float(s["dilate_m"]),
+            "body_only_garment_dilate_m": float(s["body_only_garment_dilate_m"]),
+            "max_joints": int(s["max_joints"]), "min_weight": float(s["min_joint_weight"]),
+            "mask_dilate_px": int(s["mask_dilate_px"]), "step_m": float(s["step_m"])}
 
 
 # --------------------------------------------------------------------------- train
@@ -438,8 +439,8 @@ def run_render(field_pt: str | os.PathLike, scene_dir: str | os.PathLike, out_di
     model, meta = lf.model, lf.meta
     variant = meta["variant"]
     info = read_scene(scene_dir)
-    sp = sampler_params(params)
-    rp = section_defaults("field", params)["render"]  # the schema's defaults where params leave a key out
+    params = section_defaults("field", params)  # the schema's defaults where params leave a key out
+    sp, rp = sampler_params(params), params["render"]
     bg = torch.tensor(rp["background"], dtype=torch.float32, device=dev)
     cam_seq = seq if library_motion_npz is None else meta["sequence"]
     if library_motion_npz is not None:
