@@ -47,7 +47,7 @@ CODE_PATHS = ("anidress_core", "benchmarks/bench_field.py", "benchmarks/field_ru
 BUDGETS = (0.25, 0.5, 1.0)
 #: budgets of the convergence curve on the tuning scenes
 CURVE = (0.25, 0.5, 1.0, 2.0)
-#: the heading of each section of field.md
+#: the heading of each section of field.md (write() puts it above the section's table)
 TITLES = {"demo": "The demo scenes", "profile": "Where the time goes", "suite": "The held-out scenes of the field suite",
           "convergence": "Convergence on the tuning scenes (the budget was chosen here)",
           "attribution": "What blurs the garment: attribution on the tuning scenes",
@@ -335,8 +335,7 @@ def _figs(r: dict, k: str) -> str:
 
 def demo_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
-    L = ["## " + TITLES["demo"], "",
-         f"- command: `.venv/bin/python -m benchmarks.bench_field demo` (git {m['git']}, {m['date']}); {m['cpu']}, "
+    L = [f"- command: `.venv/bin/python -m benchmarks.bench_field demo` (git {m['git']}, {m['date']}); {m['cpu']}, "
          f"{m['cpus']} logical CPUs; load {m['load_start']} at the start, {m['load_end']} at the end",
          _fits_line(m),
          "- each field trained, rendered and scored as rules train_field / render_* / evaluate_field do (the pipeline's "
@@ -370,8 +369,7 @@ def demo_table(d: dict) -> list[str]:
 
 def profile_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
-    L = ["## " + TITLES["profile"], "",
-         f"- command: `.venv/bin/python -m benchmarks.bench_field profile` (git {m['git']}, {m['date']}); {m['cpu']}; "
+    L = [f"- command: `.venv/bin/python -m benchmarks.bench_field profile` (git {m['git']}, {m['date']}); {m['cpu']}; "
          f"load {m['load_start']} at the start, {m['load_end']} at the end",
          "- benchmarks/field_profile.py on the demo skirt's `full` field (the pipeline's inputs), each code with its "
          "defaults: CPU ms per training step of `train_field`, and each part alone on one batch (forward and "
@@ -470,7 +468,7 @@ def _time_to_quality_lines(rows: list[dict], label: str) -> list[str]:
 def suite_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
     held, steps = m["held_out"], m["steps"]
-    L = ["## " + TITLES["suite"], ""] + _suite_head(m, "suite", BUDGETS) + [""]
+    L = _suite_head(m, "suite", BUDGETS) + [""]
     dflt = [r for r in rows if r["code"] != "." or r["steps"] == steps]
     L += [f"| scene | variant | code | train wall s | {FIG_HEAD[0]} | {FIG_HEAD[1]} |",
           "| --- | --- | --- | --- | --- | --- |"]
@@ -501,7 +499,7 @@ def suite_table(d: dict) -> list[str]:
 
 def convergence_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
-    L = ["## " + TITLES["convergence"], ""] + _suite_head(m, "convergence", CURVE)
+    L = _suite_head(m, "convergence", CURVE)
     L += ["", "| scene | variant | code | steps | train wall s (CPU s) | novel view subject / garment PSNR | "
           "novel pose subject / garment PSNR |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in sorted(rows, key=lambda r: (r["scene"], r["variant"], r["code"] == ".", r["steps"])):
@@ -514,8 +512,7 @@ def convergence_table(d: dict) -> list[str]:
 
 def attribution_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
-    L = ["## " + TITLES["attribution"], "",
-         f"- command: `.venv/bin/python -m benchmarks.bench_field attribution` (git {m['git']}, {m['date']}); "
+    L = [f"- command: `.venv/bin/python -m benchmarks.bench_field attribution` (git {m['git']}, {m['date']}); "
          f"{m['cpu']}; load {m['load_start']} at the start, {m['load_end']} at the end",
          _fits_line(m),
          "- one row per cause, the same training budget (this code's default steps and rays) unless the row is the "
@@ -536,8 +533,7 @@ def attribution_table(d: dict) -> list[str]:
 def options_table(d: dict) -> list[str]:
     m, rows = d["meta"], d["rows"]
     base = OPTIONS[0][0]
-    L = ["## " + TITLES["options"], "",
-         f"- command: `.venv/bin/python -m benchmarks.bench_field options` (git {m['git']}, {m['date']}); "
+    L = [f"- command: `.venv/bin/python -m benchmarks.bench_field options` (git {m['git']}, {m['date']}); "
          f"{m['cpu']}; load {m['load_start']} at the start, {m['load_end']} at the end",
          _fits_line(m),
          f"- held-out scenes {', '.join(m['held_out'])} (tuning: {', '.join(m['tuning'])}), variant `full`, the "
@@ -565,8 +561,7 @@ def bound_table(d: dict) -> list[str]:
     suite, options = read("suite"), read("options")
     ref = [r for r in (suite or {}).get("rows", []) if r["code"] != "." and r["variant"] == "full"]
     now = [r for r in (options or {}).get("rows", []) if r["method"] == OPTIONS[0][0]]
-    L = ["## " + TITLES["bound"], "",
-         f"- command: `.venv/bin/python -m benchmarks.bench_field bound` (git {m['git']}, {m['date']}); {m['cpu']}; "
+    L = [f"- command: `.venv/bin/python -m benchmarks.bench_field bound` (git {m['git']}, {m['date']}); {m['cpu']}; "
          f"load {m['load_start']} at the start, {m['load_end']} at the end", _fits_line(m),
          f"- held-out scenes {', '.join(held)}, variant `full`, this code's default budget. Rig floor: the rig's bone "
          "transforms fitted to the ground-truth garment meshes in place of the fits (training and novel-pose "
@@ -609,7 +604,10 @@ def write(args) -> None:
     rows_csv = []
     md, csv_path = ROOT / "benchmarks" / "field.md", ROOT / "benchmarks" / "field.csv"
     kept_md = _sections(md.read_text()) if md.is_file() else {}
-    kept_csv = list(csv.DictReader(open(csv_path))) if csv_path.is_file() else []
+    kept_csv = []
+    if csv_path.is_file():
+        with open(csv_path, newline="") as fh:
+            kept_csv = list(csv.DictReader(fh))
     for kind, table in (("demo", demo_table), ("profile", profile_table), ("suite", suite_table),
                         ("convergence", convergence_table), ("attribution", attribution_table),
                         ("options", options_table), ("bound", bound_table)):
@@ -621,6 +619,7 @@ def write(args) -> None:
             else:
                 L += [f"## {TITLES[kind]}", "", f"not run (`python -m benchmarks.bench_field {kind}`)", ""]
             continue
+        L += [f"## {TITLES[kind]}", ""]
         failed = [r for r in d["rows"] if "failed" in r]
         d["rows"] = [r for r in d["rows"] if "failed" not in r]
         L += table(d) + [""]
