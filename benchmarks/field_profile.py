@@ -29,6 +29,11 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _api(module, name: str):
+    """``module.name``, or ``module._name`` in code from before fc817fc made these helpers public (6aee398)."""
+    return getattr(module, name) if hasattr(module, name) else getattr(module, "_" + name)
+
+
 def prepare(scene: str, variant: str):
     """(model, TrainData, TrainConfig, render params) as rule train_field builds them, in either code version."""
     from anidress_core.camera import pixel_rays
@@ -48,13 +53,14 @@ def prepare(scene: str, variant: str):
     scene_dir, res = ROOT / "data" / scene, ROOT / "results" / scene
     info = read_scene(scene_dir)
     seq = [s["name"] for s in info["sequences"] if s["role"] == "train"][0]
-    sp, tcfg, fcfg = SF.sampler_params(params), SF.train_config_from_params(params), SF.field_config_from_params(params)
+    sp = _api(SF, "sampler_params")(params)
+    tcfg, fcfg = SF.train_config_from_params(params), SF.field_config_from_params(params)
     motion = load_sequence_motion(scene_dir, seq, info["fps"], None)
     T = motion.poses.shape[0]
     cams = info["cameras"]["train"]
     garment = (scene_dir / "garment").is_dir()
-    inp = SF.rest_inputs(scene_dir, info, res / "template.npz" if garment else None,
-                          res / "rig.npz" if garment else None, variant, motion.shapes)
+    inp = _api(SF, "rest_inputs")(scene_dir, info, res / "template.npz" if garment else None,
+                                 res / "rig.npz" if garment else None, variant, motion.shapes)
     posed = load_body(scene_dir, info).pose(motion.poses, motion.Rh, motion.Th, motion.shapes)
     G = None
     if variant == "full" and garment:
@@ -67,7 +73,7 @@ def prepare(scene: str, variant: str):
                                  pr["box_pad_m"], pr["ellipsoid_scale"])
     grid = build_occupancy(parts, (sp["res"],) * 3, sp["max_joints"], sp["min_weight"])
     cameras = scene_cameras(scene_dir, seq, list(cams), info).to(dtype=torch.float32)
-    imgs, labels = SF.read_views(scene_dir / seq, cams, list(range(T)), res / seq / "masks", tcfg.background)
+    imgs, labels = _api(SF, "read_views")(scene_dir / seq, cams, list(range(T)), res / seq / "masks", tcfg.background)
     Tn, C, H, W, _ = imgs.shape
     boxes = mask_boxes((labels > 0).reshape(Tn * C, H, W), sp["mask_dilate_px"]).reshape(Tn, C, 4)
     rays = pixel_rays(cameras)
@@ -108,7 +114,7 @@ def profile(scene: str, variant: str, steps: int, reps: int, images: int) -> dic
     every = getattr(cfg, "weights_every", 1)
 
     def sample():
-        o, d, fr, target, bg, _ = TR.sample_batch(data, valid, cfg, gen, 0)
+        o, d, fr, target, bg, _ = _api(TR, "sample_batch")(data, valid, cfg, gen, 0)
         return o, d, fr, target, bg, march(o, d, fr, data.grid, cfg.step_m, generator=gen, jitter=True)
 
     o, d, fr, target, bg, s = sample()
@@ -141,7 +147,7 @@ def profile(scene: str, variant: str, steps: int, reps: int, images: int) -> dic
         rgb = torch.sigmoid(model.canonical.color_net(h[:, 1:]))
         (h[:, 0].sum() + rgb.sum()).backward()
 
-    opt = torch.optim.Adam(TR.param_groups(model, cfg), betas=(0.9, 0.99), fused=True)
+    opt = torch.optim.Adam(_api(TR, "param_groups")(model, cfg), betas=(0.9, 0.99), fused=True)
     sig = torch.rand(s.ray.shape[0], requires_grad=True)
     col = torch.rand(s.ray.shape[0], 3, requires_grad=True)
 
