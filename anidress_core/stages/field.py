@@ -67,24 +67,24 @@ log = logging.getLogger("anidress.field")
 
 
 def field_config_from_params(p: dict) -> FieldConfig:
-    """``field/model`` config section -> FieldConfig."""
-    m = p.get("model", {})
-    grid = HashGridConfig(levels=int(m.get("hash_levels", 8)), features=int(m.get("hash_features", 2)),
-                          log2_size=int(m.get("hash_log2_size", 17)),
-                          base_resolution=int(m.get("hash_base_resolution", 16)),
-                          max_resolution=int(m.get("hash_max_resolution", 256)))
-    return FieldConfig(grid=grid, width=int(m.get("width", 64)), volume_res=int(m.get("volume_res", 32)),
-                       density_bias=float(m.get("density_bias", 3.0)),
-                       warp_iterations=int(m.get("warp_iterations", 3)))
+    """``field`` config section -> FieldConfig (its ``model`` part; absent keys take the schema's defaults)."""
+    m = section_defaults("field", p)["model"]
+    grid = HashGridConfig(levels=int(m["hash_levels"]), features=int(m["hash_features"]),
+                          log2_size=int(m["hash_log2_size"]), base_resolution=int(m["hash_base_resolution"]),
+                          max_resolution=int(m["hash_max_resolution"]))
+    return FieldConfig(grid=grid, width=int(m["width"]), volume_res=int(m["volume_res"]),
+                       density_bias=float(m["density_bias"]), warp_iterations=int(m["warp_iterations"]))
 
 
 def train_config_from_params(p: dict) -> TrainConfig:
-    """``field/train`` (+ ``field/sampler/step_m``, ``field/render/background``) -> TrainConfig."""
-    t = dict(p.get("train", {}))
+    """``field/train`` (+ ``field/sampler/step_m``, ``field/render/background``) -> TrainConfig (absent keys take
+    the schema's defaults)."""
+    f = section_defaults("field", p)
+    t = dict(f["train"])
     t.pop("frame_stride", None)
-    t["step_m"] = float(p.get("sampler", {}).get("step_m", TrainConfig.step_m))
-    t["background"] = tuple(float(c) for c in p.get("render", {}).get("background", (0.0, 0.0, 0.0)))
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    t["step_m"] = float(f["sampler"]["step_m"])
+    t["background"] = tuple(float(c) for c in f["render"]["background"])
+    known = {fl.name for fl in dataclasses.fields(TrainConfig)}
     unknown = sorted(set(t) - known)
     if unknown:
         raise ValueError(f"field/train: unknown keys {unknown}")

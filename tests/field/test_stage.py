@@ -257,3 +257,22 @@ def test_evaluate_region_metrics(scene_dir, tmp_path):
     with pytest.raises(files.ArtifactError,
                        match=r"masks/02/000001.png: mask size \(16, 32\) differs from the render \(32, 32\)"):
         run_evaluate(root, renders[:1], tmp_path / "m3.csv", tmp_path / "s3.json", {}, progress=False)
+
+
+def test_partial_sections_take_the_schemas_defaults():
+    """A field section that leaves keys out gets the schema's values (one source of defaults), the keys it has win,
+    and an unknown training key is a clear error."""
+    from anidress_core.config import section_defaults
+    from anidress_core.stages.field import field_config_from_params, train_config_from_params
+
+    full = section_defaults("field", {})
+    t = train_config_from_params(PARAMS)
+    assert (t.steps, t.rays_per_step, t.step_m) == (12, 128, 0.015)  # the section's own values
+    for key in ("lr", "lr_weights", "weights_every", "refine_lr", "seed", "lpips_weight"):
+        assert getattr(t, key) == full["train"][key]
+    m = field_config_from_params(PARAMS)
+    assert (m.grid.levels, m.width) == (4, 32)
+    assert m.warp_iterations == full["model"]["warp_iterations"]
+    assert m.density_bias == full["model"]["density_bias"]
+    with pytest.raises(ValueError, match="unknown keys"):
+        train_config_from_params({"train": {"stepz": 3}})
