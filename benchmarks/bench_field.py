@@ -493,6 +493,18 @@ def suite_table(d: dict) -> list[str]:
             L.append(f"- `full` - `body_only`, garment PSNR, {name}, this code: " +
                      ", ".join(f"{sc} {v:+.2f}" for sc, v in margins) +
                      f"; `full` ahead on {sum(v > 0 for _, v in margins)} of {len(margins)}")
+    L += ["", "Render CPU s per image, this code at its defaults over the reference (one thread; the same images):", ""]
+    for variant in ("full", "body_only"):
+        for k, name in (("nv", "novel view"), ("np", "novel pose")):
+            ratios = []
+            for sc in held:
+                a = [r for r in dflt if r["scene"] == sc and r["variant"] == variant and r["code"] != "."]
+                b = [r for r in dflt if r["scene"] == sc and r["variant"] == variant and r["code"] == "."]
+                if a and b and a[0].get(f"{k}_render_cpu_s_per_image") and b[0].get(f"{k}_render_cpu_s_per_image"):
+                    ratios.append(b[0][f"{k}_render_cpu_s_per_image"] / a[0][f"{k}_render_cpu_s_per_image"])
+            if ratios:
+                L.append(f"- `{variant}`, {name}: median {statistics.median(ratios):.2f}x, worst {max(ratios):.2f}x "
+                         f"over {len(ratios)} scenes")
     L += ["", "### Time to the reference's quality (held out)", ""] + _time_to_quality_lines(rows, "held out")
     return L
 
