@@ -12,7 +12,6 @@ Fields are kept under benchmarks/runs/field/study_rows/<scene>/<variant>/<row>/ 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from benchmarks.field_runs import Job, run_jobs
