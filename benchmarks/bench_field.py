@@ -420,16 +420,21 @@ def _med_worst(vals: list[float], worst=min) -> str:
 def _change_summary(ref: list[dict], new: list[dict], scenes: list[str], k: str) -> str:
     """'garment median .., worst ..; subject ..; box ..; IoU ..': ``new`` minus ``ref`` (rows of one kind of
     run each, one per scene) over ``scenes``, for kind ``k`` (nv, np)."""
-    parts = []
-    for f, nd in (("psnr_garment_db", "garment"), ("psnr_subject_db", "subject"), ("psnr_db", "box"), ("iou", "IoU")):
-        vals = []
-        for sc in scenes:
-            a = [r for r in ref if r["scene"] == sc]
-            b = [r for r in new if r["scene"] == sc]
-            if a and b:
-                vals.append(b[0][f"{k}_{f}"] - a[0][f"{k}_{f}"])
-        parts.append(f"{nd} {_med_worst(vals)}")
-    return "; ".join(parts)
+    pairs = _paired(ref, new, scenes)
+    return "; ".join(f"{nd} {_med_worst([b[f'{k}_{f}'] - a[f'{k}_{f}'] for _, a, b in pairs])}"
+                     for f, nd in (("psnr_garment_db", "garment"), ("psnr_subject_db", "subject"), ("psnr_db", "box"),
+                                   ("iou", "IoU")))
+
+
+def _paired(ref: list[dict], new: list[dict], scenes: list[str]) -> list[tuple[str, dict, dict]]:
+    """(scene, its row in ``ref``, its row in ``new``) for each of ``scenes`` that both lists have."""
+    out = []
+    for sc in scenes:
+        a = [r for r in ref if r["scene"] == sc]
+        b = [r for r in new if r["scene"] == sc]
+        if a and b:
+            out.append((sc, a[0], b[0]))
+    return out
 
 
 def _suite_head(m: dict, what: str, budgets: tuple[float, ...]) -> list[str]:
@@ -482,26 +487,22 @@ def suite_table(d: dict) -> list[str]:
         for k, name in (("nv", "novel view"), ("np", "novel pose")):
             L.append(f"- `{variant}`, {name}: " + _change_summary(ref, new, held, k))
     L.append("")
+    mine = {v: [r for r in dflt if r["code"] == "." and r["variant"] == v] for v in ("full", "body_only")}
+    both = _paired(mine["body_only"], mine["full"], held)
     for k, name in (("nv", "novel view"), ("np", "novel pose")):
-        margins = []
-        for sc in held:
-            f = [r for r in dflt if r["scene"] == sc and r["variant"] == "full" and r["code"] == "."]
-            b = [r for r in dflt if r["scene"] == sc and r["variant"] == "body_only" and r["code"] == "."]
-            if f and b:
-                margins.append((sc, f[0][f"{k}_psnr_garment_db"] - b[0][f"{k}_psnr_garment_db"]))
+        g = f"{k}_psnr_garment_db"
+        margins = [(sc, full[g] - body[g]) for sc, body, full in both]
         if margins:
             L.append(f"- `full` - `body_only`, garment PSNR, {name}, this code: " +
                      ", ".join(f"{sc} {v:+.2f}" for sc, v in margins) +
                      f"; `full` ahead on {sum(v > 0 for _, v in margins)} of {len(margins)}")
     L += ["", "Render CPU s per image, this code at its defaults over the reference (one thread; the same images):", ""]
     for variant in ("full", "body_only"):
+        pairs = _paired([r for r in dflt if r["variant"] == variant and r["code"] != "."],
+                        [r for r in dflt if r["variant"] == variant and r["code"] == "."], held)
         for k, name in (("nv", "novel view"), ("np", "novel pose")):
-            ratios = []
-            for sc in held:
-                a = [r for r in dflt if r["scene"] == sc and r["variant"] == variant and r["code"] != "."]
-                b = [r for r in dflt if r["scene"] == sc and r["variant"] == variant and r["code"] == "."]
-                if a and b and a[0].get(f"{k}_render_cpu_s_per_image") and b[0].get(f"{k}_render_cpu_s_per_image"):
-                    ratios.append(b[0][f"{k}_render_cpu_s_per_image"] / a[0][f"{k}_render_cpu_s_per_image"])
+            f = f"{k}_render_cpu_s_per_image"
+            ratios = [b[f] / a[f] for _, a, b in pairs if a.get(f) and b.get(f)]
             if ratios:
                 L.append(f"- `{variant}`, {name}: median {statistics.median(ratios):.2f}x, worst {max(ratios):.2f}x "
                          f"over {len(ratios)} scenes")
